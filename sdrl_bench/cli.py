@@ -1,0 +1,141 @@
+"""Command-line entry points (Hydra). The only module that composes configs and instantiates.
+
+``sdrl-bench`` runs a tracked SINDy fit: collect -> fit -> fidelity -> MLflow.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from hydra.utils import instantiate
+from omegaconf import DictConfig, OmegaConf
+
+from sdrl_bench import ConfigError, tracking
+from sdrl_bench.hydra_callbacks import parent_run_id
+from sdrl_bench.models.libraries import LibraryPart
+from sdrl_bench.pipeline import FitJob, FitResult, check, fit_dynamics
+
+CONF_DIR = Path(__file__).resolve().parents[1] / "conf"
+
+
+def _instantiate(node: Any, key: str) -> Any:
+    try:
+        return instantiate(node, _convert_="all")
+    except Exception as exc:
+        cause = exc.__cause__ or exc
+        raise ConfigError(f"{key}: {cause}".splitlines()[0]) from None
+
+
+def build_fit_job(cfg: DictConfig) -> FitJob:
+    """Turn a composed config into a typed ``FitJob`` (no env steps, no fit)."""
+    for group in ("env", "collector", "library", "optimizer", "surrogate"):
+        if group not in cfg or cfg[group] is None:
+            raise ConfigError(f"{group}: missing config group")
+    if cfg.surrogate.kind != "sindy":
+        raise ConfigError(f"surrogate.kind: {cfg.surrogate.kind!r} is not available yet (sindy)")
+    spec = _instantiate(cfg.env.spec, "env.spec")
+    policy = _instantiate(cfg.collector.policy, "collector.policy")
+    parts = tuple(
+        LibraryPart(_instantiate(p.library, f"library.parts[{i}].library"), str(p.get("inputs", "all")))
+        for i, p in enumerate(cfg.library.parts)
+    )
+    opt_cfg = OmegaConf.to_container(cfg.optimizer, resolve=True)
+    opt_cfg.pop("name", None)
+    optimizer = _instantiate(opt_cfg, "optimizer")
+    return FitJob(
+        spec=spec,
+        library_parts=parts,
+        optimizer=optimizer,
+        n_transitions=int(cfg.n_transitions),
+        policy=policy,
+        epsilon=float(cfg.collector.epsilon),
+        seed=int(cfg.seed),
+        dataset_path=cfg.dataset.path,
+        exclude_bound_transitions=bool(cfg.dataset.exclude_bound_transitions),
+        names={
+            "env": spec.name,
+            "collector": cfg.collector.name,
+            "library": cfg.library.name,
+            "optimizer": cfg.optimizer.name,
+            "surrogate": cfg.surrogate.kind,
+        },
+    )
+
+
+def _sweep_parent() -> str | None:
+    if not HydraConfig.initialized():
+        return None
+    hc = HydraConfig.get()
+    return parent_run_id(hc.sweep.dir) if hc.mode == RunMode.MULTIRUN else None
+
+
+def run_fit(cfg: DictConfig, parent: str | None = None) -> FitResult:
+    """Validate, then fit inside one MLflow run (FAILED if anything raises)."""
+    job = build_fit_job(cfg)
+    checked = check(job)
+    uri = tracking.resolve_uri(cfg.tracking.uri)
+    tracking.check_writable(uri)
+    names = job.names
+    tags = {
+        "sdrl.kind": "fit", "env": names["env"], "library": names["library"],
+        "optimizer": names["optimizer"], "collector": names["collector"],
+        "surrogate": names["surrogate"], "seed": job.seed, "git_commit": tracking.git_commit(CONF_DIR.parent),
+    }
+    run_name = f"fit-{names['env']}-{names['library']}-{names['optimizer']}-s{job.seed}"
+    with tracking.start_run(uri, cfg.tracking.experiment, run_name, tags, parent) as run:
+        result = fit_dynamics(job, checked)
+        tracking.log_fit(run, result, tracking.flatten(OmegaConf.to_container(cfg, resolve=True)))
+    _print_summary(result, uri, run.run_id)
+    return result
+
+
+def _print_summary(result: FitResult, uri: str, run_id: str) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    m = result.fidelity.metrics
+    spec = result.job.spec
+    table = Table(title=f"{spec.name}: {len(result.data)} transitions -> held-out '{result.test_name}' "
+                        f"({len(result.test)} transitions)")
+    for col in ("state", "MSE (raw)", "MSE (normalized)", "corr", "R^2", "10-step MSE", "50-step MSE"):
+        table.add_column(col, justify="right")
+    for n in spec.target_names:
+        table.add_row(n, f"{m[f'mse/{n}']:.3e}", f"{m.get(f'mse_norm/{n}', float('nan')):.3e}",
+                      f"{m[f'corr/{n}']:.6f}", f"{m[f'r2/{n}']:.6f}",
+                      f"{m[f'rollout10_mse/{n}']:.3e}", f"{m[f'rollout50_mse/{n}']:.3e}")
+    console = Console(width=120)
+    console.print(table)
+    console.print(f"diverged rollouts: 10-step {m['rollout10/diverged_fraction']:.1%}, "
+                  f"50-step {m['rollout50/diverged_fraction']:.1%}; "
+                  f"active terms {result.model.n_active_terms}/{result.model.coef_.size}; "
+                  f"fit {result.seconds['fit_wall']:.3f} s")
+    console.print("equations:\n  " + "\n  ".join(result.model.equations()), highlight=False, markup=False)
+    console.print(f"MLflow run {run_id} in {uri}", highlight=False)
+    if uri.startswith("sqlite:///"):
+        rel = Path(uri[len("sqlite:///"):])
+        try:
+            rel = rel.relative_to(Path.cwd())
+        except ValueError:
+            pass
+        console.print(f"browse: mlflow ui --backend-store-uri sqlite:///{rel}  (then open http://127.0.0.1:5000)",
+                      highlight=False)
+
+
+@hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
+def main(cfg: DictConfig) -> float:
+    """Entry point of ``sdrl-bench``: returns the mean normalized one-step MSE (for sweepers)."""
+    try:
+        result = run_fit(cfg, parent=_sweep_parent())
+    except ConfigError as exc:
+        print(f"sdrl-bench: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    return float(result.fidelity.metrics["mse_norm/mean"])
+
+
+if __name__ == "__main__":
+    main()

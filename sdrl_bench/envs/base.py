@@ -1,0 +1,194 @@
+"""Environment specs: what the project knows about a real Gymnasium environment.
+
+A spec is plain data plus a few pure, batched functions. It names the state variables, says
+which of them a dynamics model regresses (``target_names``) and which it takes as given inputs
+(``exogenous_names``, e.g. LunarLander's boolean leg contacts), encodes actions as model
+inputs, and applies the known state bounds the way the real environment applies them.
+
+A new environment needs only a YAML file when this generic behaviour fits (box bounds that the
+env clips to, actions used as they are); subclasses add per-environment knowledge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import gymnasium as gym
+import numpy as np
+
+from sdrl_bench import ConfigError
+
+Policy = Callable[[np.ndarray], Any]
+
+
+@dataclass(frozen=True)
+class EnvSpec:
+    """Generic spec for an environment with a Box observation space."""
+
+    name: str
+    """Short name used in run names, tags and file names (e.g. ``mountain_car``)."""
+    gym_id: str
+    """Gymnasium id passed to ``gymnasium.make``."""
+    state_names: tuple[str, ...]
+    """Names of the observation variables, in observation order."""
+    action_names: tuple[str, ...] = ("u",)
+    """Names of the encoded action features the model sees (one-hot names for discrete)."""
+    gym_kwargs: dict = field(default_factory=dict)
+    """Extra keyword arguments for ``gymnasium.make``."""
+    exogenous_names: tuple[str, ...] = ()
+    """State variables the model takes as inputs but does not regress."""
+    state_low: tuple[float, ...] | None = None
+    """Lower bounds the real env clips the state to (None: no clipping)."""
+    state_high: tuple[float, ...] | None = None
+    """Upper bounds the real env clips the state to."""
+    max_episode_steps: int = 1000
+    """Steps after which the real env truncates an episode."""
+    solved_threshold: float | None = None
+    """Mean return at which the task counts as solved."""
+    obs_dtype: str = "float32"
+    """dtype of the real env's observations."""
+    n_discrete_actions: int = 0
+    """0 for a continuous (Box) action space; else the number of discrete actions, one-hot
+    encoded as model inputs named by ``action_names``."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "state_names", tuple(self.state_names))
+        object.__setattr__(self, "action_names", tuple(self.action_names))
+        object.__setattr__(self, "exogenous_names", tuple(self.exogenous_names))
+        if len(set(self.state_names)) != len(self.state_names):
+            raise ConfigError(f"env.spec.state_names: duplicate names in {self.state_names}")
+        unknown = set(self.exogenous_names) - set(self.state_names)
+        if unknown:
+            raise ConfigError(f"env.spec.exogenous_names: {sorted(unknown)} are not state names")
+        for key in ("state_low", "state_high"):
+            bound = getattr(self, key)
+            if bound is not None:
+                bound = tuple(float(b) for b in bound)
+                object.__setattr__(self, key, bound)
+                if len(bound) != len(self.state_names):
+                    raise ConfigError(
+                        f"env.spec.{key}: {len(bound)} values for {len(self.state_names)} states"
+                    )
+        if self.state_low is not None and self.state_high is not None:
+            if any(lo >= hi for lo, hi in zip(self.state_low, self.state_high)):
+                raise ConfigError("env.spec.state_low must be below env.spec.state_high everywhere")
+        if self.n_discrete_actions and len(self.action_names) != self.n_discrete_actions:
+            raise ConfigError(
+                f"env.spec.action_names: {len(self.action_names)} names for "
+                f"{self.n_discrete_actions} one-hot encoded discrete actions"
+            )
+        if self.max_episode_steps <= 0:
+            raise ConfigError("env.spec.max_episode_steps must be positive")
+
+    # ------------------------------------------------------------------ names and indices
+    @property
+    def target_names(self) -> tuple[str, ...]:
+        """State variables the dynamics model regresses."""
+        return tuple(n for n in self.state_names if n not in self.exogenous_names)
+
+    @property
+    def target_index(self) -> np.ndarray:
+        return np.array([self.state_names.index(n) for n in self.target_names], dtype=int)
+
+    @property
+    def exogenous_index(self) -> np.ndarray:
+        return np.array([self.state_names.index(n) for n in self.exogenous_names], dtype=int)
+
+    @property
+    def control_names(self) -> tuple[str, ...]:
+        """Model inputs besides the regressed states: exogenous states, then action features."""
+        return self.exogenous_names + self.action_names
+
+    @property
+    def input_names(self) -> tuple[str, ...]:
+        return self.target_names + self.control_names
+
+    # ------------------------------------------------------------------ the real env
+    def make_env(self, **kwargs: Any) -> gym.Env:
+        return gym.make(self.gym_id, **{**self.gym_kwargs, **kwargs})
+
+    @property
+    def raw_action_width(self) -> int:
+        """Columns of a raw action in a dataset (1 for a discrete action index)."""
+        return 1 if self.n_discrete_actions else len(self.action_names)
+
+    def encode_actions(self, actions: np.ndarray) -> np.ndarray:
+        """Raw actions (N, raw width) -> model action features (N, len(action_names))."""
+        actions = np.asarray(actions, dtype=float).reshape(-1, self.raw_action_width)
+        if not self.n_discrete_actions:
+            return actions
+        return np.eye(self.n_discrete_actions)[actions[:, 0].astype(int)]
+
+    def random_action(self, rng: np.random.Generator, env: gym.Env) -> Any:
+        space = env.action_space
+        if isinstance(space, gym.spaces.Discrete):
+            return int(rng.integers(space.n))
+        return rng.uniform(space.low, space.high).astype(space.dtype)
+
+    def heuristic_policy(self, env: gym.Env) -> Policy:
+        raise ConfigError(f"collector: env '{self.name}' has no heuristic policy; use collector=random")
+
+    # ------------------------------------------------------------------ model <-> state
+    def model_inputs(self, states: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(regressed states, controls) for a dynamics model from full states and raw actions."""
+        states = np.asarray(states, dtype=float)
+        controls = [states[:, self.exogenous_index], self.encode_actions(actions)]
+        return states[:, self.target_index], np.concatenate(controls, axis=1)
+
+    def at_bound(self, next_states: np.ndarray) -> np.ndarray:
+        """Rows whose next state lies on a known bound (a non-smooth event no library fits)."""
+        next_states = np.asarray(next_states, dtype=float)
+        mask = np.zeros(len(next_states), dtype=bool)
+        if self.state_low is not None:
+            mask |= np.any(next_states <= np.asarray(self.state_low), axis=1)
+        if self.state_high is not None:
+            mask |= np.any(next_states >= np.asarray(self.state_high), axis=1)
+        return mask
+
+    def apply_bounds(self, states: np.ndarray, predicted_targets: np.ndarray) -> np.ndarray:
+        """Predicted regressed states -> regressed states as the real env would bound them.
+
+        Generic behaviour: clip each regressed variable to its box bounds, then round to the
+        real env's observation dtype.
+        """
+        out = np.asarray(predicted_targets, dtype=float).copy()
+        idx = self.target_index
+        if self.state_low is not None or self.state_high is not None:
+            low = -np.inf if self.state_low is None else np.asarray(self.state_low)[idx]
+            high = np.inf if self.state_high is None else np.asarray(self.state_high)[idx]
+            out = np.clip(out, low, high)
+        return self.round_obs(out)
+
+    def round_obs(self, values: np.ndarray) -> np.ndarray:
+        """Round to the real env's observation dtype (as float64 values)."""
+        return np.asarray(values).astype(self.obs_dtype).astype(float)
+
+    def divergence_limit(self) -> np.ndarray:
+        """Per regressed variable: a magnitude beyond which a predicted state counts as diverged."""
+        if self.state_low is not None and self.state_high is not None:
+            span = np.asarray(self.state_high) - np.asarray(self.state_low)
+            return (np.maximum(np.abs(self.state_low), np.abs(self.state_high)) + 10 * span)[
+                self.target_index
+            ]
+        return np.full(len(self.target_names), 1e3)
+
+    # ------------------------------------------------------------------ held-out test set
+    def test_set_recipe(self) -> "TestSetRecipe":
+        """The fixed, named held-out test set every model of this env is scored on."""
+        return TestSetRecipe(name=f"{self.name}-heldout-v1", seed=10_000, episodes=(("random", 1.0),) * 6)
+
+
+@dataclass(frozen=True)
+class TestSetRecipe:
+    """A deterministic recipe for a held-out test set.
+
+    Episode ``i`` is played with policy ``episodes[i][0]`` ("heuristic" or "random") under
+    eps-greedy exploration ``episodes[i][1]``, reset with seed ``seed + i`` (never a seed the
+    training collectors use by default), for at most ``max_steps`` steps.
+    """
+
+    name: str
+    seed: int
+    episodes: tuple[tuple[str, float], ...]
+    max_steps: int | None = None

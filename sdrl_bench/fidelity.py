@@ -1,0 +1,122 @@
+"""Fidelity of a dynamics model on held-out real transitions, stepped as the surrogate steps it.
+
+A step is: model inputs from (state, action) -> model prediction -> the spec's bounds. One-step
+errors compare that with the real next state; k-step open-loop rollouts feed predictions back
+for k steps with the real actions (and, for exogenous variables such as LunarLander's leg
+contacts, the real recorded values: the rollout measures the regressed dynamics alone).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from sdrl_bench.data import Transitions
+from sdrl_bench.envs.base import EnvSpec
+from sdrl_bench.metrics import mse, pearson, r2
+
+
+class DynamicsModel(Protocol):
+    def predict(self, x: np.ndarray, u: np.ndarray) -> np.ndarray: ...
+
+
+def step(model: DynamicsModel, spec: EnvSpec, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """Next regressed states for full states (N, n_state) and raw actions, bounds applied."""
+    x, u = spec.model_inputs(states, actions)
+    with np.errstate(all="ignore"):
+        return spec.apply_bounds(states, model.predict(x, u))
+
+
+@dataclass
+class FidelityReport:
+    """Metrics keyed ``<name>/<state>`` plus the arrays behind them, for figures."""
+
+    metrics: dict[str, float] = field(default_factory=dict)
+    true_next: np.ndarray | None = None
+    pred_next: np.ndarray | None = None
+    rollout: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+
+
+def evaluate(
+    model: DynamicsModel,
+    spec: EnvSpec,
+    test: Transitions,
+    norm_std: dict[str, float] | None = None,
+    horizons: tuple[int, ...] = (10, 50),
+    stride: int = 5,
+) -> FidelityReport:
+    """One-step MSE (raw units, and in units of ``norm_std``), correlation, R^2 per regressed
+    state, and k-step open-loop rollout MSE with the fraction of diverged rollouts."""
+    names = spec.target_names
+    true = test.next_states[:, spec.target_index]
+    pred = step(model, spec, test.states, test.actions)
+    finite = np.all(np.isfinite(pred), axis=1)
+    rep = FidelityReport(true_next=true, pred_next=pred)
+    m = rep.metrics
+    m["one_step/nonfinite_fraction"] = float(1 - finite.mean())
+    err, cor, det = mse(true[finite], pred[finite]), pearson(true[finite], pred[finite]), r2(true[finite], pred[finite])
+    for i, n in enumerate(names):
+        m[f"mse/{n}"] = float(err[i])
+        if norm_std is not None:
+            m[f"mse_norm/{n}"] = float(err[i] / norm_std[n] ** 2)
+        m[f"corr/{n}"] = float(cor[i])
+        m[f"r2/{n}"] = float(det[i])
+    m["mse/mean"] = float(np.mean(err))
+    if norm_std is not None:
+        m["mse_norm/mean"] = float(np.mean([m[f"mse_norm/{n}"] for n in names]))
+    for k in horizons:
+        final_true, final_pred, diverged = rollouts(model, spec, test, k, stride)
+        m[f"rollout{k}/n"] = float(len(diverged))
+        m[f"rollout{k}/diverged_fraction"] = float(diverged.mean()) if len(diverged) else float("nan")
+        ok = ~diverged
+        e = mse(final_true[ok], final_pred[ok]) if ok.any() else np.full(len(names), np.nan)
+        for i, n in enumerate(names):
+            m[f"rollout{k}_mse/{n}"] = float(e[i])
+        rep.rollout[k] = (final_true, final_pred)
+    return rep
+
+
+def rollouts(
+    model: DynamicsModel, spec: EnvSpec, test: Transitions, k: int, stride: int = 5
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Open-loop k-step rollouts from every ``stride``-th step of each test episode that has k
+    more transitions. Returns the true and predicted regressed state after k steps, and a
+    diverged flag (non-finite, or beyond the spec's divergence limit at any step)."""
+    starts = []
+    for ep in np.unique(test.episode):
+        idx = np.flatnonzero(test.episode == ep)
+        starts += [idx[j] for j in range(0, len(idx) - k + 1, stride)]
+    starts = np.asarray(starts, dtype=int)
+    tgt = spec.target_index
+    if len(starts) == 0:
+        empty = np.zeros((0, len(tgt)))
+        return empty, empty, np.zeros(0, dtype=bool)
+    state = test.states[starts].copy()
+    diverged = np.zeros(len(starts), dtype=bool)
+    limit = spec.divergence_limit()
+    for j in range(k):
+        nxt = step(model, spec, state, test.actions[starts + j])
+        bad = ~np.all(np.isfinite(nxt), axis=1) | np.any(np.abs(nxt) > limit, axis=1)
+        diverged |= bad
+        nxt[diverged] = 0.0  # frozen; excluded from the error
+        state = test.next_states[starts + j].copy()  # exogenous variables: the real values
+        state[:, tgt] = nxt
+    return test.next_states[starts + k - 1][:, tgt], state[:, tgt], diverged
+
+
+def open_loop_episode(
+    model: DynamicsModel, spec: EnvSpec, test: Transitions, episode: int, max_steps: int = 300
+) -> tuple[np.ndarray, np.ndarray]:
+    """(true, predicted) regressed-state trajectories of one test episode, open loop from its
+    first state with its recorded actions (exogenous variables from the record)."""
+    idx = np.flatnonzero(test.episode == episode)[:max_steps]
+    state = test.states[idx[:1]].copy()
+    pred = []
+    for i in idx:
+        nxt = step(model, spec, state, test.actions[i : i + 1])
+        state = test.next_states[i : i + 1].copy()
+        state[:, spec.target_index] = nxt
+        pred.append(nxt[0])
+    return test.next_states[idx][:, spec.target_index], np.asarray(pred)

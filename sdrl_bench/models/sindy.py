@@ -1,0 +1,186 @@
+"""SINDy dynamics model: a pysindy DiscreteSINDy fit, compiled into a batched numpy evaluator.
+
+pysindy's ``predict`` costs about a millisecond a call, so the fitted model is compiled: its
+active library terms become a structured feature program (see ``libraries``), and prediction
+is that feature matrix times the coefficient matrix. The compiled evaluator is checked against
+pysindy's ``predict`` on the training inputs at fit time. The model saves as JSON data.
+"""
+
+from __future__ import annotations
+
+import copy
+import json
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+import pysindy as ps
+from pysindy.feature_library.base import BaseFeatureLibrary
+
+from sdrl_bench import ConfigError
+from sdrl_bench.models.libraries import Term, compile_terms, evaluate_terms, validate_terms
+
+FORMAT = "sdrl-bench/sindy-model-v1"
+
+
+class SindyModel:
+    """s_{t+1} = Xi Theta(s_t, c_t) for regressed states s and controls c (actions, exogenous).
+
+    Parameters
+    ----------
+    library : an unfitted pysindy feature library over inputs [states..., controls...].
+    optimizer : an unfitted pysindy optimizer; cloned for every fit.
+    seed : seeds numpy's global RNG during the fit (pysindy's ensembles draw from it).
+    """
+
+    kind = "sindy"
+
+    def __init__(self, library: BaseFeatureLibrary | None, optimizer=None, seed: int = 0):
+        self.library = library
+        self.optimizer = optimizer
+        self.seed = seed
+
+    # ------------------------------------------------------------------ fit
+    def fit(
+        self,
+        x: np.ndarray,
+        u: np.ndarray,
+        x_next: np.ndarray,
+        *,
+        state_names: Sequence[str],
+        control_names: Sequence[str],
+    ) -> "SindyModel":
+        """Fit on rows (x_t, u_t) -> x_{t+1}; rows are independent (``x_next`` is explicit)."""
+        x, u, x_next = (np.asarray(a, dtype=float) for a in (x, u, x_next))
+        names = list(state_names) + list(control_names)
+        if x.shape[1] != len(state_names) or u.shape[1] != len(control_names):
+            raise ValueError("x / u columns do not match state_names / control_names")
+        t0, c0 = time.perf_counter(), time.process_time()
+        saved = np.random.get_state()
+        np.random.seed(self.seed)
+        try:
+            sindy = ps.DiscreteSINDy(
+                optimizer=copy.deepcopy(self.optimizer) if self.optimizer is not None else ps.STLSQ(),
+                feature_library=copy.deepcopy(self.library),
+            )
+            sindy.fit(x, t=1, x_next=x_next, u=u, feature_names=names)
+        finally:
+            np.random.set_state(saved)
+        self.fit_wall_seconds_ = time.perf_counter() - t0
+        self.fit_cpu_seconds_ = time.process_time() - c0
+        self.state_names_ = list(state_names)
+        self.control_names_ = list(control_names)
+        self.coef_ = np.asarray(sindy.coefficients(), dtype=float)
+        self.feature_names_ = list(sindy.get_feature_names())
+        self.terms_ = compile_terms(sindy.feature_library, len(names))
+        self.n_fit_samples_ = len(x)
+        self.library_description_ = repr(self.library)
+        self.optimizer_description_ = repr(self.optimizer)
+        self._compile()
+        reference = np.asarray(sindy.predict(x, u=u))
+        self.compile_max_abs_diff_ = float(np.max(np.abs(self.predict(x, u) - reference)))
+        scale = max(1.0, float(np.max(np.abs(reference))))
+        if not self.compile_max_abs_diff_ <= 1e-9 * scale:
+            raise RuntimeError(
+                f"compiled SINDy evaluator differs from pysindy.predict by {self.compile_max_abs_diff_:g}"
+            )
+        return self
+
+    def _compile(self) -> None:
+        if len(self.terms_) != self.coef_.shape[1]:
+            raise ValueError(f"{len(self.terms_)} terms for {self.coef_.shape[1]} coefficient columns")
+        self._active = np.flatnonzero(np.any(self.coef_ != 0, axis=0))
+        self._active_terms = [self.terms_[i] for i in self._active]
+        self._active_coef_t = np.ascontiguousarray(self.coef_[:, self._active].T)
+
+    # ------------------------------------------------------------------ use
+    @property
+    def n_active_terms(self) -> int:
+        """Number of nonzero coefficients (summed over equations)."""
+        return int(np.count_nonzero(self.coef_))
+
+    @property
+    def n_inputs(self) -> int:
+        return len(self.state_names_) + len(self.control_names_)
+
+    def features(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """The full library matrix Theta (N, n_features), for inspection and tests."""
+        return evaluate_terms(self.terms_, np.concatenate([np.atleast_2d(x), np.atleast_2d(u)], axis=1))
+
+    def predict(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Next regressed states (N, n_states) for states (N, n_states) and controls (N, n_controls)."""
+        z = np.concatenate([np.atleast_2d(x), np.atleast_2d(u)], axis=1)
+        return evaluate_terms(self._active_terms, z) @ self._active_coef_t
+
+    def equations(self, precision: int = 6) -> list[str]:
+        """One line per regressed state: ``x[k+1] = c1 term1 + c2 term2 ...`` (nonzero terms)."""
+        lines = []
+        for name, row in zip(self.state_names_, self.coef_):
+            parts = [f"{c:+.{precision}g} {n}" if n != "1" else f"{c:+.{precision}g}"
+                     for c, n in zip(row, self.feature_names_) if c != 0]
+            rhs = " ".join(parts) if parts else "0"
+            lines.append(f"{name}[k+1] = {rhs.lstrip('+')}")
+        return lines
+
+    def coefficients_by_name(self) -> dict[str, dict[str, float]]:
+        """{state: {feature name: coefficient}} for the nonzero coefficients."""
+        return {
+            s: {n: float(c) for n, c in zip(self.feature_names_, row) if c != 0}
+            for s, row in zip(self.state_names_, self.coef_)
+        }
+
+    # ------------------------------------------------------------------ persistence (data only)
+    def to_dict(self) -> dict:
+        return {
+            "format": FORMAT,
+            "kind": self.kind,
+            "state_names": self.state_names_,
+            "control_names": self.control_names_,
+            "feature_names": self.feature_names_,
+            "terms": [[list(f) for f in t] for t in self.terms_],
+            "coefficients": self.coef_.tolist(),
+            "library": self.library_description_,
+            "optimizer": self.optimizer_description_,
+            "n_fit_samples": self.n_fit_samples_,
+        }
+
+    def save(self, path: str | Path) -> Path:
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_dict(), indent=1))
+        return path
+
+    @classmethod
+    def from_dict(cls, d: dict, source: str = "model") -> "SindyModel":
+        try:
+            if d.get("format") != FORMAT:
+                raise ValueError(f"format is {d.get('format')!r}, expected {FORMAT!r}")
+            model = cls(library=None)
+            model.state_names_ = [str(s) for s in d["state_names"]]
+            model.control_names_ = [str(s) for s in d["control_names"]]
+            model.feature_names_ = [str(s) for s in d["feature_names"]]
+            model.terms_ = validate_terms(d["terms"], model.n_inputs)
+            model.coef_ = np.asarray(d["coefficients"], dtype=float)
+            if model.coef_.shape != (len(model.state_names_), len(model.terms_)):
+                raise ValueError(f"coefficients have shape {model.coef_.shape}")
+            if len(model.feature_names_) != len(model.terms_) or not np.all(np.isfinite(model.coef_)):
+                raise ValueError("feature names or coefficients are inconsistent")
+            model.library_description_ = str(d.get("library", ""))
+            model.optimizer_description_ = str(d.get("optimizer", ""))
+            model.n_fit_samples_ = int(d.get("n_fit_samples", 0))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ConfigError(f"{source}: not a valid SINDy model file ({exc})") from exc
+        model._compile()
+        return model
+
+    @classmethod
+    def load(cls, path: str | Path) -> "SindyModel":
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"model file not found: {path}")
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as exc:
+            raise ConfigError(f"{path}: not valid JSON ({exc.msg}, line {exc.lineno})") from exc
+        return cls.from_dict(data, source=str(path))

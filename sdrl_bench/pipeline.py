@@ -1,0 +1,129 @@
+"""collect -> fit -> fidelity, as one plain function over typed arguments (no Hydra, no MLflow).
+
+``check`` validates a job cheaply (no env steps, no fit); ``fit_dynamics`` does the work and
+returns a ``FitResult`` that ``tracking.log_fit`` records.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from sdrl_bench import ConfigError
+from sdrl_bench.data import PolicyFactory, Transitions, collect, held_out_test_set, load_csv
+from sdrl_bench.envs.base import EnvSpec
+from sdrl_bench.fidelity import FidelityReport, evaluate, open_loop_episode
+from sdrl_bench.models.libraries import LibraryPart, build_library, count_features
+from sdrl_bench.models.sindy import SindyModel
+
+
+@dataclass(frozen=True)
+class FitJob:
+    """Everything one fit needs."""
+
+    spec: EnvSpec
+    """The environment."""
+    library_parts: tuple[LibraryPart, ...]
+    """Feature library parts (pysindy libraries and the inputs they act on)."""
+    optimizer: Any
+    """A pysindy optimizer (cloned for the fit)."""
+    n_transitions: int = 75
+    """Transitions to collect from the real env."""
+    policy: PolicyFactory | None = None
+    """Collector policy factory (None: uniform random)."""
+    epsilon: float = 0.2
+    """Probability of a uniform random action instead of the policy's."""
+    seed: int = 0
+    """Seed of the collection (episode resets, exploration) and the fit."""
+    dataset_path: str | None = None
+    """A dataset CSV to fit instead of collecting."""
+    exclude_bound_transitions: bool = True
+    """Drop rows whose next state lies on a known bound from the fit (the surrogate applies
+    the bounds itself)."""
+    names: dict = field(default_factory=dict)
+    """Human names of the choices (env, library, optimizer, collector) for tags."""
+
+
+@dataclass
+class FitResult:
+    job: FitJob
+    data: Transitions
+    dataset_hash: str
+    n_fit_rows: int
+    test_name: str
+    test: Transitions
+    test_hash: str
+    model: SindyModel
+    fidelity: FidelityReport
+    episode_true: np.ndarray
+    episode_pred: np.ndarray
+    seconds: dict[str, float]
+
+
+def check(job: FitJob) -> tuple[Any, Transitions | None]:
+    """Cheap validation before any env step or fit. Returns (library, loaded dataset or None)."""
+    spec = job.spec
+    threshold = getattr(job.optimizer, "threshold", getattr(getattr(job.optimizer, "opt", None), "threshold", 0.0))
+    if threshold is not None and threshold < 0:
+        raise ConfigError(f"optimizer.threshold must be >= 0, got {threshold}")
+    library = build_library(job.library_parts, len(spec.target_names), len(spec.control_names))
+    n_terms = count_features(library, len(spec.input_names))
+    data = load_csv(spec, job.dataset_path) if job.dataset_path else None
+    n_rows = len(data) if data is not None else job.n_transitions
+    if data is None and job.n_transitions <= 0:
+        raise ConfigError(f"n_transitions must be positive, got {job.n_transitions}")
+    if n_rows < n_terms:
+        what = f"dataset.path has {n_rows} rows" if data is not None else f"n_transitions={n_rows}"
+        raise ConfigError(
+            f"{what}: fewer transitions than the {n_terms} terms of library "
+            f"'{job.names.get('library', 'library')}' for env '{spec.name}'"
+        )
+    if not 0.0 <= job.epsilon <= 1.0:
+        raise ConfigError(f"collector.epsilon must be in [0, 1], got {job.epsilon}")
+    return library, data
+
+
+def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = None) -> FitResult:
+    """Collect (or load) transitions, fit SINDy, score it on the env's held-out test set.
+
+    ``checked`` is what ``check(job)`` returned, when the caller validated the job already.
+    """
+    library, data = checked if checked is not None else check(job)
+    spec = job.spec
+    seconds: dict[str, float] = {}
+    t0, c0 = time.perf_counter(), time.process_time()
+    if data is None:
+        data = collect(spec, job.policy or _random, job.n_transitions, job.epsilon, job.seed)
+    seconds["collect_wall"] = time.perf_counter() - t0
+    seconds["collect_cpu"] = time.process_time() - c0
+
+    x, u = spec.model_inputs(data.states, data.actions)
+    x_next = data.next_states[:, spec.target_index]
+    keep = ~spec.at_bound(data.next_states) if job.exclude_bound_transitions else np.ones(len(data), bool)
+    if keep.sum() == 0:
+        raise ConfigError("dataset: every transition lies on a state bound; nothing to fit")
+    model = SindyModel(library, job.optimizer, seed=job.seed).fit(
+        x[keep], u[keep], x_next[keep], state_names=spec.target_names, control_names=spec.control_names
+    )
+    seconds["fit_wall"] = model.fit_wall_seconds_
+    seconds["fit_cpu"] = model.fit_cpu_seconds_
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    test_name, test = held_out_test_set(spec)
+    norm = {n: s["std"] for n, s in data.normalization(spec).items()}
+    report = evaluate(model, spec, test, norm_std=norm)
+    ep_true, ep_pred = open_loop_episode(model, spec, test, int(test.episode[0]))
+    seconds["evaluate_wall"] = time.perf_counter() - t0
+    seconds["evaluate_cpu"] = time.process_time() - c0
+    return FitResult(
+        job=job, data=data, dataset_hash=data.content_hash(), n_fit_rows=int(keep.sum()),
+        test_name=test_name, test=test, test_hash=test.content_hash(), model=model,
+        fidelity=report, episode_true=ep_true, episode_pred=ep_pred, seconds=seconds,
+    )
+
+
+def _random(spec, env):
+    return None
