@@ -31,6 +31,12 @@ def _instantiate(node: Any, key: str) -> Any:
         raise ConfigError(f"{key}: {cause}".splitlines()[0]) from None
 
 
+def _inputs(value: Any) -> str | tuple[str, ...]:
+    if isinstance(value, str):
+        return value
+    return tuple(str(v) for v in OmegaConf.to_container(value, resolve=True))
+
+
 def build_fit_job(cfg: DictConfig) -> FitJob:
     """Turn a composed config into a typed ``FitJob`` (no env steps, no fit)."""
     for group in ("env", "collector", "library", "optimizer", "surrogate"):
@@ -41,7 +47,7 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
     spec = _instantiate(cfg.env.spec, "env.spec")
     policy = _instantiate(cfg.collector.policy, "collector.policy")
     parts = tuple(
-        LibraryPart(_instantiate(p.library, f"library.parts[{i}].library"), str(p.get("inputs", "all")))
+        LibraryPart(_instantiate(p.library, f"library.parts[{i}].library"), _inputs(p.get("inputs", "all")))
         for i, p in enumerate(cfg.library.parts)
     )
     opt_cfg = OmegaConf.to_container(cfg.optimizer, resolve=True)

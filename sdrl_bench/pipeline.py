@@ -69,7 +69,7 @@ def check(job: FitJob) -> tuple[Any, Transitions | None]:
     threshold = getattr(job.optimizer, "threshold", getattr(getattr(job.optimizer, "opt", None), "threshold", 0.0))
     if threshold is not None and threshold < 0:
         raise ConfigError(f"optimizer.threshold must be >= 0, got {threshold}")
-    library = build_library(job.library_parts, len(spec.target_names), len(spec.control_names))
+    library = build_library(job.library_parts, spec.target_names, spec.control_names)
     n_terms = count_features(library, len(spec.input_names))
     data = load_csv(spec, job.dataset_path) if job.dataset_path else None
     n_rows = len(data) if data is not None else job.n_transitions
@@ -83,6 +83,12 @@ def check(job: FitJob) -> tuple[Any, Transitions | None]:
         )
     if not 0.0 <= job.epsilon <= 1.0:
         raise ConfigError(f"collector.epsilon must be in [0, 1], got {job.epsilon}")
+    if data is None and job.policy is not None:
+        env = spec.make_env()
+        try:
+            job.policy(spec, env)  # a collector the env cannot serve fails here, not mid-run
+        finally:
+            env.close()
     return library, data
 
 

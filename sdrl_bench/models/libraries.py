@@ -131,33 +131,47 @@ class RationalLibrary(_TermLibrary):
 # ---------------------------------------------------------------------- composition
 @dataclass(frozen=True)
 class LibraryPart:
-    """One pysindy library and the inputs it acts on: 'all', 'states' or 'controls'."""
+    """One pysindy library and the inputs it acts on: 'all', 'states', 'controls', or a list of
+    input names (e.g. ``[angle]``)."""
 
     library: BaseFeatureLibrary
-    inputs: str = "all"
+    inputs: str | tuple[str, ...] = "all"
 
 
-def build_library(parts: Sequence[LibraryPart | dict], n_states: int, n_controls: int) -> ps.GeneralizedLibrary:
+def build_library(
+    parts: Sequence[LibraryPart | dict], state_names: Sequence[str], control_names: Sequence[str]
+) -> ps.GeneralizedLibrary:
     """A GeneralizedLibrary over inputs [states..., controls...] from ``parts``."""
     if not parts:
         raise ConfigError("library.parts: at least one library part is needed")
-    libs, inputs = [], []
+    names = list(state_names) + list(control_names)
+    n_states = len(state_names)
     groups = {
-        "all": list(range(n_states + n_controls)),
+        "all": list(range(len(names))),
         "states": list(range(n_states)),
-        "controls": list(range(n_states, n_states + n_controls)),
+        "controls": list(range(n_states, len(names))),
     }
+    libs, inputs = [], []
     for i, part in enumerate(parts):
         if isinstance(part, dict):
             part = LibraryPart(**part)
         if not isinstance(part.library, BaseFeatureLibrary):
             raise ConfigError(f"library.parts[{i}].library: not a pysindy feature library")
-        if part.inputs not in groups:
-            raise ConfigError(f"library.parts[{i}].inputs: {part.inputs!r} is not one of {sorted(groups)}")
-        if not groups[part.inputs]:
-            raise ConfigError(f"library.parts[{i}].inputs: the env has no {part.inputs}")
+        if isinstance(part.inputs, str):
+            if part.inputs not in groups:
+                raise ConfigError(
+                    f"library.parts[{i}].inputs: {part.inputs!r} is not one of {sorted(groups)} or a list of input names"
+                )
+            idx = groups[part.inputs]
+        else:
+            unknown = [n for n in part.inputs if n not in names]
+            if unknown:
+                raise ConfigError(f"library.parts[{i}].inputs: {unknown} are not inputs of this env ({names})")
+            idx = [names.index(n) for n in part.inputs]
+        if not idx:
+            raise ConfigError(f"library.parts[{i}].inputs: selects no input for this env")
         libs.append(part.library)
-        inputs.append(groups[part.inputs])
+        inputs.append(idx)
     return ps.GeneralizedLibrary(libs, inputs_per_library=inputs)
 
 

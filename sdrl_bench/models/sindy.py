@@ -56,6 +56,7 @@ class SindyModel:
         names = list(state_names) + list(control_names)
         if x.shape[1] != len(state_names) or u.shape[1] != len(control_names):
             raise ValueError("x / u columns do not match state_names / control_names")
+        self._check_columns(x, u, names)
         t0, c0 = time.perf_counter(), time.process_time()
         saved = np.random.get_state()
         np.random.seed(self.seed)
@@ -86,6 +87,22 @@ class SindyModel:
                 f"compiled SINDy evaluator differs from pysindy.predict by {self.compile_max_abs_diff_:g}"
             )
         return self
+
+    def _check_columns(self, x: np.ndarray, u: np.ndarray, names: list[str]) -> None:
+        """normalize_columns divides by each library column's norm: an all-zero column (a leg
+        contact never seen, an action never taken) would turn every coefficient into NaN."""
+        opt = getattr(self.optimizer, "opt", self.optimizer)
+        if not getattr(opt, "normalize_columns", False):
+            return
+        lib = copy.deepcopy(self.library)
+        theta = np.asarray(lib.fit_transform(np.concatenate([x, u], axis=1)))
+        zero = np.flatnonzero(~np.any(theta != 0, axis=0))
+        if len(zero):
+            feature = lib.get_feature_names(names)[zero[0]]
+            raise ConfigError(
+                f"optimizer.normalize_columns: library column '{feature}' is all zeros in the "
+                "training data; set optimizer.normalize_columns=false or collect more data"
+            )
 
     def _compile(self) -> None:
         if len(self.terms_) != self.coef_.shape[1]:
