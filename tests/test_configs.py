@@ -1,0 +1,60 @@
+"""Every config group option composes, and every combination instantiates into a FitJob."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+
+from conftest import compose_cfg
+from sdrl_bench import ConfigError
+from sdrl_bench.cli import CONF_DIR, build_fit_job
+from sdrl_bench.pipeline import check
+
+
+def options(group: str) -> list[str]:
+    return sorted(p.stem for p in (CONF_DIR / group).glob("*.yaml"))
+
+
+def test_groups_have_the_expected_options():
+    assert {"mountain_car", "lunar_lander", "lunar_lander_continuous"} <= set(options("env"))
+    assert {"polynomial", "trig", "poly_trig", "rational"} <= set(options("library"))
+    assert {"stlsq", "sr3", "ensemble"} <= set(options("optimizer"))
+    assert {"random", "heuristic"} <= set(options("collector"))
+    assert "sindy" in options("surrogate")
+
+
+@pytest.mark.parametrize(
+    "env,library,optimizer",
+    list(itertools.product(options("env"), options("library"), options("optimizer"))),
+)
+def test_every_combination_instantiates(env, library, optimizer):
+    collector = "random" if env == "pendulum" else "heuristic"
+    cfg = compose_cfg(f"env={env}", f"library={library}", f"optimizer={optimizer}", f"collector={collector}")
+    job = build_fit_job(cfg)
+    library_obj, data = check(job)  # validates budgets against the library size, no env steps
+    assert data is None
+    assert job.spec.name == env
+    assert job.names == {"env": env, "collector": collector, "library": library,
+                         "optimizer": optimizer, "surrogate": "sindy"}
+    assert type(job.optimizer).__name__ in {"STLSQ", "SR3", "EnsembleOptimizer"}
+    assert len(library_obj.libraries) == len(cfg.library.parts)
+
+
+def test_lunar_lander_spec_encodes_actions_one_hot():
+    job = build_fit_job(compose_cfg("env=lunar_lander"))
+    assert job.spec.control_names == ("leg_left", "leg_right", "a_noop", "a_left", "a_main", "a_right")
+    assert job.spec.encode_actions([[2], [0]]).tolist() == [[0, 0, 1, 0], [1, 0, 0, 0]]
+    cont = build_fit_job(compose_cfg("env=lunar_lander_continuous")).spec
+    assert cont.control_names == ("leg_left", "leg_right", "main", "lateral")
+    assert cont.make_env().action_space.shape == (2,)
+
+
+def test_budgets_shrink_by_override():
+    job = build_fit_job(compose_cfg("n_transitions=40", "collector.epsilon=0.5", "seed=7"))
+    assert (job.n_transitions, job.epsilon, job.seed) == (40, 0.5, 7)
+
+
+def test_pendulum_needs_no_code_but_has_no_heuristic():
+    with pytest.raises(ConfigError, match="collector: env 'pendulum' has no heuristic"):
+        check(build_fit_job(compose_cfg("env=pendulum")))
