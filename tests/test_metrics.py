@@ -61,3 +61,15 @@ def test_rollout_final_state_and_divergence_fraction():
     m = evaluate(Exploding(), spec, test).metrics
     assert m["rollout10/diverged_fraction"] == 1.0
     assert np.isnan(m.get("rollout10_mse/x", np.nan))
+
+
+def test_smooth_subset_excludes_contact_and_terminal_transitions():
+    spec = LunarLanderSpec()
+    _, test = held_out_test_set(spec)
+    m = evaluate(Copy(), spec, test, horizons=()).metrics
+    legs = (test.states[:, 6:] != 0).any(axis=1) | (test.next_states[:, 6:] != 0).any(axis=1)
+    smooth = ~legs & ~test.terminated
+    assert 0.2 < smooth.mean() < 0.9
+    assert m["one_step/smooth_fraction"] == pytest.approx(smooth.mean())
+    err = (spec.round_obs(test.states[smooth, 5]) - test.next_states[smooth, 5]) ** 2
+    assert m["mse_smooth/angvel"] == pytest.approx(err.mean(), rel=1e-12)
