@@ -42,8 +42,6 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
     for group in ("env", "collector", "library", "optimizer", "surrogate"):
         if group not in cfg or cfg[group] is None:
             raise ConfigError(f"{group}: missing config group")
-    if cfg.surrogate.kind != "sindy":
-        raise ConfigError(f"surrogate.kind: {cfg.surrogate.kind!r} is not available yet (sindy)")
     spec = _instantiate(cfg.env.spec, "env.spec")
     policy = _instantiate(cfg.collector.policy, "collector.policy")
     parts = tuple(
@@ -53,6 +51,7 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
     opt_cfg = OmegaConf.to_container(cfg.optimizer, resolve=True)
     opt_cfg.pop("name", None)
     optimizer = _instantiate(opt_cfg, "optimizer")
+    model_factory = _instantiate(cfg.surrogate.model, "surrogate.model")
     return FitJob(
         spec=spec,
         library_parts=parts,
@@ -63,6 +62,8 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
         seed=int(cfg.seed),
         dataset_path=cfg.dataset.path,
         exclude_bound_transitions=bool(cfg.dataset.exclude_bound_transitions),
+        surrogate=str(cfg.surrogate.kind),
+        model_factory=model_factory,
         names={
             "env": spec.name,
             "collector": cfg.collector.name,
@@ -118,9 +119,10 @@ def _print_summary(result: FitResult, uri: str, run_id: str) -> None:
     console.print(table)
     console.print(f"diverged rollouts: 10-step {m['rollout10/diverged_fraction']:.1%}, "
                   f"50-step {m['rollout50/diverged_fraction']:.1%}; "
-                  f"active terms {result.model.n_active_terms}/{result.model.coef_.size}; "
+                  f"parameters {int(result.model.summary_metrics()['n_parameters'])}; "
                   f"fit {result.seconds['fit_wall']:.3f} s")
-    console.print("equations:\n  " + "\n  ".join(result.model.equations()), highlight=False, markup=False)
+    lines = result.model.describe().strip().splitlines()
+    console.print(f"{result.model.summary_file[:-4]}:\n  " + "\n  ".join(lines), highlight=False, markup=False)
     console.print(f"MLflow run {run_id} in {uri}", highlight=False)
     if uri.startswith("sqlite:///"):
         rel = Path(uri[len("sqlite:///"):])

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -17,6 +17,7 @@ from sdrl_bench.data import PolicyFactory, Transitions, collect, held_out_test_s
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.fidelity import FidelityReport, evaluate, open_loop_episode
 from sdrl_bench.models.libraries import LibraryPart, build_library, count_features
+from sdrl_bench.models.base import DynamicsModel
 from sdrl_bench.models.sindy import SindyModel
 
 
@@ -45,6 +46,11 @@ class FitJob:
     the bounds itself)."""
     names: dict = field(default_factory=dict)
     """Human names of the choices (env, library, optimizer, collector) for tags."""
+    surrogate: str = "sindy"
+    """Kind of dynamics model: "sindy" (uses the library and optimizer) or another kind."""
+    model_factory: Callable[..., DynamicsModel] | None = None
+    """Builds the unfitted model: called as ``factory(library=, optimizer=, seed=)`` for SINDy
+    and ``factory(seed=)`` otherwise. None: ``SindyModel``."""
 
 
 @dataclass
@@ -56,7 +62,7 @@ class FitResult:
     test_name: str
     test: Transitions
     test_hash: str
-    model: SindyModel
+    model: DynamicsModel
     fidelity: FidelityReport
     episode_true: np.ndarray
     episode_pred: np.ndarray
@@ -70,7 +76,7 @@ def check(job: FitJob) -> tuple[Any, Transitions | None]:
     if threshold is not None and threshold < 0:
         raise ConfigError(f"optimizer.threshold must be >= 0, got {threshold}")
     library = build_library(job.library_parts, spec.target_names, spec.control_names)
-    n_terms = count_features(library, len(spec.input_names))
+    n_terms = count_features(library, len(spec.input_names)) if job.surrogate == "sindy" else 0
     data = load_csv(spec, job.dataset_path) if job.dataset_path else None
     n_rows = len(data) if data is not None else job.n_transitions
     if data is None and job.n_transitions <= 0:
@@ -111,7 +117,7 @@ def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = N
     keep = ~spec.at_bound(data.next_states) if job.exclude_bound_transitions else np.ones(len(data), bool)
     if keep.sum() == 0:
         raise ConfigError("dataset: every transition lies on a state bound; nothing to fit")
-    model = SindyModel(library, job.optimizer, seed=job.seed).fit(
+    model = build_model(job, library).fit(
         x[keep], u[keep], x_next[keep], state_names=spec.target_names, control_names=spec.control_names
     )
     seconds["fit_wall"] = model.fit_wall_seconds_
@@ -129,6 +135,16 @@ def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = N
         test_name=test_name, test=test, test_hash=test.content_hash(), model=model,
         fidelity=report, episode_true=ep_true, episode_pred=ep_pred, seconds=seconds,
     )
+
+
+def build_model(job: FitJob, library: Any) -> DynamicsModel:
+    """The unfitted dynamics model a job asks for."""
+    if job.surrogate == "sindy":
+        factory = job.model_factory or SindyModel
+        return factory(library=library, optimizer=job.optimizer, seed=job.seed)
+    if job.model_factory is None:
+        raise ConfigError(f"surrogate.model: no model factory for surrogate kind {job.surrogate!r}")
+    return job.model_factory(seed=job.seed)
 
 
 def _random(spec, env):

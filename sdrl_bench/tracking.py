@@ -208,16 +208,15 @@ def fit_metrics(result) -> dict[str, float]:
         "n_excluded_at_bound": len(data) - result.n_fit_rows,
         "n_episodes": len(set(data.episode.tolist())),
         "n_test_transitions": len(result.test),
-        "n_library_terms": model.coef_.shape[1],
-        "n_active_terms": model.n_active_terms,
-        "compile_max_abs_diff": model.compile_max_abs_diff_,
+        **model.summary_metrics(),
         **{f"{k}_seconds": v for k, v in result.seconds.items()},
     }
 
 
 def log_fit(run: Run, result, params: Mapping[str, Any]) -> None:
     """Record a fit: params, metrics, data and test-set hashes, and the artifacts (dataset CSV
-    with its normalization sidecar, model JSON, equations, predicted-vs-true figure)."""
+    with its normalization sidecar, the saved model, its equations or summary, the
+    predicted-vs-true figure)."""
     from sdrl_bench.data import save_csv
     from sdrl_bench.plots import predicted_vs_true
 
@@ -231,8 +230,11 @@ def log_fit(run: Run, result, params: Mapping[str, Any]) -> None:
         csv = save_csv(result.data, spec, Path(tmp) / f"{spec.name}_transitions.csv")
         run.log_artifact(csv, "data")
         run.log_artifact(f"{csv}.stats.json", "data")
-        run.log_artifact(model.save(Path(tmp) / "model.json"), "model")
-    run.log_text("\n".join(model.equations()) + "\n", "model/equations.txt")
+        model_dir = Path(tmp) / "model"
+        model.save(model_dir / "model.json")
+        for path in sorted(model_dir.iterdir()):
+            run.log_artifact(path, "model")
+    run.log_text(model.describe(), f"model/{model.summary_file}")
     fig = predicted_vs_true(
         spec.target_names, result.fidelity.true_next, result.fidelity.pred_next,
         result.episode_true, result.episode_pred,

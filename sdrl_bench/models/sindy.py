@@ -35,6 +35,7 @@ class SindyModel:
     """
 
     kind = "sindy"
+    summary_file = "equations.txt"
 
     def __init__(self, library: BaseFeatureLibrary | None, optimizer=None, seed: int = 0):
         self.library = library
@@ -139,6 +140,18 @@ class SindyModel:
             rhs = " ".join(parts) if parts else "0"
             lines.append(f"{name}[k+1] = {rhs.lstrip('+')}")
         return lines
+
+    def describe(self) -> str:
+        """The discovered equations, one per line."""
+        return "\n".join(self.equations()) + "\n"
+
+    def summary_metrics(self) -> dict[str, float]:
+        return {
+            "n_library_terms": float(self.coef_.shape[1]),
+            "n_active_terms": float(self.n_active_terms),
+            "n_parameters": float(self.n_active_terms),
+            "compile_max_abs_diff": float(getattr(self, "compile_max_abs_diff_", 0.0)),
+        }
 
     def coefficients_by_name(self) -> dict[str, dict[str, float]]:
         """{state: {feature name: coefficient}} for the nonzero coefficients."""
