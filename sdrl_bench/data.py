@@ -152,12 +152,14 @@ def collect(
     seed: int,
     max_steps_per_episode: int | None = None,
     first_episode: int = 0,
+    wrap_env: Callable[[gym.Env], gym.Env] | None = None,
 ) -> Transitions:
     """Collect ``n_transitions`` from the real env with eps-greedy exploration.
 
     With probability ``epsilon`` the action is uniform random, else the policy's. Episodes are
     played back to back (the first reset with ``seed``, the next with ``seed + 1``, ...) until
     ``n_transitions`` rows are recorded; the last episode is cut there. Same arguments, same data.
+    ``wrap_env`` wraps each real env (e.g. a step counter for the accounting).
     """
     if n_transitions <= 0:
         raise ConfigError(f"n_transitions must be positive, got {n_transitions}")
@@ -168,14 +170,15 @@ def collect(
     while len(rows) < n_transitions:
         rows += _play_episode(
             spec, policy_factory, epsilon, seed + episode - first_episode, episode,
-            min(n_transitions - len(rows), max_steps_per_episode or np.inf),
+            min(n_transitions - len(rows), max_steps_per_episode or np.inf), wrap_env,
         )
         episode += 1
     return _stack(rows)
 
 
-def _play_episode(spec, policy_factory, epsilon, seed, episode, limit) -> list[tuple]:
+def _play_episode(spec, policy_factory, epsilon, seed, episode, limit, wrap_env=None) -> list[tuple]:
     env = spec.make_env()
+    env = wrap_env(env) if wrap_env is not None else env
     try:
         policy = policy_factory(spec, env)
         rng = np.random.default_rng(seed)

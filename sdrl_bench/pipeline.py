@@ -48,6 +48,8 @@ class FitJob:
     """Human names of the choices (env, library, optimizer, collector) for tags."""
     surrogate: str = "sindy"
     """Kind of dynamics model: "sindy" (uses the library and optimizer) or another kind."""
+    wrap_env: Callable | None = None
+    """Wraps every real env the collection steps (the RL accounting counts steps with it)."""
     model_factory: Callable[..., DynamicsModel] | None = None
     """Builds the unfitted model: called as ``factory(library=, optimizer=, seed=)`` for SINDy
     and ``factory(seed=)`` otherwise. None: ``SindyModel``."""
@@ -89,7 +91,9 @@ def check(job: FitJob) -> tuple[Any, Transitions | None]:
         )
     if not 0.0 <= job.epsilon <= 1.0:
         raise ConfigError(f"collector.epsilon must be in [0, 1], got {job.epsilon}")
-    if data is None and job.policy is not None:
+    if data is None and hasattr(job.policy, "validate"):
+        job.policy.validate(spec)  # e.g. an expert: checked now, trained only when collecting
+    elif data is None and job.policy is not None:
         env = spec.make_env()
         try:
             job.policy(spec, env)  # a collector the env cannot serve fails here, not mid-run
@@ -108,7 +112,7 @@ def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = N
     seconds: dict[str, float] = {}
     t0, c0 = time.perf_counter(), time.process_time()
     if data is None:
-        data = collect(spec, job.policy or _random, job.n_transitions, job.epsilon, job.seed)
+        data = collect(spec, job.policy or _random, job.n_transitions, job.epsilon, job.seed, wrap_env=job.wrap_env)
     seconds["collect_wall"] = time.perf_counter() - t0
     seconds["collect_cpu"] = time.process_time() - c0
 
