@@ -136,13 +136,23 @@ def _print_summary(result: FitResult, uri: str, run_id: str) -> None:
 
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def main(cfg: DictConfig) -> float:
-    """Entry point of ``sdrl-bench``: returns the mean normalized one-step MSE (for sweepers)."""
+    """Entry point of ``sdrl-bench``. ``task=fit`` returns the mean normalized one-step MSE,
+    ``task=train`` the surrogate arm's final real return (values for sweepers)."""
     try:
-        result = run_fit(cfg, parent=_sweep_parent())
+        parent = _sweep_parent()
+        if parent is not None:  # no progress bars inside multiruns
+            OmegaConf.update(cfg, "progress_bar", False)
+        if cfg.task == "fit":
+            return float(run_fit(cfg, parent=parent).fidelity.metrics["mse_norm/mean"])
+        if cfg.task == "train":
+            from sdrl_bench.cli_train import run_train
+
+            summary = run_train(cfg, build_fit_job(cfg), parent)
+            return float(summary.get("surrogate/final_return_mean", summary.get("real/final_return_mean", 0.0)))
+        raise ConfigError(f"task: {cfg.task!r} is not one of 'fit', 'train'")
     except ConfigError as exc:
         print(f"sdrl-bench: error: {exc}", file=sys.stderr)
         sys.exit(2)
-    return float(result.fidelity.metrics["mse_norm/mean"])
 
 
 if __name__ == "__main__":

@@ -48,3 +48,21 @@ def predicted_vs_true(
 def _pad(lo: float, hi: float) -> tuple[float, float]:
     span = hi - lo if hi > lo else 1.0
     return lo - 0.05 * span, hi + 0.05 * span
+
+
+def learning_curves(curves: dict[str, tuple[list, list, list]], threshold: float | None, title: str,
+                    x_label: str = "training steps (in the env the agent trains in)") -> plt.Figure:
+    """Real-env return (mean +- std over evaluation episodes) against training steps, per arm."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for arm, (steps, means, stds) in curves.items():
+        steps, means, stds = map(np.asarray, (steps, means, stds))
+        ax.plot(steps, means, label=arm)
+        ax.fill_between(steps, means - stds, means + stds, alpha=0.2)
+    if threshold is not None:
+        ax.axhline(threshold, color="k", ls="--", lw=0.8, label=f"solved ({threshold:g})")
+    ax.set_xlabel(x_label)
+    ax.set_ylabel("return in the real env")
+    ax.set_title(title)
+    ax.legend()
+    fig.tight_layout()
+    return fig

@@ -213,7 +213,7 @@ def fit_metrics(result) -> dict[str, float]:
     }
 
 
-def log_fit(run: Run, result, params: Mapping[str, Any]) -> None:
+def log_fit(run: Run, result, params: Mapping[str, Any] | None, prefix: str = "") -> None:
     """Record a fit: params, metrics, data and test-set hashes, and the artifacts (dataset CSV
     with its normalization sidecar, the saved model, its equations or summary, the
     predicted-vs-true figure)."""
@@ -221,8 +221,9 @@ def log_fit(run: Run, result, params: Mapping[str, Any]) -> None:
     from sdrl_bench.plots import predicted_vs_true
 
     spec, model = result.job.spec, result.model
-    run.log_params(params)
-    run.log_metrics(fit_metrics(result))
+    if params is not None:
+        run.log_params(params)
+    run.log_metrics({f"{prefix}{k}": v for k, v in fit_metrics(result).items()})
     run.set_tags(
         {"dataset_sha256": result.dataset_hash, "test_set": result.test_name, "test_set_sha256": result.test_hash}
     )
@@ -241,3 +242,69 @@ def log_fit(run: Run, result, params: Mapping[str, Any]) -> None:
         title=f"{spec.name}: {result.test_name} (one step; episode 0 open loop)",
     )
     run.log_figure(fig, "figures/predicted_vs_true.png")
+
+
+# ---------------------------------------------------------------------- RL transfer runs
+def sb3_logger(run: Run, prefix: str):
+    """An SB3 Logger whose only output is this run: SB3's training metrics reach MLflow here."""
+    from stable_baselines3.common.logger import KVWriter, Logger
+
+    class MlflowKVWriter(KVWriter):
+        def write(self, key_values, key_excluded, step=0):
+            numeric = {f"{prefix}/{k}": v for k, v in key_values.items()
+                       if isinstance(v, (int, float)) and not isinstance(v, bool)}
+            run.log_metrics(numeric, step=int(step))
+
+        def close(self):
+            pass
+
+    return Logger(folder=None, output_formats=[MlflowKVWriter()])
+
+
+def log_curve_point(run: Run, arm: str, step: int, mean: float, std: float) -> None:
+    run.log_metrics({f"{arm}/curve_return_mean": mean, f"{arm}/curve_return_std": std}, step=step)
+
+
+def log_arm(run: Run, arm_result, metrics: Mapping[str, float]) -> None:
+    """An arm's accounting metrics (prefixed ``<arm>/``), its curve and its trained agent."""
+    import pandas as pd
+
+    arm = arm_result.arm
+    run.log_metrics({f"{arm}/{k}": v for k, v in metrics.items()})
+    if arm_result.surrogate_stats:
+        run.log_metrics({f"{arm}/surrogate_{k}": v for k, v in arm_result.surrogate_stats.items()})
+    c = arm_result.curve
+    curve = pd.DataFrame({"train_steps": c.steps, "return_mean": c.means, "return_std": c.stds, "train_wall_seconds": c.wall})
+    run.log_text(curve.to_csv(index=False), f"curves/{arm}.csv")
+    run.log_text(pd.DataFrame({"return": arm_result.final_returns, "success": arm_result.final_successes}).to_csv(index=False),
+                 f"final_eval/{arm}.csv")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / f"{arm}.zip"
+        arm_result.model.save(path)
+        run.log_artifact(path, "agents")
+
+
+def find_real_arm(uri: str, experiment: str, key: str) -> dict | None:
+    """A finished run whose real arm has the same key: its id, real/* metrics and curve."""
+    client = _client(uri)
+    exp = client.get_experiment_by_name(experiment)
+    if exp is None:
+        return None
+    runs = client.search_runs([exp.experiment_id], filter_string=f"tags.real_arm_key = '{key}' and attributes.status = 'FINISHED'",
+                              order_by=["attributes.start_time DESC"], max_results=5)
+    for r in runs:
+        if "real/final_return_mean" in r.data.metrics and r.data.tags.get("real_arm_reused_from") is None:
+            return {"run_id": r.info.run_id, "metrics": {k: v for k, v in r.data.metrics.items() if k.startswith("real/")}}
+    return None
+
+
+def reuse_real_arm(run: Run, found: dict, local_dir: str | Path) -> Path:
+    """Copy a reused real arm's metrics into ``run`` and fetch its agent; returns the agent zip."""
+    run.log_metrics(found["metrics"])
+    run.set_tags({"real_arm_reused_from": found["run_id"]})
+    client = _client(run.uri)
+    curve = client.download_artifacts(found["run_id"], "curves/real.csv", str(local_dir))
+    run.log_artifact(curve, "curves")
+    for m in client.get_metric_history(found["run_id"], "real/curve_return_mean"):
+        run.log_metrics({"real/curve_return_mean": m.value}, step=m.step)
+    return Path(client.download_artifacts(found["run_id"], "agents/real.zip", str(local_dir)))
