@@ -79,6 +79,7 @@ def check(job: FitJob) -> tuple[Any, Transitions | None]:
         raise ConfigError(f"optimizer.threshold must be >= 0, got {threshold}")
     library = build_library(job.library_parts, spec.target_names, spec.control_names)
     n_terms = count_features(library, len(spec.input_names)) if job.surrogate == "sindy" else 0
+    build_model(job, library)  # model hyperparameters are validated in its __init__
     data = load_csv(spec, job.dataset_path) if job.dataset_path else None
     n_rows = len(data) if data is not None else job.n_transitions
     if data is None and job.n_transitions <= 0:

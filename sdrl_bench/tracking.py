@@ -198,6 +198,18 @@ def child_statuses(uri: str, experiment: str, parent_run_id: str) -> list[str]:
     return [r.info.status for r in runs]
 
 
+def runs_as_data(uri: str, experiment: str, filter_string: str = "") -> list[dict[str, Any]]:
+    """An experiment's runs as plain dicts (run_id, status, tags, metrics), newest first, for
+    pure comparisons (``compare.py``); an unknown experiment raises ConfigError."""
+    client = _client(uri)
+    exp = client.get_experiment_by_name(experiment)
+    if exp is None:
+        raise ConfigError(f"tracking.experiment: no experiment {experiment!r} in {uri}")
+    runs = client.search_runs([exp.experiment_id], filter_string=filter_string, max_results=50_000)
+    return [{"run_id": r.info.run_id, "status": r.info.status, "tags": dict(r.data.tags),
+             "metrics": dict(r.data.metrics)} for r in runs]
+
+
 def fit_metrics(result) -> dict[str, float]:
     """The metrics a fit run records (``result`` is a ``pipeline.FitResult``)."""
     model, data = result.model, result.data
