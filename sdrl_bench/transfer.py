@@ -106,6 +106,13 @@ class ArmResult:
         return {k: float(v) for k, v in m.items()}
 
 
+def surrogate_vec_env(model: Any, spec: EnvSpec, n_envs: int, seed: int):
+    """The default env of the surrogate arm: n copies stepped by one batched model call."""
+    from sdrl_bench.vec_surrogate import SurrogateVecEnv  # noqa: PLC0415
+
+    return SurrogateVecEnv(model, spec, n_envs, seed=seed)
+
+
 def run_arm(
     job: TransferJob, arm: str, checked: tuple[Any, Any] | None = None,
     logger_factory: Callable[[str], Any] | None = None,
@@ -113,7 +120,7 @@ def run_arm(
     make_surrogate: Callable[..., Any] | None = None,
 ) -> ArmResult:
     """Run one arm end to end. ``make_surrogate(model, spec, n_envs, seed)`` builds the vector
-    env the agent trains in (default: ``surrogate.SurrogateVecEnv``)."""
+    env the agent trains in (default: ``surrogate_vec_env``)."""
     spec = job.fit.spec
     counts: Counter = Counter()
     seconds: dict[str, float] = {}
@@ -122,9 +129,7 @@ def run_arm(
         fit_job = replace(job.fit, wrap_env=lambda env: StepCounter(env, counts, "collect"))
         fit_result = fit_dynamics(fit_job, checked)
         seconds.update({k: v for k, v in fit_result.seconds.items() if not k.startswith("evaluate")})
-        if make_surrogate is None:
-            from sdrl_bench.surrogate import make_vec_env as make_surrogate  # noqa: PLC0415
-        venv = make_surrogate(fit_result.model, spec, job.agent.n_envs, job.seed, fit_result.data)
+        venv = (make_surrogate or surrogate_vec_env)(fit_result.model, spec, job.agent.n_envs, job.seed)
         steps = job.surrogate_steps
     else:
         venv = real_vec_env(spec, job.agent.n_envs, job.seed, counts, "train")
@@ -137,8 +142,8 @@ def run_arm(
     result = train(job.agent, venv, steps, job.seed, callback, logger, job.progress_bar)
     counts["eval_episodes"] = job.eval_episodes * len(result.curve.steps)
     seconds.update(train_wall=result.wall_seconds, train_cpu=result.cpu_seconds, curve_eval_wall=result.eval_wall_seconds)
-    if arm == "surrogate" and callable(getattr(venv, "stats", None)):
-        stats = {k: float(v) for k, v in venv.stats().items()}
+    if arm == "surrogate" and hasattr(venv, "n_diverged"):
+        stats = {"diverged_episodes": float(sum(venv.n_diverged))}
     venv.close()
     t0, c0 = time.perf_counter(), time.process_time()
     final = evaluate_real(result.model, spec, job.final_episodes, seed=2_000_000 + job.seed * 1000, counts=counts, phase="final")

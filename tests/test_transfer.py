@@ -101,3 +101,39 @@ def test_expert_collector_rejects_an_agent_the_env_cannot_use():
 
     with pytest.raises(ConfigError, match="SAC needs continuous actions"):
         check(build_fit_job(cfg))
+
+
+def test_both_arms_end_to_end_with_accounting_and_policy_maps(store, tmp_path):
+    summary = train(store, "rl.surrogate_steps=64", "rl.real_steps=64")
+    run = search(store).iloc[0]
+    assert run["status"] == "FINISHED"
+    # surrogate arm: the model's real transitions are what the collector's counted envs stepped
+    assert run["metrics.surrogate/real_transitions_model"] == 75 == run["metrics.fit/n_transitions"]
+    assert run["metrics.surrogate/real_transitions_train"] == 0
+    assert run["metrics.surrogate/surrogate_steps"] == 64
+    assert run["metrics.surrogate/total_steps"] == 75 + 64  # as the paper counts (65,075 = 75 + 65,000)
+    assert run["metrics.real/real_transitions_train"] == 64 and run["metrics.real/total_steps"] == 64
+    assert run["metrics.surrogate/surrogate_diverged_episodes"] == 0
+    assert run["metrics.fit/mse/v"] < 2e-18  # the surrogate was the exact law
+    assert 0.0 <= summary["policy_map_agreement"] <= 2.0
+    assert run["metrics.policy_map_agreement"] == pytest.approx(summary["policy_map_agreement"])
+    client = MlflowClient(store)
+    listed = {a.path for d in ("agents", "model", "data", "curves") for a in client.list_artifacts(run["run_id"], d)}
+    assert {"agents/surrogate.zip", "agents/real.zip", "model/model.json", "curves/surrogate.csv",
+            "curves/real.csv", "data/mountain_car_transitions.csv"} <= listed
+    for name in ("fit_wall_seconds", "train_wall_seconds", "evaluate_wall_seconds", "collect_wall_seconds"):
+        assert run[f"metrics.surrogate/{name}"] >= 0
+
+
+def test_ppo_in_a_vectorized_surrogate_logs_sb3_metrics_through_the_kvwriter(store):
+    cfg = compose_cfg("task=train", f"tracking.uri={store}", "agent=ppo", "agent.n_envs=4", "agent.algo.n_steps=16",
+                      "agent.algo.batch_size=32", "+agent.algo.policy_kwargs={net_arch:[16]}", "rl.arms=[surrogate]",
+                      "rl.surrogate_steps=128", "rl.eval_every=64", "rl.eval_episodes=1", "rl.final_episodes=1",
+                      "progress_bar=false")
+    run_train(cfg, build_fit_job(cfg), None)
+    run = search(store).iloc[0]
+    assert run["metrics.surrogate/surrogate_steps"] == 128
+    client = MlflowClient(store)
+    history = client.get_metric_history(run["run_id"], "surrogate/sb3/time/total_timesteps")
+    assert [m.value for m in history] == [64, 128]  # one rollout of 4 envs x 16 steps per dump
+    assert "metrics.surrogate/sb3/train/value_loss" in run.index
