@@ -75,3 +75,12 @@ def test_six_job_multirun_lands_six_children_under_one_parent(store, tmp_path):
     # on MountainCar, trigonometric terms win by orders of magnitude (the paper's ablation, in direction)
     mc = children[children["tags.env"] == "mountain_car"].set_index("tags.library")["metrics.mse/v"]
     assert mc["poly_trig"] * 1e6 < mc["polynomial"]
+
+
+def test_a_failing_sweep_job_leaves_no_run_running(store, tmp_path):
+    res = run_cli("-m", "env=mountain_car,pendulum", f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode != 0
+    assert "collector: env 'pendulum' has no heuristic policy" in res.stderr
+    runs = search(store)
+    assert "RUNNING" not in set(runs["status"])
+    assert runs[runs["tags.sdrl.kind"] == "sweep"].iloc[0]["status"] == "FAILED"
