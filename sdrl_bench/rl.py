@@ -165,6 +165,7 @@ class RealEvalCallback(BaseCallback):
         self.curve = Curve()
         self._next = every
         self._eval_seconds = 0.0
+        self._eval_cpu = 0.0
         self._t0 = 0.0
 
     def _on_training_start(self) -> None:
@@ -182,9 +183,10 @@ class RealEvalCallback(BaseCallback):
             self._point()
 
     def _point(self) -> None:
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         res = evaluate_real(self.model, self.spec, self.episodes, self.seed, self.counts, "evaluate")
         self._eval_seconds += time.perf_counter() - t
+        self._eval_cpu += time.process_time() - c
         wall = time.perf_counter() - self._t0 - self._eval_seconds
         c = self.curve
         c.steps.append(int(self.num_timesteps))
@@ -203,7 +205,9 @@ class TrainResult:
     model: BaseAlgorithm
     curve: Curve
     wall_seconds: float
+    """Training wall seconds, the learning-curve evaluations excluded."""
     cpu_seconds: float
+    """Training CPU seconds of this process, the learning-curve evaluations excluded."""
     eval_wall_seconds: float
 
 
@@ -219,5 +223,6 @@ def train(
     model.learn(total_timesteps=int(steps), callback=callback, progress_bar=progress_bar)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     eval_wall = callback._eval_seconds if callback is not None else 0.0
+    eval_cpu = callback._eval_cpu if callback is not None else 0.0
     curve = callback.curve if callback is not None else Curve()
-    return TrainResult(model, curve, wall - eval_wall, cpu, eval_wall)
+    return TrainResult(model, curve, wall - eval_wall, cpu - eval_cpu, eval_wall)
