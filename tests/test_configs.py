@@ -58,3 +58,22 @@ def test_budgets_shrink_by_override():
 def test_pendulum_needs_no_code_but_has_no_heuristic():
     with pytest.raises(ConfigError, match="collector: env 'pendulum' has no heuristic"):
         check(build_fit_job(compose_cfg("env=pendulum")))
+
+
+@pytest.mark.parametrize("pack", options("experiment"))
+def test_every_experiment_pack_composes_and_validates(pack):
+    from sdrl_bench.cli_train import build_transfer_job
+
+    cfg = compose_cfg(f"experiment={pack}")
+    assert cfg.task == "train"
+    job = build_transfer_job(cfg, build_fit_job(cfg))
+    job.check()  # agent fits the action space, budgets positive; no expert is trained here
+    assert job.agent.name in {"sac", "ppo"} and set(job.arms) == {"surrogate", "real"}
+
+
+def test_paper_packs_use_the_papers_budgets():
+    mc = compose_cfg("experiment=paper_mountain_car")
+    ll = compose_cfg("experiment=paper_lunar_lander")
+    assert (mc.n_transitions, mc.rl.surrogate_steps, mc.rl.real_steps, mc.agent.name) == (75, 65000, 100000, "sac")
+    assert (ll.n_transitions, ll.rl.surrogate_steps, ll.rl.real_steps, ll.agent.name) == (1000, 800000, 1000000, "ppo")
+    assert mc.collector.name == ll.collector.name == "expert" and mc.collector.epsilon == 0.2
