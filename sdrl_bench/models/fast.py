@@ -1,0 +1,230 @@
+"""Fast evaluators of a SINDy model for surrogate stepping: one state, or columns of states.
+
+**One state** (``scalar_predictor``). ``SindyModel.predict`` is batched numpy: its per-call
+overhead (array creation, a loop over terms, a matrix product) is several microseconds, more
+than a whole step of the real MountainCar env. A single surrogate env steps one state at a
+time, so the model's structured terms and coefficients are turned into the source of a small
+Python function of plain floats::
+
+    def predict(z):
+        z0, z1, z2 = z
+        f0 = _cos(3.0 * z0)
+        return [1.0 * z0 + 1.0 * z1 + 0.0015 * z2 - 0.0025 * f0, ...]
+
+The source is generated only from validated data: input indices (ints), op names from a fixed
+whitelist, and coefficients / parameters written with ``repr(float)`` (finite numbers only), so
+nothing from a model file reaches ``exec`` as text. Results agree with ``SindyModel.predict``
+to rounding (the sums run in a different order); the tests check this.
+
+**Columns** (``batch_predictor``). A vectorized env holds N states; its per-variable columns
+are contiguous (structure of arrays), so features are computed column by column into a
+(terms, N) matrix and multiplied from the left by the active coefficients, in column blocks
+that keep OpenBLAS single-threaded (see ``sindy._matmul_rows``). The result is (N, outputs)
+in Fortran order: each output variable is again a contiguous column.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from sdrl_bench.models.libraries import OPS, Term
+
+ScalarPredict = Callable[[Sequence[float]], list[float]]
+
+
+def _number(value: Any) -> str:
+    v = float(value)
+    if not math.isfinite(v):
+        raise ValueError(f"non-finite number {value!r} in a model")
+    return repr(v)
+
+
+def _unary(op: str, p: float, v: float) -> float:
+    return {"pow": v, "sin": math.sin(p * v), "cos": math.cos(p * v),
+            "rat": 1.0 / (1.0 + v * v), "xrat": v / (1.0 + v * v)}[op]
+
+
+def partial_terms(
+    terms: Sequence[Term], coef: np.ndarray, fixed: dict[int, float]
+) -> tuple[list[Term], np.ndarray]:
+    """Terms and coefficients with the inputs in ``fixed`` replaced by their values: factors of
+    fixed inputs fold into the coefficients, and terms left identical are merged (e.g. the
+    one-hot action terms of a discrete action become part of the constant term)."""
+    merged: dict[Term, np.ndarray] = {}
+    coef = np.asarray(coef, dtype=float)
+    for k, term in enumerate(terms):
+        scale, rest = 1.0, []
+        for f in term:
+            if f[0] in fixed:
+                scale *= _unary(f[1], f[2], float(fixed[f[0]]))
+            else:
+                rest.append(f)
+        key = tuple(rest)
+        merged[key] = merged.get(key, 0.0) + scale * coef[:, k]
+    return list(merged), np.stack(list(merged.values()), axis=1)
+
+
+def scalar_source(terms: Sequence[Term], coef: np.ndarray, n_inputs: int, fixed: Sequence[int] = ()) -> str:
+    """Source of ``predict(z) -> list`` for ``coef @ [term(z) for term in terms]``; ``z`` holds
+    the inputs not in ``fixed``, in index order (terms must not use the ``fixed`` inputs)."""
+    coef = np.asarray(coef, dtype=float)
+    if coef.ndim != 2 or coef.shape[1] != len(terms):
+        raise ValueError(f"coefficients of shape {coef.shape} for {len(terms)} terms")
+    if not isinstance(n_inputs, int) or n_inputs <= 0:
+        raise ValueError(f"n_inputs must be a positive int, got {n_inputs!r}")
+    names = [f"z{i}" for i in range(n_inputs)]
+    free = [names[i] for i in range(n_inputs) if i not in set(fixed)]
+    lines = ["def predict(z):", f"    {', '.join(free)}, = z"]
+    factors: dict[tuple[int, str, float], str] = {}
+
+    def factor(f: tuple) -> str:
+        j, op, p = f
+        if not isinstance(j, (int, np.integer)) or not 0 <= int(j) < n_inputs or op not in OPS or j in fixed:
+            raise ValueError(f"bad term factor {f!r}")
+        z = names[int(j)]
+        if op == "pow":
+            return z
+        key = (int(j), str(op), float(p))
+        if key not in factors:
+            expr = {
+                "sin": f"_sin({_number(p)} * {z})",
+                "cos": f"_cos({_number(p)} * {z})",
+                "rat": f"1.0 / (1.0 + {z} * {z})",
+                "xrat": f"{z} / (1.0 + {z} * {z})",
+            }[op]
+            factors[key] = f"f{len(factors)}"
+            lines.append(f"    {factors[key]} = {expr}")
+        return factors[key]
+
+    active = [k for k in range(len(terms)) if np.any(coef[:, k] != 0)]
+    term_expr: dict[int, str | None] = {}
+    for k in active:
+        parts = [factor(f) for f in terms[k]]
+        if not parts:
+            term_expr[k] = None  # the constant term
+        elif len(parts) == 1:
+            term_expr[k] = parts[0]
+        else:
+            term_expr[k] = f"t{k}"
+            lines.append(f"    t{k} = {' * '.join(parts)}")
+    outputs = []
+    for row in coef:
+        summands = [
+            _number(row[k]) if term_expr[k] is None else f"{_number(row[k])} * {term_expr[k]}"
+            for k in active
+            if row[k] != 0
+        ]
+        outputs.append(" + ".join(summands) if summands else "0.0")
+    lines.append(f"    return [{', '.join(outputs)}]")
+    return "\n".join(lines) + "\n"
+
+
+def compile_scalar(
+    terms: Sequence[Term], coef: np.ndarray, n_inputs: int, fixed: dict[int, float] | None = None
+) -> ScalarPredict:
+    """A function of one input vector -> list of outputs. With ``fixed`` ({input index: value}),
+    the function takes only the other inputs, in index order, and is specialised to the values."""
+    if fixed:
+        terms, coef = partial_terms(terms, coef, fixed)
+    namespace: dict[str, Any] = {"__builtins__": {}, "_sin": math.sin, "_cos": math.cos}
+    exec(compile(scalar_source(terms, coef, n_inputs, tuple(fixed or ())), "<sindy-scalar>", "exec"), namespace)
+    return namespace["predict"]
+
+
+def scalar_predictor(model: Any, fixed: dict[int, float] | None = None) -> ScalarPredict:
+    """The fastest one-state evaluator available for ``model`` (inputs: the model's states,
+    then its controls, less the ``fixed`` ones).
+
+    A model with structured terms (``terms_``, ``coef_``: SINDy) gets a generated function; any
+    other model with a batched ``predict(x, u)`` is wrapped (correct, not fast).
+    """
+    n_states, n_inputs = len(model.state_names_), len(model.state_names_) + len(model.control_names_)
+    terms, coef = getattr(model, "terms_", None), getattr(model, "coef_", None)
+    if terms is not None and coef is not None:
+        return compile_scalar(terms, coef, n_inputs, fixed)
+    fixed = dict(fixed or {})
+    free = [i for i in range(n_inputs) if i not in fixed]
+
+    def predict(z: Sequence[float]) -> list[float]:
+        row = np.empty((1, n_inputs))
+        row[0, free] = z
+        for i, v in fixed.items():
+            row[0, i] = v
+        return np.asarray(model.predict(row[:, :n_states], row[:, n_states:]))[0].tolist()
+
+    return predict
+
+
+BatchPredict = Callable[[np.ndarray], np.ndarray]
+_BLOCK_FLOPS = 1 << 17
+
+
+def _column(op: str, p: float, z: np.ndarray) -> np.ndarray:
+    if op == "pow":
+        return z
+    if op == "sin":
+        return np.sin(p * z)
+    if op == "cos":
+        return np.cos(p * z)
+    if op == "rat":
+        return 1.0 / (1.0 + z * z)
+    return z / (1.0 + z * z)
+
+
+def _matmul_cols(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
+    """out += a @ b, in column blocks that keep OpenBLAS on one thread (see sindy._matmul_rows)."""
+    block = max(1, _BLOCK_FLOPS // max(1, a.size))
+    for i in range(0, b.shape[1], block):
+        out[:, i : i + block] += a @ b[:, i : i + block]
+
+
+def batch_predictor(model: Any) -> BatchPredict:
+    """``predict(z) -> (n_outputs, N)`` for inputs ``z`` of shape (n_inputs, N): the model's
+    inputs (states, then controls) as rows. Constant and linear terms are one product with ``z``;
+    only the other terms are computed as feature rows. Models without structured terms are
+    wrapped around their ``predict(x, u)``."""
+    n_states = len(model.state_names_)
+    n_inputs = n_states + len(model.control_names_)
+    terms, coef = getattr(model, "terms_", None), getattr(model, "coef_", None)
+    if terms is None or coef is None:
+        return lambda z: np.asarray(model.predict(z[:n_states].T, z[n_states:].T)).T
+    coef = np.asarray(coef, dtype=float)
+    bias = np.zeros((coef.shape[0], 1))
+    linear = np.zeros((coef.shape[0], n_inputs))
+    other: list[int] = []
+    for k, term in enumerate(terms):
+        if not np.any(coef[:, k] != 0):
+            continue
+        if not term:
+            bias[:, 0] += coef[:, k]
+        elif len(term) == 1 and term[0][1] == "pow":
+            linear[:, term[0][0]] += coef[:, k]
+        else:
+            other.append(k)
+    used = np.flatnonzero(np.any(linear != 0, axis=0))
+    linear = np.ascontiguousarray(linear[:, used])
+    nl_terms, nl_coef = [terms[k] for k in other], np.ascontiguousarray(coef[:, other])
+
+    def predict(z: np.ndarray) -> np.ndarray:
+        out = np.empty((coef.shape[0], z.shape[1]))
+        out[:] = bias
+        if len(used):
+            _matmul_cols(linear, z[used] if len(used) < len(z) else z, out)
+        if nl_terms:
+            theta = np.empty((len(nl_terms), z.shape[1]))
+            cache: dict[tuple, np.ndarray] = {}
+            for r, term in enumerate(nl_terms):
+                col = None
+                for f in term:
+                    v = cache.get(f)
+                    if v is None:
+                        v = cache[f] = _column(f[1], f[2], z[f[0]])
+                    col = v if col is None else col * v
+                theta[r] = col
+            _matmul_cols(nl_coef, theta, out)
+        return out
+
+    return predict
