@@ -12,7 +12,8 @@ env clips to, actions used as they are); subclasses add per-environment knowledg
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from functools import cached_property
+from typing import Any, Callable, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -20,6 +21,15 @@ import numpy as np
 from sdrl_bench import ConfigError
 
 Policy = Callable[[np.ndarray], Any]
+StepOne = Callable[[list, Any], tuple[np.ndarray, list, float, bool, bool]]
+"""One surrogate step of one env in plain Python: (state, raw action) -> (observation,
+next state as floats, reward, terminated, diverged). See ``EnvSpec.make_step_one``."""
+
+
+def _readonly(values: list[int]) -> np.ndarray:
+    arr = np.array(values, dtype=int)
+    arr.setflags(write=False)
+    return arr
 
 
 @dataclass(frozen=True)
@@ -82,25 +92,27 @@ class EnvSpec:
             raise ConfigError("env.spec.max_episode_steps must be positive")
 
     # ------------------------------------------------------------------ names and indices
-    @property
+    # Derived from frozen fields, so computed once (cached_property writes the instance dict,
+    # which a frozen dataclass allows); the index arrays are read-only.
+    @cached_property
     def target_names(self) -> tuple[str, ...]:
         """State variables the dynamics model regresses."""
         return tuple(n for n in self.state_names if n not in self.exogenous_names)
 
-    @property
+    @cached_property
     def target_index(self) -> np.ndarray:
-        return np.array([self.state_names.index(n) for n in self.target_names], dtype=int)
+        return _readonly([self.state_names.index(n) for n in self.target_names])
 
-    @property
+    @cached_property
     def exogenous_index(self) -> np.ndarray:
-        return np.array([self.state_names.index(n) for n in self.exogenous_names], dtype=int)
+        return _readonly([self.state_names.index(n) for n in self.exogenous_names])
 
-    @property
+    @cached_property
     def control_names(self) -> tuple[str, ...]:
         """Model inputs besides the regressed states: exogenous states, then action features."""
         return self.exogenous_names + self.action_names
 
-    @property
+    @cached_property
     def input_names(self) -> tuple[str, ...]:
         return self.target_names + self.control_names
 
@@ -173,6 +185,63 @@ class EnvSpec:
             ]
         return np.full(len(self.target_names), 1e3)
 
+    # ------------------------------------------------------------------ the task (surrogate envs)
+    # Reward, termination, exogenous variables and resets as pure functions, so that a surrogate
+    # env (sdrl_bench.surrogate) can be built from any dynamics model. Batched: states and next
+    # states (N, n_state) in ``state_names`` order, raw actions (N, raw width).
+    @property
+    def defines_task(self) -> bool:
+        """Whether this spec knows the env's reward and termination (needed by a surrogate)."""
+        return type(self).reward is not EnvSpec.reward
+
+    def reward(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+        """Reward of each transition (N,)."""
+        raise ConfigError(
+            f"env.spec: '{self.name}' ({type(self).__name__}) defines no reward function; a "
+            "surrogate env needs an EnvSpec subclass with reward() and terminated()"
+        )
+
+    def terminated(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+        """Whether each transition ends the episode (N,) bool. Default: never."""
+        return np.zeros(len(states), dtype=bool)
+
+    def reward_terminated(
+        self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``reward`` and ``terminated`` together (specs override it when they share work)."""
+        return self.reward(states, actions, next_states), self.terminated(states, actions, next_states)
+
+    def exogenous(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+        """Values of the exogenous (not regressed) state variables after each transition,
+        (N, len(exogenous_names)); ``next_states`` holds the regressed values already."""
+        if self.exogenous_names:
+            raise ConfigError(
+                f"env.spec.exogenous_names: '{self.name}' does not say how to derive "
+                f"{list(self.exogenous_names)} in a surrogate"
+            )
+        return np.zeros((len(states), 0))
+
+    def initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """n states from the real env's initial-state distribution (N, n_state).
+
+        Default: drawn uniformly from states observed after resets of the real env
+        (``observed_initial_states``). Specs that know the distribution override this.
+        """
+        pool = observed_initial_states(self)
+        return pool[rng.integers(len(pool), size=n)]
+
+    def make_step_one(
+        self, predictor: Callable[..., Callable[[Sequence[float]], list]], obs_low=None, obs_high=None
+    ) -> StepOne | None:
+        """A fast plain-Python step of one env (or None: the surrogate then calls the batched
+        functions with N = 1). ``predictor(fixed=None)`` returns the model's one-state evaluator
+        (``sdrl_bench.models.fast.scalar_predictor``: inputs in ``input_names`` order, less
+        those held ``fixed`` at given values). The step follows
+        ``sdrl_bench.surrogate.Surrogate.transition`` (divergence check, bounds, exogenous variables,
+        clipping to the observation space ``[obs_low, obs_high]``, reward, termination) in the
+        same order. Must agree with the batched functions; the tests check it."""
+        return None
+
     # ------------------------------------------------------------------ held-out test set
     def test_set_recipe(self) -> "TestSetRecipe":
         """The fixed, named held-out test set every model of this env is scored on."""
@@ -192,3 +261,21 @@ class TestSetRecipe:
     seed: int
     episodes: tuple[tuple[str, float], ...]
     max_steps: int | None = None
+
+
+_INITIAL_POOLS: dict[tuple, np.ndarray] = {}
+
+
+def observed_initial_states(spec: EnvSpec, n: int = 200, seed: int = 1_000_000) -> np.ndarray:
+    """Observations right after ``n`` resets of the real env (seeds ``seed`` .. ``seed + n - 1``,
+    disjoint from the collectors' and test sets' seeds), cached per env and process."""
+    key = (spec.gym_id, repr(sorted(spec.gym_kwargs.items())), n, seed)
+    if key not in _INITIAL_POOLS:
+        env = spec.make_env()
+        try:
+            pool = np.array([env.reset(seed=seed + i)[0] for i in range(n)], dtype=float)
+        finally:
+            env.close()
+        pool.setflags(write=False)
+        _INITIAL_POOLS[key] = pool
+    return _INITIAL_POOLS[key]

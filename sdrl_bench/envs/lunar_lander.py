@@ -2,7 +2,8 @@
 
 The real env does not clip its observation, so no bounds are applied after a predicted step.
 The two leg-contact flags are booleans: the dynamics model takes them as given inputs
-(``exogenous_names``) and never regresses them; the surrogate environment derives them.
+(``exogenous_names``) and never regresses them; the surrogate environment derives them
+(``lunar_lander_task``: leg contacts, crash and rest are approximated there, and documented).
 Engine impulses carry random dispersion and the terrain is random per episode, so one-step
 prediction has a noise floor no deterministic model beats (see shared/REFERENCE.md).
 """
@@ -10,11 +11,14 @@ prediction has a noise floor no deterministic model beats (see shared/REFERENCE.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable
 
 import numpy as np
 from gymnasium.envs.box2d.lunar_lander import heuristic
 
-from sdrl_bench.envs.base import EnvSpec, Policy, TestSetRecipe
+from sdrl_bench.envs import lunar_lander_task as task
+from sdrl_bench.envs.base import EnvSpec, Policy, StepOne, TestSetRecipe
+from sdrl_bench.envs.lunar_lander_task import LanderRules
 
 STATE_NAMES = ("x", "y", "vx", "vy", "angle", "angvel", "leg_left", "leg_right")
 LEGS = ("leg_left", "leg_right")
@@ -32,6 +36,8 @@ class LunarLanderSpec(EnvSpec):
     exogenous_names: tuple[str, ...] = LEGS
     max_episode_steps: int = 1000
     solved_threshold: float | None = 200.0
+    rules: LanderRules = LanderRules()
+    """Constants of the surrogate's contact approximations (legs, crash, rest)."""
 
     def heuristic_policy(self, env) -> Policy:
         """gymnasium's built-in heuristic lander controller."""
@@ -44,6 +50,37 @@ class LunarLanderSpec(EnvSpec):
     def divergence_limit(self) -> np.ndarray:
         # x, y in about +-2.5 (|x| >= 1 ends an episode), velocities and angle rates in +-10.
         return np.array([25.0, 25.0, 100.0, 100.0, 100.0, 100.0])
+
+    # ------------------------------------------------------------------ the task
+    def reward(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+        return task.reward(self.rules, bool(self.n_discrete_actions), states, actions, next_states)
+
+    def terminated(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+        return task.terminated(self.rules, states, actions, next_states)
+
+    def reward_terminated(self, states, actions, next_states) -> tuple[np.ndarray, np.ndarray]:
+        return task.reward_terminated(self.rules, bool(self.n_discrete_actions), states, actions, next_states)
+
+    def termination_causes(self, states, actions, next_states) -> dict[str, np.ndarray]:
+        """Why the surrogate ends each transition: crash (or |x'| >= 1) and rest."""
+        crash, out, rest = task.events(self.rules, states, next_states)
+        return {"crash": crash | out, "rest": rest}
+
+    def observed_termination_causes(self, rewards: np.ndarray, terminated: np.ndarray) -> dict[str, np.ndarray]:
+        """Why the real env ended each transition, read off its reward (-100 crash or out, +100 rest)."""
+        return {"crash": terminated & (rewards == -100), "rest": terminated & (rewards == 100)}
+
+    def exogenous(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+        """Leg contacts derived from height and attitude (never regressed)."""
+        return task.leg_contacts(self.rules, states, next_states)
+
+    def make_step_one(self, predictor: Callable[..., Callable], obs_low=None, obs_high=None) -> StepOne:
+        n = len(self.state_names)
+        low = obs_low if obs_low is not None else [-np.inf] * n
+        high = obs_high if obs_high is not None else [np.inf] * n
+        return task.make_step_one(
+            self.rules, bool(self.n_discrete_actions), predictor, self.divergence_limit(), low, high
+        )
 
     def test_set_recipe(self) -> TestSetRecipe:
         """Twelve full episodes: the heuristic at eps 0 / 0.2 / 0.5 and uniform random actions,
@@ -60,3 +97,7 @@ class LunarLanderContinuousSpec(LunarLanderSpec):
     action_names: tuple[str, ...] = ("main", "lateral")
     n_discrete_actions: int = 0
     gym_kwargs: dict = field(default_factory=lambda: {"continuous": True})
+
+    def encode_actions(self, actions: np.ndarray) -> np.ndarray:
+        """Throttles as the real env uses them: clipped to [-1, 1]."""
+        return np.clip(super().encode_actions(actions), -1.0, 1.0)

@@ -2,17 +2,25 @@
 
 Real dynamics (gymnasium source): v' = clip(v + 0.0015 clip(a) - 0.0025 cos(3x), -0.07, 0.07);
 x' = clip(x + v', -1.2, 0.6); if x' == -1.2 and v' < 0 then v' = 0 (an inelastic left wall).
+Terminated when x' >= 0.45 and v' >= 0; reward 100 * terminated - 0.1 a^2 (a unclipped);
+reset x ~ U[-0.6, -0.4], v = 0. The task functions below reproduce these exactly, including the
+real env's float32 state (see ``terminated``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Callable
 
 import numpy as np
 
-from sdrl_bench.envs.base import EnvSpec, Policy, TestSetRecipe
+from sdrl_bench.envs.base import EnvSpec, Policy, StepOne, TestSetRecipe
 
 MIN_POSITION, MAX_POSITION, MAX_SPEED = -1.2, 0.6, 0.07
+GOAL_POSITION = 0.45
+# The real env's state is float32 and numpy compares it with the Python float 0.45 in float32:
+# a position of float32(0.45) = 0.449999988... reaches the goal.
+_GOAL_F32 = float(np.float32(GOAL_POSITION))
 
 
 @dataclass(frozen=True)
@@ -46,6 +54,57 @@ class MountainCarSpec(EnvSpec):
         x = np.clip(x_pred - (v_pred - v), MIN_POSITION, MAX_POSITION)
         v = np.where((x <= MIN_POSITION) & (v < 0), 0.0, v)
         return self.round_obs(np.stack([x, v], axis=1))
+
+    def encode_actions(self, actions: np.ndarray) -> np.ndarray:
+        """The force the real env applies: the action clipped to [-1, 1]."""
+        return np.clip(super().encode_actions(actions), -1.0, 1.0)
+
+    # ------------------------------------------------------------------ the task
+    def reward(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+        """100 on reaching the goal, minus 0.1 a^2 of the *unclipped* action (the env's order of
+        operations, so the values are bit-identical)."""
+        return self.reward_terminated(states, actions, next_states)[0]
+
+    def reward_terminated(self, states, actions, next_states) -> tuple[np.ndarray, np.ndarray]:
+        a = np.asarray(actions, dtype=float).reshape(len(states), -1)[:, 0]
+        terminated = self.terminated(states, actions, next_states)
+        return 100.0 * terminated - a * a * 0.1, terminated
+
+    def terminated(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+        """x' >= 0.45 and v' >= 0, compared in float32 as the real env compares its state."""
+        ns = np.asarray(next_states, dtype=float)
+        return (ns[:, 0] >= _GOAL_F32) & (ns[:, 1] >= 0.0)
+
+    def initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """x ~ U[-0.6, -0.4], v = 0, drawn exactly as the real env draws them: with the same
+        generator and seed, the same (float64, not yet rounded) start."""
+        x = rng.uniform(low=-0.6, high=-0.4, size=n)
+        return np.stack([x, np.zeros(n)], axis=1)
+
+    def make_step_one(self, predictor: Callable[..., Callable], obs_low=None, obs_high=None) -> StepOne:
+        """``apply_bounds``, ``terminated`` and ``reward`` for one state, in plain floats (the
+        bounds are the observation space's: no further clipping needed)."""
+        predict_one = predictor()
+        lim_x, lim_v = (float(v) for v in self.divergence_limit())
+        lo, hi, ms, goal, f32 = MIN_POSITION, MAX_POSITION, MAX_SPEED, _GOAL_F32, np.float32
+
+        def step_one(state: list, action) -> tuple[np.ndarray, list, float, bool, bool]:
+            a = float(action[0])
+            force = -1.0 if a < -1.0 else (1.0 if a > 1.0 else a)
+            x_pred, v_pred = predict_one((state[0], state[1], force))
+            if not (abs(x_pred) <= lim_x and abs(v_pred) <= lim_v):  # also catches NaN
+                return np.array(state, dtype=f32), state, 0.0, False, True
+            v = -ms if v_pred < -ms else (ms if v_pred > ms else v_pred)
+            x = x_pred - (v_pred - v)
+            x = lo if x < lo else (hi if x > hi else x)
+            if x <= lo and v < 0:
+                v = 0.0
+            obs = np.array((x, v), dtype=f32)
+            nxt = obs.tolist()
+            term = nxt[0] >= goal and nxt[1] >= 0.0
+            return obs, nxt, (100.0 if term else 0.0) - a * a * 0.1, term, False
+
+        return step_one
 
     def at_bound(self, next_states: np.ndarray) -> np.ndarray:
         ns = np.asarray(next_states, dtype=float)
