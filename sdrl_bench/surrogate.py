@@ -1,0 +1,266 @@
+"""Surrogate environments: a real env's task with a fitted dynamics model in place of its physics.
+
+``Surrogate`` binds a model to an env spec once (validation, spaces, compiled evaluators) and
+steps it: ``transition`` is the batched step that ``SurrogateVecEnv`` (``vec_surrogate``) uses,
+and ``step_one`` the plain-Python step of one state that ``SurrogateEnv`` uses. A step is:
+
+1. model inputs from (s, a) -> the model's prediction of the regressed variables;
+2. **divergence guard**: a non-finite prediction, or one beyond ``spec.divergence_limit()``,
+   ends the episode as *truncated* (not terminated: the task did not end, the model failed;
+   an agent bootstraps from the last valid state, which is what it observes), with reward 0,
+   ``info["surrogate_diverged"] = True`` and the env's ``n_diverged`` counter incremented;
+3. the spec's bounds (``apply_bounds``, which also rounds to the real env's float32);
+4. exogenous variables derived by the spec (LunarLander's leg contacts);
+5. clipping to the real env's observation space (a no-op for MountainCar, whose bounds are
+   the space; for LunarLander it keeps e.g. y <= 2.5, which the real lander never exceeds);
+6. reward and termination from the spec's pure functions of (s, a, s'); truncation at the
+   real env's step limit (999 MountainCar, 1000 LunarLander), as gymnasium's TimeLimit does.
+
+``SurrogateEnv`` is registered as ``sdrl/Surrogate-v0`` (``import sdrl_bench`` first)::
+
+    env = gym.make("sdrl/Surrogate-v0", model="model.json", spec="mountain_car")
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from sdrl_bench import ConfigError
+from sdrl_bench.envs import EnvSpec, LunarLanderContinuousSpec, LunarLanderSpec, MountainCarSpec
+from sdrl_bench.models.fast import batch_predictor, scalar_predictor
+from sdrl_bench.models.sindy import SindyModel
+
+SPECS = {"mountain_car": MountainCarSpec, "lunar_lander": LunarLanderSpec,
+         "lunar_lander_continuous": LunarLanderContinuousSpec}
+_SPACES: dict[tuple, tuple[gym.Space, gym.Space]] = {}
+
+
+def load_model(path: str | Path) -> SindyModel:
+    """A saved dynamics model (JSON data); errors name the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"model file not found: {path}")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: not a valid model file (not JSON: {exc})") from exc
+    kind = data.get("kind") if isinstance(data, dict) else None
+    if kind != "sindy":
+        raise ConfigError(f"{path}: model kind {kind!r} is not supported (sindy)")
+    return SindyModel.from_dict(data, source=str(path))
+
+
+def resolve_spec(spec: EnvSpec | str) -> EnvSpec:
+    if isinstance(spec, str):
+        if spec not in SPECS:
+            raise ConfigError(f"spec: unknown env {spec!r} (one of {sorted(SPECS)}, or an EnvSpec)")
+        return SPECS[spec]()
+    if not isinstance(spec, EnvSpec):
+        raise ConfigError(f"spec: expected an EnvSpec or an env name, got {type(spec).__name__}")
+    return spec
+
+
+def real_spaces(spec: EnvSpec) -> tuple[gym.Space, gym.Space]:
+    """(observation space, action space) of the real env, cached per env and process."""
+    key = (spec.gym_id, repr(sorted(spec.gym_kwargs.items())))
+    if key not in _SPACES:
+        env = spec.make_env()
+        _SPACES[key] = (env.observation_space, env.action_space)
+        env.close()
+    return _SPACES[key]
+
+
+class Surrogate:
+    """A fitted dynamics model bound to an env spec, validated at construction.
+
+    Parameters
+    ----------
+    model : a fitted model (``predict(x, u)``, ``state_names_``, ``control_names_``) or the path
+        of a saved one.
+    spec : an ``EnvSpec`` with a task (reward, termination), or a name in ``SPECS``.
+    initial_states : optional (K, n_state) states to reset from (uniformly); default: the spec's
+        initial-state distribution.
+    """
+
+    def __init__(self, model: Any, spec: EnvSpec | str, initial_states: np.ndarray | None = None):
+        self.spec = spec = resolve_spec(spec)
+        source = f"model file {model}" if isinstance(model, (str, Path)) else "model"
+        self.model = model = load_model(model) if isinstance(model, (str, Path)) else model
+        if not callable(getattr(model, "predict", None)) or not hasattr(model, "state_names_"):
+            raise ConfigError(f"{source}: {type(model).__name__} is not a fitted dynamics model")
+        for what, got, want in (("regresses states", model.state_names_, spec.target_names),
+                                ("takes inputs", model.control_names_, spec.control_names)):
+            if list(got) != list(want):
+                raise ConfigError(f"{source} {what} {list(got)} ({len(got)}), but env.spec "
+                                  f"'{spec.name}' needs {list(want)} ({len(want)})")
+        if not spec.defines_task:
+            raise ConfigError(f"env.spec: '{spec.name}' ({type(spec).__name__}) defines no reward / "
+                              "termination; a surrogate needs an EnvSpec subclass with reward() and terminated()")
+        self.observation_space, self.action_space = obs_space, act_space = real_spaces(spec)
+        self._check_spaces(obs_space, act_space)
+        self.obs_low, self.obs_high = obs_space.low.astype(float), obs_space.high.astype(float)
+        # Clipping to the observation space is skipped when the spec bounds every variable inside it.
+        inside = spec.state_low is not None and spec.state_high is not None and not spec.exogenous_names
+        self._clip = not (inside and np.all(np.asarray(spec.state_low) >= self.obs_low)
+                          and np.all(np.asarray(spec.state_high) <= self.obs_high))
+        self.limit = np.asarray(spec.divergence_limit(), dtype=float)
+        if self.limit.shape != (len(spec.target_names),) or not np.all(self.limit > 0):
+            raise ConfigError(f"env.spec '{spec.name}': divergence_limit() must be positive, one per regressed state")
+        self._initial = None
+        if initial_states is not None:
+            init = np.asarray(initial_states, dtype=float)
+            if init.ndim != 2 or init.shape[1] != len(spec.state_names) or not len(init) or not np.all(np.isfinite(init)):
+                raise ConfigError(f"initial_states: need a finite (K, {len(spec.state_names)}) array, got shape {init.shape}")
+            self._initial = init
+        self.step_one = spec.make_step_one(self.predictor, self.obs_low, self.obs_high) or self._generic_step_one
+        # The batched step feeds the model input columns (EnvSpec.model_inputs, without copies).
+        self._columnar = type(spec).model_inputs is EnvSpec.model_inputs
+        self._predict_rows = batch_predictor(model)
+        index = np.concatenate([spec.target_index, spec.exogenous_index])
+        self._n_state_inputs = len(index)
+        # slice(None) when the states are the model's first inputs, in order (no copy needed)
+        self._input_index = slice(None) if np.array_equal(index, np.arange(len(index))) else index
+        self._one_hot = bool(spec.n_discrete_actions) and type(spec).encode_actions is EnvSpec.encode_actions
+
+    def _check_spaces(self, obs_space: gym.Space, act_space: gym.Space) -> None:
+        spec = self.spec
+        n = len(spec.state_names)
+        if not isinstance(obs_space, gym.spaces.Box) or obs_space.shape != (n,):
+            raise ConfigError(f"env.spec.state_names: {n} names for {spec.gym_id}'s observation space {obs_space}")
+        for key, bound in (("state_low", spec.state_low), ("state_high", spec.state_high)):
+            if bound is None:
+                continue
+            b = np.asarray(bound).astype(obs_space.dtype)
+            bad = np.flatnonzero((b < obs_space.low) | (b > obs_space.high))
+            if len(bad):
+                i = int(bad[0])
+                raise ConfigError(f"env.spec.{key}[{i}] = {bound[i]} ({spec.state_names[i]}) lies outside "
+                                  f"{spec.gym_id}'s observation space [{obs_space.low[i]}, {obs_space.high[i]}]")
+        if isinstance(act_space, gym.spaces.Discrete):
+            if spec.n_discrete_actions != act_space.n:
+                raise ConfigError(f"env.spec.n_discrete_actions: {spec.n_discrete_actions}, but {spec.gym_id} has {act_space.n} actions")
+        elif spec.n_discrete_actions or act_space.shape != (spec.raw_action_width,):
+            raise ConfigError(f"env.spec.action_names: {len(spec.action_names)} names for {spec.gym_id}'s action space {act_space}")
+
+    def predictor(self, fixed: dict[int, float] | None = None):
+        """The model's fast one-state evaluator (see ``models.fast.scalar_predictor``)."""
+        return scalar_predictor(self.model, fixed)
+
+    def __reduce__(self):  # compiled functions are rebuilt, not pickled
+        return (Surrogate, (self.model, self.spec, self._initial))
+
+    # ------------------------------------------------------------------ stepping
+    def initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        if self._initial is not None:
+            return self._initial[rng.integers(len(self._initial), size=n)]
+        return self.spec.initial_states(rng, n)
+
+    def raw_actions(self, actions: Any, n: int) -> np.ndarray:
+        """Actions as (n, raw width) floats; discrete actions must be valid indices."""
+        raw = np.asarray(actions)
+        a = raw.astype(float).reshape(n, self.spec.raw_action_width)
+        k = self.spec.n_discrete_actions
+        if k and (a.min() < 0 or a.max() >= k or (raw.dtype.kind not in "iub" and np.any(a != np.round(a)))):
+            raise ValueError(f"actions must be integers in [0, {k}), got {actions!r}")
+        return a
+
+    def transition(self, states: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, ...]:
+        """One batched step: (next states, rewards, terminated, diverged), all (N, ...).
+
+        Diverged rows keep their state, get reward 0 and terminated False (see module doc).
+        """
+        spec, states = self.spec, np.asarray(states, dtype=float)
+        with np.errstate(all="ignore"):
+            if self._columnar:  # model inputs as rows of z (inputs x N); pred (N, m) in F order
+                n_s = self._n_state_inputs
+                z = np.empty((n_s + len(spec.action_names), len(states)))
+                z[:n_s] = states.T[self._input_index]
+                if self._one_hot:
+                    z[n_s:] = actions[:, 0] == np.arange(spec.n_discrete_actions)[:, None]
+                else:
+                    z[n_s:] = spec.encode_actions(actions).T
+                pred = self._predict_rows(z).T
+            else:
+                pred = np.asarray(self.model.predict(*spec.model_inputs(states, actions)), dtype=float)
+            ok = (np.abs(pred) <= self.limit).all(axis=1)  # False for NaN and inf
+        any_diverged = not ok.all()
+        if any_diverged:
+            pred = np.where(ok[:, None], pred, states[:, spec.target_index])
+        nxt = np.array(states, dtype=float, order="F")  # columns contiguous: cheap per-variable work
+        nxt[:, spec.target_index] = spec.apply_bounds(states, pred)
+        if spec.exogenous_names:
+            nxt[:, spec.exogenous_index] = spec.exogenous(states, actions, nxt)
+        if self._clip:  # only the columns that leave the space (np.clip on all is slow)
+            bad = (nxt.min(axis=0) < self.obs_low) | (nxt.max(axis=0) > self.obs_high)
+            for j in np.flatnonzero(bad):
+                np.clip(nxt[:, j], self.obs_low[j], self.obs_high[j], out=nxt[:, j])
+        rewards, terminated = spec.reward_terminated(states, actions, nxt)
+        rewards, terminated = np.asarray(rewards, dtype=float), np.asarray(terminated, dtype=bool)
+        if any_diverged:
+            nxt[~ok] = states[~ok]
+            rewards, terminated = np.where(ok, rewards, 0.0), terminated & ok
+        return nxt, rewards, terminated, ~ok
+
+    def _generic_step_one(self, state: list, action: Any):
+        s = np.asarray([state], dtype=float)
+        nxt, r, term, div = self.transition(s, self.raw_actions(action, 1))
+        return nxt[0].astype(self.observation_space.dtype), nxt[0].tolist(), float(r[0]), bool(term[0]), bool(div[0])
+
+
+class SurrogateEnv(gym.Env):
+    """A gymnasium env stepping a fitted dynamics model with the real env's task and spaces.
+
+    ``reset(options={"state": s})`` starts from a given state; ``n_diverged`` counts episodes
+    ended by the divergence guard. Same arguments as ``Surrogate``.
+    """
+
+    metadata = {"render_modes": []}
+
+    def __init__(self, model: Any, spec: EnvSpec | str, initial_states: np.ndarray | None = None,
+                 render_mode: str | None = None):
+        if render_mode is not None:
+            raise ConfigError(f"render_mode: the surrogate env does not render ({render_mode!r})")
+        self.surrogate = Surrogate(model, spec, initial_states)
+        self.observation_space = self.surrogate.observation_space
+        self.action_space = self.surrogate.action_space
+        self.render_mode = None
+        self.n_diverged = 0
+        self._step_one = self.surrogate.step_one
+        self._max_steps = self.surrogate.spec.max_episode_steps
+        self._state: list | None = None
+        self._t = 0
+
+    @property
+    def env_spec(self) -> EnvSpec:
+        return self.surrogate.spec
+
+    @property
+    def state(self) -> np.ndarray | None:
+        return None if self._state is None else np.array(self._state)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        if options and "state" in options:
+            s = np.asarray(options["state"], dtype=float)
+            if s.shape != self.observation_space.shape or not np.all(np.isfinite(s)):
+                raise ValueError(f"options['state'] must be a finite array of shape {self.observation_space.shape}")
+        else:
+            s = self.surrogate.initial_states(self.np_random, 1)[0]
+        self._state, self._t = s.tolist(), 0
+        return np.array(self._state, dtype=self.observation_space.dtype), {}
+
+    def step(self, action: Any):
+        if self._state is None:
+            raise RuntimeError("call reset() before step()")
+        obs, nxt, reward, terminated, diverged = self._step_one(self._state, action)
+        self._t += 1
+        if diverged:
+            self.n_diverged += 1
+            return obs, 0.0, False, True, {"surrogate_diverged": True}
+        self._state = nxt
+        return obs, reward, terminated, self._t >= self._max_steps, {}
