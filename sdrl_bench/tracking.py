@@ -192,6 +192,27 @@ def end_run(uri: str, run_id: str, status: str) -> None:
         client.set_terminated(run_id, status)
 
 
+def find_runs(uri: str, experiment: str, filter_string: str = "") -> list[dict[str, Any]]:
+    """Active runs of ``experiment`` matching an MLflow filter, oldest first (ties by run id):
+    dicts with ``run_id``, ``status``, ``start_time``, ``tags``, ``params``, ``metrics``."""
+    client = _client(uri)
+    exp = client.get_experiment_by_name(experiment)
+    if exp is None:
+        return []
+    runs = client.search_runs([exp.experiment_id], filter_string=filter_string, max_results=50000)
+    out = [
+        {"run_id": r.info.run_id, "status": r.info.status, "start_time": r.info.start_time,
+         "tags": dict(r.data.tags), "params": dict(r.data.params), "metrics": dict(r.data.metrics)}
+        for r in runs
+    ]
+    return sorted(out, key=lambda r: (r["start_time"] or 0, r["run_id"]))
+
+
+def delete_run(uri: str, run_id: str) -> None:
+    """Mark a run deleted (it leaves searches and the UI's default view)."""
+    _client(uri).delete_run(run_id)
+
+
 def child_statuses(uri: str, experiment: str, parent_run_id: str) -> list[str]:
     exp = _client(uri).get_experiment_by_name(experiment)
     runs = _client(uri).search_runs([exp.experiment_id], filter_string=f"tags.{PARENT_TAG} = '{parent_run_id}'")
