@@ -188,22 +188,23 @@ class Surrogate:
             else:
                 pred = np.asarray(self.model.predict(*spec.model_inputs(states, actions)), dtype=float)
             ok = (np.abs(pred) <= self.limit).all(axis=1)  # False for NaN and inf
-        any_diverged = not ok.all()
-        if any_diverged:
-            pred = np.where(ok[:, None], pred, states[:, spec.target_index])
+        bad = None if ok.all() else np.flatnonzero(~ok)
+        if bad is not None:  # placeholders (the current state) so that the rules see finite values
+            pred = np.array(pred, order="F")
+            pred[bad] = states[bad][:, spec.target_index]
         nxt = np.array(states, dtype=float, order="F")  # columns contiguous: cheap per-variable work
         nxt[:, spec.target_index] = spec.apply_bounds(states, pred)
         if spec.exogenous_names:
             nxt[:, spec.exogenous_index] = spec.exogenous(states, actions, nxt)
         if self._clip:  # only the columns that leave the space (np.clip on all is slow)
-            bad = (nxt.min(axis=0) < self.obs_low) | (nxt.max(axis=0) > self.obs_high)
-            for j in np.flatnonzero(bad):
+            outside = (nxt.min(axis=0) < self.obs_low) | (nxt.max(axis=0) > self.obs_high)
+            for j in np.flatnonzero(outside):
                 np.clip(nxt[:, j], self.obs_low[j], self.obs_high[j], out=nxt[:, j])
         rewards, terminated = spec.reward_terminated(states, actions, nxt)
-        rewards, terminated = np.asarray(rewards, dtype=float), np.asarray(terminated, dtype=bool)
-        if any_diverged:
-            nxt[~ok] = states[~ok]
-            rewards, terminated = np.where(ok, rewards, 0.0), terminated & ok
+        rewards, terminated = np.array(rewards, dtype=float), np.array(terminated, dtype=bool)
+        if bad is not None:
+            nxt[bad] = states[bad]
+            rewards[bad], terminated[bad] = 0.0, False
         return nxt, rewards, terminated, ~ok
 
     def _generic_step_one(self, state: list, action: Any):
@@ -238,6 +239,13 @@ class SurrogateEnv(gym.Env):
     @property
     def env_spec(self) -> EnvSpec:
         return self.surrogate.spec
+
+    def __getstate__(self) -> dict:  # the compiled step is rebuilt, not pickled
+        return {k: v for k, v in self.__dict__.items() if k != "_step_one"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self._step_one = self.surrogate.step_one
 
     @property
     def state(self) -> np.ndarray | None:

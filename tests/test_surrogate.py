@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import pickle
 import warnings
 
 import gymnasium as gym
@@ -80,6 +81,9 @@ def test_gym_make_with_model_path_or_object(mc_model, tmp_path):
         runs.append(np.array(obs))
     assert np.array_equal(runs[0], runs[1]) and np.array_equal(runs[0], runs[2])
     assert env.observation_space == gym.make("MountainCarContinuous-v0").observation_space
+    clone = pickle.loads(pickle.dumps(env.unwrapped))  # compiled steps are rebuilt, not pickled
+    action = np.array([-0.3], np.float32)
+    assert np.array_equal(clone.step(action)[0], env.unwrapped.step(action)[0])
 
 
 # ---------------------------------------------------------------------- evaluators agree

@@ -166,9 +166,9 @@ def _column(op: str, p: float, z: np.ndarray) -> np.ndarray:
     if op == "pow":
         return z
     if op == "sin":
-        return np.sin(p * z)
+        return np.sin(z if p == 1.0 else p * z)
     if op == "cos":
-        return np.cos(p * z)
+        return np.cos(z if p == 1.0 else p * z)
     if op == "rat":
         return 1.0 / (1.0 + z * z)
     return z / (1.0 + z * z)

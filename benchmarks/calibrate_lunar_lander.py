@@ -1,0 +1,106 @@
+"""Calibrate and measure the LunarLander surrogate's contact rules (``LanderRules``).
+
+1. Collects calibration transitions from the real env (gymnasium's heuristic at eps 0 / 0.2 /
+   0.5 and uniform random actions; seeds 100+, disjoint from the default training seed 0 and
+   from the held-out test set's seeds 20000+).
+2. Grid-searches the leg-contact rule (tilt, touch and release heights) for accuracy, and the
+   crash rule (floor, impact height, crash speed, tip angle) for F1, on the rows over the flat
+   helipad (|x'| <= 0.2), where the surrogate's flat-ground world is the real one; prints the
+   best candidates next to the defaults in ``LanderRules``.
+3. Scores the default rules with ``surrogate_fidelity`` on the held-out test set, with the
+   model ``sdrl-bench env=lunar_lander`` fits (or ``--model``).
+
+    .venv/bin/python benchmarks/calibrate_lunar_lander.py [--model model.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+from pathlib import Path
+
+import numpy as np
+
+from sdrl_bench.data import Transitions, collect, heuristic_policy, held_out_test_set, random_policy
+from sdrl_bench.envs import LunarLanderSpec
+from sdrl_bench.envs.lunar_lander_task import LanderRules, events, leg_contacts
+from sdrl_bench.surrogate import load_model
+from sdrl_bench.task_fidelity import surrogate_fidelity
+
+FIELDS = ("states", "actions", "rewards", "next_states", "terminated", "truncated", "episode", "step")
+
+
+def calibration_data(spec: LunarLanderSpec) -> Transitions:
+    parts = [collect(spec, heuristic_policy, 8000, eps, seed=100 + 50 * i) for i, eps in enumerate((0.0, 0.2, 0.5))]
+    parts.append(collect(spec, random_policy, 4000, 1.0, seed=500))
+    return Transitions(**{k: np.concatenate([getattr(p, k) for p in parts]) for k in FIELDS})
+
+
+def f1(pred: np.ndarray, true: np.ndarray) -> tuple[float, float, float]:
+    tp = float(np.sum(pred & true))
+    p, r = tp / max(1, pred.sum()), tp / max(1, true.sum())
+    return p, r, 2 * p * r / max(p + r, 1e-12)
+
+
+def search_legs(d: Transitions, pad: np.ndarray) -> list[tuple]:
+    true = d.next_states[:, 6:8] > 0.5
+    out = []
+    for k, touch, release in itertools.product(
+        (0.0, 0.05, 0.1, 0.15, 0.2, 0.3), np.arange(-0.03, 0.0301, 0.005), np.arange(0.0, 0.101, 0.025)
+    ):
+        if release >= touch:
+            rules = LanderRules(leg_tilt=k, touch_height=round(touch, 4), release_height=round(release, 4))
+            acc = np.mean(leg_contacts(rules, d.states, d.next_states)[pad] == true[pad])
+            out.append((acc, rules.leg_tilt, rules.touch_height, rules.release_height))
+    return sorted(out, reverse=True)
+
+
+def search_crash(d: Transitions, pad: np.ndarray) -> list[tuple]:
+    crash = d.terminated & (d.rewards == -100) & (np.abs(d.next_states[:, 0]) < 1)
+    out = []
+    for floor, impact, speed, tip in itertools.product(
+        (-0.04, -0.045, -0.05, -0.06), (-0.04, -0.03, -0.02, -0.01, 0.0), (0.2, 0.4, 0.6, 0.8, 9.0), (0.3, 0.8, 1.2, 9.0)
+    ):
+        if floor <= impact:
+            rules = LanderRules(floor=floor, impact_height=impact, crash_speed=speed, tip_angle=tip)
+            pred = events(rules, d.states, d.next_states)[0]
+            out.append((f1(pred[pad], crash[pad])[2], f1(pred, crash)[2], floor, impact, speed, tip))
+    return sorted(out, reverse=True)
+
+
+def fit_default_model():
+    from hydra import compose, initialize_config_dir
+
+    from sdrl_bench.cli import CONF_DIR, build_fit_job
+    from sdrl_bench.pipeline import fit_dynamics
+
+    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
+        cfg = compose(config_name="config", overrides=["env=lunar_lander"])
+    return fit_dynamics(build_fit_job(cfg)).model
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--model", type=Path, default=None, help="a saved LunarLander model (default: fit one)")
+    args = ap.parse_args()
+    spec, defaults = LunarLanderSpec(), LanderRules()
+    d = calibration_data(spec)
+    pad = np.abs(d.next_states[:, 0]) <= 0.2
+    print(f"calibration: {len(d)} transitions, {pad.sum()} over the pad")
+    print("legs (pad accuracy, tilt, touch, release), best 5:")
+    for row in search_legs(d, pad)[:5]:
+        print("   ", np.round(row, 4).tolist())
+    print("crash (pad F1, all-rows F1, floor, impact height, crash speed, tip angle), best 5:")
+    for row in search_crash(d, pad)[:5]:
+        print("   ", np.round(row, 4).tolist())
+    print(f"defaults: {defaults}")
+
+    name, test = held_out_test_set(spec)
+    model = load_model(args.model) if args.model else fit_default_model()
+    print(f"\nsurrogate_fidelity on '{name}' ({len(test)} transitions, {int(test.terminated.sum())} terminations):")
+    for key, value in surrogate_fidelity(model, spec, test).items():
+        print(f"  {key:<45} {value:.6g}")
+
+
+if __name__ == "__main__":
+    main()
