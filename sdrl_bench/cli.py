@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 from pathlib import Path
 from typing import Any
@@ -134,10 +135,17 @@ def _print_summary(result: FitResult, uri: str, run_id: str) -> None:
                       highlight=False)
 
 
+def _terminate(signum: int, frame: Any) -> None:
+    raise SystemExit(128 + signum)
+
+
 @hydra.main(version_base="1.3", config_path=str(CONF_DIR), config_name="config")
 def main(cfg: DictConfig) -> float:
     """Entry point of ``sdrl-bench``. ``task=fit`` returns the mean normalized one-step MSE,
     ``task=train`` the surrogate arm's final real return (values for sweepers)."""
+    # SIGTERM (a cluster scheduler, kill) unwinds like an exception: the open MLflow run ends
+    # FAILED instead of staying RUNNING
+    signal.signal(signal.SIGTERM, _terminate)
     try:
         parent = _sweep_parent()
         if parent is not None:  # no progress bars inside multiruns

@@ -94,3 +94,28 @@ def test_failure_after_the_run_started_marks_it_failed(store, tmp_path):
         run_fit(compose_cfg(f"dataset.path={path}", f"tracking.uri={store}", "library=trig"))
     runs = search(store)
     assert list(runs["status"]) == ["FAILED"]
+
+
+def test_sigterm_mid_run_marks_the_run_failed(store, tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sdrl_bench.cli", "task=train", "rl.arms=[real]", "rl.real_steps=100000",
+         "progress_bar=false", f"tracking.uri={store}"],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:  # wait until the run exists, then stop the process
+        try:
+            if len(search(store)):
+                break
+        except Exception:
+            pass
+        time.sleep(0.5)
+    proc.send_signal(signal.SIGTERM)
+    proc.communicate(timeout=120)
+    assert proc.returncode != 0
+    assert list(search(store)["status"]) == ["FAILED"]
