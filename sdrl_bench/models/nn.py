@@ -193,6 +193,12 @@ class MLPDynamics:
         """(N, in) or (K, N, in) normalized inputs -> (K, N, out) normalized deltas."""
         h = z
         last = len(self.params_) // 2 - 1
+        if z.dim() == 2 and self.ensemble_size == 1:  # one member, one batch: plain 2-D GEMMs
+            for i in range(last + 1):
+                h = torch.addmm(self.params_[2 * i + 1][0], h, self.params_[2 * i][0])
+                if i < last:
+                    h = self._act(h)
+            return h.unsqueeze(0)
         for i in range(last + 1):
             h = torch.matmul(h, self.params_[2 * i]) + self.params_[2 * i + 1].unsqueeze(1)
             if i < last:
