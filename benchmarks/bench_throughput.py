@@ -5,7 +5,8 @@ SB3's DummyVecEnv with ``--dummy-n`` copies) and the surrogate (``gym.make("sdrl
 single; and ``SurrogateVecEnv`` at N = 1, 64, 1024, 16384). Uniform random actions, drawn before
 timing; a finished episode is reset (auto-reset in the vectorized envs). Each configuration is
 timed ``--repeats`` times, interleaved with the others (so that a busy machine slows all of them
-alike), for about ``--seconds`` each; the table shows medians and ratios to the real single env.
+alike), for about ``--seconds`` of this process's CPU time each (``--clock wall`` for elapsed
+time); the table shows medians and ratios to the real single env.
 
 The models are fitted as ``sdrl-bench`` fits them by default (the project's Hydra config:
 MountainCar from 75 transitions, LunarLander from 1000), or loaded with ``--mc-model`` /
@@ -32,15 +33,15 @@ from sdrl_bench.vec_surrogate import SurrogateVecEnv
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def fit_default(env: str):
-    """The model ``sdrl-bench env=<env>`` fits, from the project's config (no tracking)."""
+def fit_default(env: str, overrides: list[str]):
+    """The model ``sdrl-bench env=<env> <overrides>`` fits, from the project's config (no tracking)."""
     from hydra import compose, initialize_config_dir
 
     from sdrl_bench.cli import CONF_DIR, build_fit_job
     from sdrl_bench.pipeline import fit_dynamics
 
     with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[f"env={env}"])
+        cfg = compose(config_name="config", overrides=[f"env={env}", *overrides])
     return fit_dynamics(build_fit_job(cfg)).model
 
 
@@ -76,13 +77,13 @@ def vec_stepper(venv, seed: int) -> Callable[[int], int]:
     return run
 
 
-def measure(run: Callable[[int], int], seconds: float) -> float:
+def measure(run: Callable[[int], int], seconds: float, clock: Callable[[], float]) -> float:
     """Env steps per second of ``run``, calibrated to take about ``seconds``."""
     n = 1
     while True:
-        t0 = time.perf_counter()
+        t0 = clock()
         steps = run(n)
-        dt = time.perf_counter() - t0
+        dt = clock() - t0
         if dt >= seconds:
             return steps / dt
         n = max(n * 2, int(n * seconds / max(dt, 1e-6) * 1.1))
@@ -107,26 +108,33 @@ def main() -> None:
     ap.add_argument("--vec-n", type=int, nargs="+", default=[1, 64, 1024, 16384])
     ap.add_argument("--mc-model", type=Path, default=None)
     ap.add_argument("--ll-model", type=Path, default=None)
+    ap.add_argument("--ll-overrides", nargs="*", default=[], help="config overrides of the LunarLander fit, "
+                    "e.g. library=polynomial")
+    ap.add_argument("--clock", choices=("cpu", "wall"), default="cpu",
+                    help="cpu: this process's CPU time (robust to other load on the machine; equal to "
+                         "wall time for these single-threaded loops on an idle machine); wall: elapsed time")
     args = ap.parse_args()
+    clock = time.process_time if args.clock == "cpu" else time.perf_counter
 
     envs = [
-        ("MountainCarContinuous-v0", "mountain_car", args.mc_model),
-        ("LunarLander-v3", "lunar_lander", args.ll_model),
+        ("MountainCarContinuous-v0", "mountain_car", args.mc_model, []),
+        ("LunarLander-v3", "lunar_lander", args.ll_model, args.ll_overrides),
     ]
     table: dict[tuple[str, str], list[float]] = {}
     runners = {}
-    for gym_id, spec, path in envs:
-        model = load_model(path) if path else fit_default(spec)
+    for gym_id, spec, path, overrides in envs:
+        model = load_model(path) if path else fit_default(spec, overrides)
         for name, run in configs(gym_id, model, spec, args.dummy_n, args.vec_n, seed=0).items():
             run(50)  # warm-up
             runners[(gym_id, name)] = run
     for _ in range(args.repeats):
         for key, run in runners.items():
-            table.setdefault(key, []).append(measure(run, args.seconds))
+            table.setdefault(key, []).append(measure(run, args.seconds, clock))
 
-    print(f"\nmedian of {args.repeats} interleaved runs of ~{args.seconds:g} s each; ratio = / real single env")
+    print(f"\nsteps per {args.clock} second, median of {args.repeats} interleaved runs of ~{args.seconds:g} s "
+          "each; ratio = / real single env")
     print(f"{'env':<26} {'configuration':<32} {'steps/s':>14} {'ratio':>9}")
-    for gym_id, _, _ in envs:
+    for gym_id, *_ in envs:
         base = float(np.median(table[(gym_id, "real, single")]))
         for (gid, name), rates in table.items():
             if gid == gym_id:
