@@ -94,7 +94,8 @@ def run_fit(cfg: DictConfig, parent: str | None = None) -> FitResult:
         "optimizer": names["optimizer"], "collector": names["collector"],
         "surrogate": names["surrogate"], "seed": job.seed, "git_commit": tracking.git_commit(CONF_DIR.parent),
     }
-    run_name = f"fit-{names['env']}-{names['library']}-{names['optimizer']}-s{job.seed}"
+    model_name = f"{names['library']}-{names['optimizer']}" if names["surrogate"] == "sindy" else names["surrogate"]
+    run_name = f"fit-{names['env']}-{model_name}-s{job.seed}"
     with tracking.start_run(uri, cfg.tracking.experiment, run_name, tags, parent) as run:
         result = fit_dynamics(job, checked)
         tracking.log_fit(run, result, tracking.flatten(OmegaConf.to_container(cfg, resolve=True)))
