@@ -40,8 +40,8 @@ SPECS = {"mountain_car": MountainCarSpec, "lunar_lander": LunarLanderSpec,
 _SPACES: dict[tuple, tuple[gym.Space, gym.Space]] = {}
 
 
-def load_model(path: str | Path) -> SindyModel:
-    """A saved dynamics model (JSON data); errors name the file."""
+def load_model(path: str | Path) -> Any:
+    """A saved dynamics model (SINDy JSON, or the NN baseline's JSON + weights); errors name the file."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"model file not found: {path}")
@@ -50,9 +50,13 @@ def load_model(path: str | Path) -> SindyModel:
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: not a valid model file (not JSON: {exc})") from exc
     kind = data.get("kind") if isinstance(data, dict) else None
-    if kind != "sindy":
-        raise ConfigError(f"{path}: model kind {kind!r} is not supported (sindy)")
-    return SindyModel.from_dict(data, source=str(path))
+    if kind == "sindy":
+        return SindyModel.from_dict(data, source=str(path))
+    if kind == "nn":
+        from sdrl_bench.models.nn import MLPDynamics  # torch only when needed
+
+        return MLPDynamics.load(path)
+    raise ConfigError(f"{path}: model kind {kind!r} is not supported (sindy, nn)")
 
 
 def resolve_spec(spec: EnvSpec | str) -> EnvSpec:

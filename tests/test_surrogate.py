@@ -306,3 +306,25 @@ def test_lunar_lander_fidelity_metrics_on_real_transitions(ll_model):
     first = [env.reset(seed=s)[0] for s in (1, 2, 1)]
     assert np.array_equal(first[0], first[2]) and not np.array_equal(first[0], first[1])
     assert 1.3 < first[0][1] < 1.5 and first[0][6] == first[0][7] == 0  # observed real starts
+
+
+def test_an_nn_model_by_path_drives_both_envs(tmp_path):
+    """Any fitted model with predict(x, u) and names works (generic evaluators), by path too."""
+    from sdrl_bench.models.nn import MLPDynamics
+
+    spec = MountainCarSpec()
+    data = collect(spec, heuristic_policy, 75, epsilon=0.2, seed=0)
+    x, u = spec.model_inputs(data.states, data.actions)
+    model = MLPDynamics(width=16, max_steps=50).fit(x, u, data.next_states, state_names=spec.target_names,
+                                                    control_names=spec.control_names)
+    path = model.save(tmp_path / "nn" / "model.json")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        sb3_check_env(SurrogateEnv(path, "mountain_car"), warn=True)
+    venv = SurrogateVecEnv(path, "mountain_car", 16, seed=0)
+    venv.reset()
+    start = np.array(venv.get_attr("state"))  # float64: MountainCar starts unrounded, as the real env
+    obs, rewards, dones, _ = venv.step(np.ones((16, 1)))
+    expected = spec.apply_bounds(start, model.predict(*spec.model_inputs(start, np.ones((16, 1)))))
+    assert not dones.any() and np.array_equal(obs, expected.astype(np.float32))
+    assert np.array_equal(rewards, np.full(16, -0.1, np.float32))
