@@ -18,7 +18,7 @@ from sdrl_bench.surrogate import Surrogate
 
 def _precision_recall(pred: np.ndarray, true: np.ndarray) -> tuple[float, float]:
     tp = float(np.sum(pred & true))
-    return (tp / pred.sum() if pred.any() else float("nan"), tp / true.sum() if true.any() else float("nan"))
+    return (tp / float(pred.sum()) if pred.any() else float("nan"), tp / float(true.sum()) if true.any() else float("nan"))
 
 
 def surrogate_fidelity(model: Any, spec: EnvSpec | str, test: Transitions) -> dict[str, float]:
