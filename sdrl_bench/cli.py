@@ -5,6 +5,11 @@
 
 from __future__ import annotations
 
+import os
+
+# SB3's small matrices run fastest single-threaded; BLAS reads this once, at numpy's import
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
 import signal
 import sys
 from pathlib import Path

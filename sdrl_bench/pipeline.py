@@ -132,6 +132,10 @@ def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = N
     test_name, test = held_out_test_set(spec)
     norm = {n: s["std"] for n, s in data.normalization(spec).items()}
     report = evaluate(model, spec, test, norm_std=norm)
+    if spec.defines_task:  # reward, termination and derived-flag fidelity of the surrogate built on it
+        from sdrl_bench.task_fidelity import surrogate_fidelity  # noqa: PLC0415
+
+        report.metrics.update(surrogate_fidelity(model, spec, test))
     ep_true, ep_pred = open_loop_episode(model, spec, test, int(test.episode[0]))
     seconds["evaluate_wall"] = time.perf_counter() - t0
     seconds["evaluate_cpu"] = time.process_time() - c0

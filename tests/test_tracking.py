@@ -72,6 +72,10 @@ def test_six_job_multirun_lands_six_children_under_one_parent(store, tmp_path):
         (e, lib) for e in ("mountain_car", "lunar_lander") for lib in ("polynomial", "poly_trig", "rational")}
     # every child has its per-state metrics
     assert children["metrics.mse/v"].notna().sum() == 3 and children["metrics.mse/vx"].notna().sum() == 3
+    # LunarLander fits also record the surrogate's task fidelity on the held-out transitions
+    ll = children[children["tags.env"] == "lunar_lander"]
+    assert (ll["metrics.surrogate/leg_left_accuracy"] > 0.9).all()
+    assert ll["metrics.surrogate/terminated_recall"].notna().all() and ll["metrics.surrogate/reward_mse"].notna().all()
     # on MountainCar, trigonometric terms win by orders of magnitude (the paper's ablation, in direction)
     mc = children[children["tags.env"] == "mountain_car"].set_index("tags.library")["metrics.mse/v"]
     assert mc["poly_trig"] * 1e6 < mc["polynomial"]
