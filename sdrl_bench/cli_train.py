@@ -13,7 +13,7 @@ from typing import Any
 
 from omegaconf import DictConfig, OmegaConf
 
-from sdrl_bench import ConfigError, tracking
+from sdrl_bench import tracking
 from sdrl_bench.policy_maps import agreement, compute_maps, figure
 from sdrl_bench.plots import learning_curves
 from sdrl_bench.transfer import TransferJob, run_arm
@@ -34,10 +34,12 @@ def build_transfer_job(cfg: DictConfig, fit_job) -> TransferJob:
 
 def real_arm_key(cfg: DictConfig) -> str:
     """What the real arm depends on: env, agent, budgets of the real arm, seed."""
-    parts = {k: OmegaConf.to_container(cfg[k], resolve=True) for k in ("agent",)}
-    parts["env"] = OmegaConf.to_container(cfg.env.spec, resolve=True)
-    parts["rl"] = {k: cfg.rl[k] for k in ("real_steps", "eval_every", "eval_episodes", "final_episodes")}
-    parts["seed"] = cfg.seed
+    parts = {
+        "agent": OmegaConf.to_container(cfg.agent, resolve=True),
+        "env": OmegaConf.to_container(cfg.env.spec, resolve=True),
+        "rl": {k: cfg.rl[k] for k in ("real_steps", "eval_every", "eval_episodes", "final_episodes")},
+        "seed": cfg.seed,
+    }
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
@@ -122,5 +124,3 @@ def _print(summary: dict[str, float], uri: str, run_id: str, job: TransferJob) -
     if "policy_map_agreement" in summary:
         console.print(f"policy-map agreement: {summary['policy_map_agreement']:.3f}")
     console.print(f"MLflow run {run_id} in {uri}", highlight=False)
-    if not job.arms:
-        raise ConfigError("rl.arms is empty")
