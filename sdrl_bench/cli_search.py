@@ -24,7 +24,7 @@ import hydra
 import yaml
 from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig, OmegaConf, open_dict
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from sdrl_bench import ConfigError, tracking
 from sdrl_bench.cli import CONF_DIR, build_fit_job
@@ -86,10 +86,11 @@ def _override_values(cfg: DictConfig, searched: set[str]) -> dict[str, Any]:
     out = {}
     for item in task:
         key = item.split("=", 1)[0].lstrip("+~")
-        if "=" not in item or key in GROUPS or key.split(".")[0] in _NOT_CONTEXT or key in searched:
+        root = key.split("/")[0].split(".")[0]
+        if "=" not in item or key in GROUPS or root in _NOT_CONTEXT or key in searched:
             continue
         value = OmegaConf.select(cfg, key)
-        out[key] = OmegaConf.to_container(value, resolve=True) if isinstance(value, DictConfig) else value
+        out[key] = OmegaConf.to_container(value, resolve=True) if isinstance(value, (DictConfig, ListConfig)) else value
     return out
 
 
@@ -139,11 +140,11 @@ def run_search(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet:
     result = run_study(settings, build, progress)
     summary = summarize(result, build, bool(cfg.study.final_score), cfg.study.export_dir)
     if not quiet:
-        _print_summary(summary, result)
+        _print_summary(summary, result, cfg.study.export_dir)
     return result, summary
 
 
-def _print_summary(summary, result) -> None:
+def _print_summary(summary, result, export_dir: str | None) -> None:
     print(f"study '{summary.name}' in {result.storage}: {summary.n_trials} trials "
           f"({summary.n_complete} complete, {summary.n_pruned} pruned, {summary.n_failed} failed), "
           f"{summary.fits_total} fits; this worker ran {len(result.trials)}")
@@ -155,6 +156,9 @@ def _print_summary(summary, result) -> None:
         print(f"fixed test set '{summary.test_name}': mse_norm/mean {summary.test_error:.4g}")
     print(summary.best_equations.rstrip())
     print("plain fit with the best config:\n  sdrl-bench " + " ".join(summary.overrides))
+    if export_dir is not None:
+        folder = Path(export_dir).resolve()
+        print(f"or: sdrl-bench 'hydra.searchpath=[file://{folder}]' experiment={summary.name}")
 
 
 def run_refine(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet: bool = False):
@@ -265,5 +269,7 @@ def main(cfg: DictConfig) -> float | None:
         sys.exit(2)
 
 
-if __name__ == "__main__":
-    main()
+if __name__ == "__main__":  # python -m: run the package's copy, so joblib workers can unpickle it
+    from sdrl_bench.cli_search import main as package_main
+
+    package_main()

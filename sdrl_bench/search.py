@@ -239,6 +239,7 @@ def run_study(
     def on_stale(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
         run_id = trial.user_attrs.get("mlflow_run_id")
         if run_id:
+            tracking.Run(uri, run_id).set_tags({"optuna.state": "FAIL", "error": "worker process died"})
             tracking.end_run(uri, run_id, "KILLED")
 
     heartbeat = settings.heartbeat_interval if not storage_url.startswith("journal:") else None

@@ -84,6 +84,7 @@ def summarize(
     s, study, uri, parent = result.settings, result.study, result.tracking_uri, result.parent_run_id
     optuna.storages.fail_stale_trials(study)
     trials = study.get_trials(deepcopy=False)
+    _close_orphan_runs(uri, s.experiment, parent, {t.number: t.state for t in trials})
     done = [t for t in trials if counted(t)]
     complete = [t for t in trials if t.state == S.COMPLETE]
     summary = StudySummary(
@@ -97,8 +98,12 @@ def summarize(
     parent_run = tracking.Run(uri, parent)
     if best is not None:
         _describe_best(summary, best, done, s.context)
+        previous = study.user_attrs.get(SUMMARY_ATTR) or {}
         if final_score:
             _final_score(summary, result, build_job, best)
+        elif previous.get("best_number") == best.number:  # same best trial: its test score stands
+            summary.test_name, summary.test_error = previous.get("test_name"), previous.get("test_error")
+            summary.test_metrics = dict(previous.get("test_metrics") or {})
         _log_figures(parent_run, study, complete, points, summary)
     _log_parent(parent_run, result, summary)
     if export_dir is not None and summary.experiment_yaml:
@@ -108,6 +113,17 @@ def summarize(
     study.set_user_attr(SUMMARY_ATTR, json.loads(json.dumps(asdict(summary), default=str)))
     tracking.end_run(uri, parent, "FINISHED")
     return summary
+
+
+def _close_orphan_runs(uri: str, experiment: str, parent: str, states: Mapping[int, Any]) -> None:
+    """Trial runs left RUNNING by a worker that died before its trial was linked to the run:
+    once Optuna no longer considers the trial running, the run ends KILLED."""
+    filt = f"tags.`{tracking.PARENT_TAG}` = '{parent}' and attributes.status = 'RUNNING'"
+    for r in tracking.find_runs(uri, experiment, filt):
+        number = r["tags"].get("optuna.trial")
+        if number is not None and states.get(int(number), S.FAIL) != S.RUNNING:
+            tracking.Run(uri, r["run_id"]).set_tags({"optuna.state": "FAIL", "error": "worker process died"})
+            tracking.end_run(uri, r["run_id"], "KILLED")
 
 
 def _describe_best(summary: StudySummary, best, done, context: Mapping[str, Any]) -> None:
@@ -122,7 +138,8 @@ def _describe_best(summary: StudySummary, best, done, context: Mapping[str, Any]
     summary.overrides = to_overrides(best.params, choices) + [f"{k}={v}" for k, v in values.items()]
     header = (f"Best trial {best.number} of study '{summary.name}' ({summary.sampler}): held-out "
               f"error {summary.best_error:.4g}, {summary.best_n_terms} active terms.\n"
-              f"Use: sdrl-bench 'hydra.searchpath=[file://<this folder's parent>]' +experiment=<this file's name>")
+              f"Use: sdrl-bench 'hydra.searchpath=[file://<the folder holding experiment/>]' "
+              f"experiment={summary.name}\n(or copy it into conf/experiment/ and run: sdrl-bench experiment={summary.name})")
     summary.experiment_yaml = experiment_pack(best.params, choices, values, header)
 
 
