@@ -190,7 +190,9 @@ def make_sampler(s: StudySettings) -> optuna.samplers.BaseSampler:
         return optuna.samplers.NSGAIISampler(seed=seed)
     # multivariate + group: one model over the joint space (the library choice and the
     # thresholds interact); constant_liar keeps parallel workers from sampling the same point
-    return optuna.samplers.TPESampler(seed=seed, multivariate=True, group=True, constant_liar=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        return optuna.samplers.TPESampler(seed=seed, multivariate=True, group=True, constant_liar=True)
 
 
 def make_pruner(s: StudySettings) -> optuna.pruners.BasePruner:
@@ -268,7 +270,11 @@ def run_study(
             study.stop()
 
     objective = _objective(settings, build_job, sd, uri, parent)
-    study.optimize(objective, n_trials=remaining, callbacks=[budget], catch=TRIAL_ERRORS, gc_after_trial=False)
+    try:
+        study.optimize(objective, n_trials=remaining, callbacks=[budget], catch=TRIAL_ERRORS, gc_after_trial=False)
+    except BaseException as exc:  # the parent shows it; a later summarize (resume) finishes it
+        tracking.end_run(uri, parent, "KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED")
+        raise
     return result
 
 

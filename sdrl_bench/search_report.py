@@ -82,7 +82,9 @@ def summarize(
     when ``final_score``), counts and fits, figures, and the best config (as ``sdrl-bench``
     overrides and an experiment pack, also written under ``export_dir/experiment/``)."""
     s, study, uri, parent = result.settings, result.study, result.tracking_uri, result.parent_run_id
-    optuna.storages.fail_stale_trials(study)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        optuna.storages.fail_stale_trials(study)
     trials = study.get_trials(deepcopy=False)
     _close_orphan_runs(uri, s.experiment, parent, {t.number: t.state for t in trials})
     done = [t for t in trials if counted(t)]
@@ -111,7 +113,7 @@ def summarize(
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(summary.experiment_yaml)
     study.set_user_attr(SUMMARY_ATTR, json.loads(json.dumps(asdict(summary), default=str)))
-    tracking.end_run(uri, parent, "FINISHED")
+    parent_run.end("FINISHED")  # also after an earlier worker left it FAILED or KILLED
     return summary
 
 

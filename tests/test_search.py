@@ -172,6 +172,16 @@ def test_exported_best_config_is_what_a_plain_fit_run_uses(mc_study):
         assert fit.model.describe() == summary.best_equations
 
 
+def test_journal_storage_resumes_too(tmp_path, uri):
+    journal = f"study.storage='journal:{tmp_path}/optuna.journal'"
+    first, _ = run_search(search_cfg(tmp_path, uri, journal, "study.name=j", "search.n_trials=3",
+                                     "study.final_score=false"), quiet=True)
+    again, summary = run_search(search_cfg(tmp_path, uri, journal, "study.name=j", "search.n_trials=5",
+                                           "study.final_score=false"), quiet=True)
+    assert first.trials == [0, 1, 2] and again.trials == [3, 4] and summary.n_trials == 5
+    assert (tmp_path / "optuna.journal").stat().st_size > 0 and not (tmp_path / "optuna.db").exists()
+
+
 # ---------------------------------------------------------------------- grid, Pareto, refinement
 def test_grid_visits_every_point_once_and_compares_with_tpe(tmp_path, uri):
     grid = ["search=grid", "search.space.threshold.grid=[1e-4,1e-3,1e-2]", "search.space.alpha.grid=[1e-10,1e-5]"]
