@@ -131,14 +131,8 @@ def _print_summary(result: FitResult, uri: str, run_id: str) -> None:
     lines = result.model.describe().strip().splitlines()
     console.print(f"{result.model.summary_file[:-4]}:\n  " + "\n  ".join(lines), highlight=False, markup=False)
     console.print(f"MLflow run {run_id} in {uri}", highlight=False)
-    if uri.startswith("sqlite:///"):
-        rel = Path(uri[len("sqlite:///"):])
-        try:
-            rel = rel.relative_to(Path.cwd())
-        except ValueError:
-            pass
-        console.print(f"browse: mlflow ui --backend-store-uri sqlite:///{rel}  (then open http://127.0.0.1:5000)",
-                      highlight=False)
+    console.print("browse: mlflow ui --backend-store-uri " + tracking.display_uri(uri) + "  (then open http://127.0.0.1:5000)",
+                  highlight=False)
 
 
 def _terminate(signum: int, frame: Any) -> None:

@@ -66,6 +66,7 @@ def run_train(cfg: DictConfig, fit_job, parent: str | None) -> dict[str, float]:
         run.log_params(tracking.flatten(OmegaConf.to_container(cfg, resolve=True)))
         maps: dict[str, Any] = {}
         curves: dict[str, tuple] = {}
+        model_text = ""
         for arm in job.arms:
             found = tracking.find_real_arm(uri, cfg.tracking.experiment, key) if (
                 arm == "real" and cfg.rl.reuse_real_arm) else None
@@ -85,6 +86,7 @@ def run_train(cfg: DictConfig, fit_job, parent: str | None) -> dict[str, float]:
             tracking.log_arm(run, result, metrics)
             if result.fit is not None:
                 tracking.log_fit(run, result.fit, None, prefix="fit/")
+                model_text = result.fit.model.describe()
             summary.update({f"{arm}/{k}": v for k, v in metrics.items()})
             maps[arm] = result.maps
             curves[arm] = (result.curve.steps, result.curve.means, result.curve.stds)
@@ -102,11 +104,11 @@ def run_train(cfg: DictConfig, fit_job, parent: str | None) -> dict[str, float]:
         elif maps:
             arm = next(iter(maps))
             run.log_figure(figure({arm: maps[arm]}, spec, f"{spec.name} policy map ({arm} arm)"), "figures/policy_maps.png")
-    _print(summary, uri, run.run_id, job)
+    _print(summary, uri, run.run_id, job, model_text)
     return summary
 
 
-def _print(summary: dict[str, float], uri: str, run_id: str, job: TransferJob) -> None:
+def _print(summary: dict[str, float], uri: str, run_id: str, job: TransferJob, model_text: str) -> None:
     from rich.console import Console
     from rich.table import Table
 
@@ -120,7 +122,12 @@ def _print(summary: dict[str, float], uri: str, run_id: str, job: TransferJob) -
     for k in keys:
         table.add_row(k, *[f"{summary[f'{a}/{k}']:.6g}" if f"{a}/{k}" in summary else "-" for a in job.arms])
     console = Console(width=120)
+    if model_text:
+        console.print(f"surrogate model ({job.fit.names['surrogate']}, {job.fit.n_transitions} real transitions):\n  "
+                      + "\n  ".join(model_text.strip().splitlines()), highlight=False, markup=False)
     console.print(table)
     if "policy_map_agreement" in summary:
         console.print(f"policy-map agreement: {summary['policy_map_agreement']:.3f}")
     console.print(f"MLflow run {run_id} in {uri}", highlight=False)
+    console.print("browse: mlflow ui --backend-store-uri " + tracking.display_uri(uri) + "  (then open http://127.0.0.1:5000)",
+                  highlight=False)

@@ -32,6 +32,17 @@ def resolve_uri(uri: str | None = None) -> str:
     return uri
 
 
+def display_uri(uri: str) -> str:
+    """The URI as a user would type it: a SQLite store under the current folder, relative."""
+    local = _sqlite_path(uri)
+    if local is None:
+        return uri
+    try:
+        return f"sqlite:///{local.relative_to(Path.cwd())}"
+    except ValueError:
+        return uri
+
+
 def _sqlite_path(uri: str) -> Path | None:
     return Path(uri[len("sqlite:///"):]) if uri.startswith("sqlite:///") else None
 
