@@ -23,7 +23,6 @@ and ``step_one`` the plain-Python step of one state that ``SurrogateEnv`` uses. 
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -32,31 +31,12 @@ import numpy as np
 
 from sdrl_bench import ConfigError
 from sdrl_bench.envs import EnvSpec, LunarLanderContinuousSpec, LunarLanderSpec, MountainCarSpec
+from sdrl_bench.models.base import load_model
 from sdrl_bench.models.fast import batch_predictor, scalar_predictor
-from sdrl_bench.models.sindy import SindyModel
 
 SPECS = {"mountain_car": MountainCarSpec, "lunar_lander": LunarLanderSpec,
          "lunar_lander_continuous": LunarLanderContinuousSpec}
 _SPACES: dict[tuple, tuple[gym.Space, gym.Space]] = {}
-
-
-def load_model(path: str | Path) -> Any:
-    """A saved dynamics model (SINDy JSON, or the NN baseline's JSON + weights); errors name the file."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"model file not found: {path}")
-    try:
-        data = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: not a valid model file (not JSON: {exc})") from exc
-    kind = data.get("kind") if isinstance(data, dict) else None
-    if kind == "sindy":
-        return SindyModel.from_dict(data, source=str(path))
-    if kind == "nn":
-        from sdrl_bench.models.nn import MLPDynamics  # torch only when needed
-
-        return MLPDynamics.load(path)
-    raise ConfigError(f"{path}: model kind {kind!r} is not supported (sindy, nn)")
 
 
 def resolve_spec(spec: EnvSpec | str) -> EnvSpec:

@@ -82,7 +82,7 @@ def test_malformed_model_files_are_rejected_with_the_file_named(tmp_path):
     with pytest.raises(ConfigError, match="model file not found"):
         SindyModel.load(tmp_path / "missing.json")
     (tmp_path / "bad.json").write_text("{not json")
-    with pytest.raises(ConfigError, match="bad.json: not valid JSON"):
+    with pytest.raises(ConfigError, match="bad.json: not a valid model file"):
         SindyModel.load(tmp_path / "bad.json")
     evil = dict(good, terms=[[[0, "__import__('os').system('true')", 1.0]]] * len(good["terms"]))
     (tmp_path / "evil.json").write_text(json.dumps(evil))

@@ -36,21 +36,30 @@ class DynamicsModel(Protocol):
     def describe(self) -> str: ...
 
 
-def load_model(path: str | Path) -> DynamicsModel:
-    """Load a saved model (``model.json``) of any kind; errors name the file."""
+def read_model_json(path: str | Path) -> dict:
+    """The JSON object of a saved model file; errors name the file."""
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"model file not found: {path}")
     try:
-        kind = json.loads(path.read_text()).get("kind")
-    except (json.JSONDecodeError, AttributeError) as exc:
-        raise ConfigError(f"{path}: not valid model JSON ({exc})") from exc
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: not a valid model file (not JSON: {exc})") from exc
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: not a valid model file (not a JSON object)")
+    return data
+
+
+def load_model(path: str | Path) -> DynamicsModel:
+    """Load a saved model (``model.json``) of any kind; errors name the file."""
+    data = read_model_json(path)
+    kind = data.get("kind")
     if kind == "sindy":
         from sdrl_bench.models.sindy import SindyModel
 
-        return SindyModel.load(path)
+        return SindyModel.from_dict(data, source=str(path))
     if kind == "nn":
-        from sdrl_bench.models.nn import MLPDynamics  # type: ignore[import-not-found]
+        from sdrl_bench.models.nn import MLPDynamics  # torch only when needed
 
         return MLPDynamics.load(path)
-    raise ConfigError(f"{path}: unknown model kind {kind!r}")
+    raise ConfigError(f"{path}: model kind {kind!r} is not supported (sindy, nn)")

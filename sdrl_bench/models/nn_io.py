@@ -18,6 +18,7 @@ import numpy as np
 import torch
 
 from sdrl_bench import ConfigError
+from sdrl_bench.models.base import read_model_json
 
 if TYPE_CHECKING:
     from sdrl_bench.models.nn import MLPDynamics
@@ -79,12 +80,7 @@ def _vector(d: dict, key: str, n: int, positive: bool = False) -> np.ndarray:
 
 
 def load(cls: type["MLPDynamics"], path: Path) -> "MLPDynamics":
-    if not path.is_file():
-        raise ConfigError(f"model file not found: {path}")
-    try:
-        d = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{path}: not valid JSON ({exc.msg}, line {exc.lineno})") from exc
+    d = read_model_json(path)
     try:
         if not isinstance(d, dict) or d.get("format") != FORMAT:
             raise ValueError(f"format is {d.get('format') if isinstance(d, dict) else None!r}, expected {FORMAT!r}")

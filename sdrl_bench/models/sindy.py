@@ -225,11 +225,6 @@ class SindyModel:
 
     @classmethod
     def load(cls, path: str | Path) -> "SindyModel":
-        path = Path(path)
-        if not path.is_file():
-            raise ConfigError(f"model file not found: {path}")
-        try:
-            data = json.loads(path.read_text())
-        except json.JSONDecodeError as exc:
-            raise ConfigError(f"{path}: not valid JSON ({exc.msg}, line {exc.lineno})") from exc
-        return cls.from_dict(data, source=str(path))
+        from sdrl_bench.models.base import read_model_json  # noqa: PLC0415
+
+        return cls.from_dict(read_model_json(path), source=str(path))
