@@ -352,3 +352,62 @@ def reuse_real_arm(run: Run, found: dict, local_dir: str | Path) -> Path:
     for m in client.get_metric_history(found["run_id"], "real/curve_return_mean"):
         run.log_metrics({"real/curve_return_mean": m.value}, step=m.step)
     return Path(client.download_artifacts(found["run_id"], "agents/real.zip", str(local_dir)))
+
+
+# ---------------------------------------------------------------------- report (read side)
+def list_experiments(uri: str) -> list[str]:
+    """Names of the store's active experiments (an empty or missing store: [])."""
+    try:
+        return sorted(e.name for e in _client(uri).search_experiments())
+    except Exception:  # a store that cannot be opened holds nothing to report
+        return []
+
+
+def report_runs(uri: str, experiment: str, filter_string: str = "") -> list[dict[str, Any]]:
+    """An experiment's active runs for the report: run_id, experiment_id, status, start_time,
+    tags, params, metrics; oldest first. An unknown experiment raises ConfigError."""
+    client = _client(uri)
+    exp = client.get_experiment_by_name(experiment)
+    if exp is None:
+        raise ConfigError(f"--experiment: no experiment {experiment!r} in {display_uri(uri)}")
+    runs = client.search_runs([exp.experiment_id], filter_string=filter_string, max_results=50_000)
+    out = [{"run_id": r.info.run_id, "experiment_id": r.info.experiment_id, "status": r.info.status,
+            "start_time": r.info.start_time, "tags": dict(r.data.tags), "params": dict(r.data.params),
+            "metrics": dict(r.data.metrics)} for r in runs]
+    return sorted(out, key=lambda r: (r["start_time"] or 0, r["run_id"]))
+
+
+def run_exists(uri: str, run_id: str) -> bool:
+    """Whether the store holds a run with this id."""
+    try:
+        _client(uri).get_run(run_id)
+        return True
+    except Exception:
+        return False
+
+
+def list_artifacts(uri: str, run_id: str, folder: str | None = None) -> list[str]:
+    """Artifact paths directly under ``folder`` of a run ([] when there are none)."""
+    try:
+        return [a.path for a in _client(uri).list_artifacts(run_id, folder)]
+    except Exception:
+        return []
+
+
+def download_artifact(uri: str, run_id: str, path: str, dst: str | Path) -> Path | None:
+    """Fetch one artifact of a run into ``dst``; None when the run has no such artifact."""
+    Path(dst).mkdir(parents=True, exist_ok=True)
+    try:
+        return Path(_client(uri).download_artifacts(run_id, path, str(dst)))
+    except Exception:
+        return None
+
+
+def log_report(uri: str, experiment: str, name: str, folder: str | Path, tags: Mapping[str, Any]) -> str:
+    """A "report" run holding the report folder's files as artifacts; returns its run id."""
+    with start_run(uri, experiment, f"report-{name}", {"sdrl.kind": "report", **tags}) as run:
+        for path in sorted(Path(folder).rglob("*")):
+            if path.is_file():
+                rel = path.parent.relative_to(folder)
+                run.log_artifact(path, "report" if str(rel) == "." else f"report/{rel}")
+    return run.run_id
