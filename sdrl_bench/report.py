@@ -100,10 +100,11 @@ def _df_table(df: pd.DataFrame, spec: Sequence[tuple[str, str, str]], link: Link
     rows = []
     for _, r in df.iterrows():
         ids = list(r["runs"])
-        empty = MISSING if ids else NOT_RUN
         cells = []
         for col, _, kind in spec:
             v = r[col]
+            kind, _, count_col = kind.partition("|")  # "g|n_nn": "not run" when n_nn is 0
+            empty = NOT_RUN if not ids or (count_col and not r[count_col]) else MISSING
             if kind == "text":
                 cells.append(Cell("-" if v is None or (isinstance(v, float) and math.isnan(v)) else str(v)))
             elif kind.startswith("paper"):
@@ -144,8 +145,8 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                          "gives one MSE per env without saying how states are combined."))
     out.append(Heading(2, "3. SINDy vs NN surrogate"))
     out.append(_df_table(rt.sindy_vs_nn_table(runs), [("env", "env", "text"), ("quantity", "quantity", "text"),
-                                                      ("sindy", "SINDy", "g"), ("nn", "NN", "g"),
-                                                      ("sindy_over_nn", "SINDy / NN", "g"), ("n_sindy", "SINDy fits", "int"),
+                                                      ("sindy", "SINDy", "g|n_sindy"), ("nn", "NN", "g|n_nn"),
+                                                      ("sindy_over_nn", "SINDy / NN", "g|n_nn"), ("n_sindy", "SINDy fits", "int"),
                                                       ("n_nn", "NN fits", "int")], link,
                          "Fit runs, means over seeds. n_parameters: SINDy's active terms vs the NN's weights. "
                          "Paper (Mountain Car velocity): SINDy MSE 3.11e-06 vs NN 4.45e-06, ~95% less compute."))
