@@ -148,7 +148,7 @@ def to_mathtext(equation: str) -> str:
     eq = re.sub(r"(?<![\d.])[A-Za-z_]\w*", name, eq)
     eq = eq.replace("\x00", "_{k+1}").replace("*", "\\,").replace("%", "\\%")
     eq = re.sub(r"(?<=\d)e([+-]?\d+)", r"\\times10^{\1}", eq)
-    return eq
+    return re.sub(r"(?<=[}\w)]) (?=\\(?:mathrm|sin|cos|tan|exp|log|tanh|sqrt)\b)", r"\\,", eq)  # visible products
 
 
 def _split_terms(equation: str, per_line: int = 6) -> list[str]:
