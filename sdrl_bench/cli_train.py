@@ -11,6 +11,7 @@ import json
 import tempfile
 from typing import Any
 
+import pandas as pd
 from omegaconf import DictConfig, OmegaConf
 
 from sdrl_bench import tracking
@@ -72,8 +73,11 @@ def run_train(cfg: DictConfig, fit_job, parent: str | None) -> dict[str, float]:
                 arm == "real" and cfg.rl.reuse_real_arm) else None
             if found is not None:
                 algo_cls = getattr(job.agent.algo, "func", job.agent.algo)
-                model = algo_cls.load(tracking.reuse_real_arm(run, found, tmp), device="cpu")
+                agent_zip, curve_csv = tracking.reuse_real_arm(run, found, tmp)
+                model = algo_cls.load(agent_zip, device="cpu")
                 maps["real"] = compute_maps(model, spec)
+                curve = pd.read_csv(curve_csv)
+                curves["real"] = (curve["train_steps"].tolist(), curve["return_mean"].tolist(), curve["return_std"].tolist())
                 summary.update(found["metrics"])
                 continue
             result = run_arm(

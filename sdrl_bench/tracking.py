@@ -342,8 +342,8 @@ def find_real_arm(uri: str, experiment: str, key: str) -> dict | None:
     return None
 
 
-def reuse_real_arm(run: Run, found: dict, local_dir: str | Path) -> Path:
-    """Copy a reused real arm's metrics into ``run`` and fetch its agent; returns the agent zip."""
+def reuse_real_arm(run: Run, found: dict, local_dir: str | Path) -> tuple[Path, Path]:
+    """Copy a reused real arm's metrics and curve into ``run``; returns (agent zip, curve CSV)."""
     run.log_metrics(found["metrics"])
     run.set_tags({"real_arm_reused_from": found["run_id"]})
     client = _client(run.uri)
@@ -351,7 +351,7 @@ def reuse_real_arm(run: Run, found: dict, local_dir: str | Path) -> Path:
     run.log_artifact(curve, "curves")
     for m in client.get_metric_history(found["run_id"], "real/curve_return_mean"):
         run.log_metrics({"real/curve_return_mean": m.value}, step=m.step)
-    return Path(client.download_artifacts(found["run_id"], "agents/real.zip", str(local_dir)))
+    return Path(client.download_artifacts(found["run_id"], "agents/real.zip", str(local_dir))), Path(curve)
 
 
 # ---------------------------------------------------------------------- report (read side)

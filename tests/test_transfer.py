@@ -53,6 +53,8 @@ def test_real_arm_is_reused_by_a_later_run_with_the_same_key(store):
     assert second["tags.real_arm_reused_from"] == first["run_id"]
     assert second["metrics.real/final_return_mean"] == first["metrics.real/final_return_mean"]
     assert second["tags.real_arm_key"] == first["tags.real_arm_key"]
+    listed = {a.path for d in ("curves", "figures") for a in MlflowClient(store).list_artifacts(second["run_id"], d)}
+    assert {"curves/real.csv", "figures/learning_curves.png", "figures/policy_maps.png"} <= listed
 
 
 @pytest.mark.parametrize("overrides,message", [
