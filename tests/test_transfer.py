@@ -139,3 +139,15 @@ def test_ppo_in_a_vectorized_surrogate_logs_sb3_metrics_through_the_kvwriter(sto
     history = client.get_metric_history(run["run_id"], "surrogate/sb3/time/total_timesteps")
     assert [m.value for m in history] == [64, 128]  # one rollout of 4 envs x 16 steps per dump
     assert "metrics.surrogate/sb3/train/value_loss" in run.index
+
+
+@pytest.mark.slow
+def test_sac_learns_mountain_car_from_the_sindy_surrogate_alone(store):
+    """Learnability: SAC (zoo settings) trained 20,000 steps only inside the surrogate fitted
+    from 75 heuristic transitions reaches the goal in the real env (the quick pack, seed 0)."""
+    cfg = compose_cfg("experiment=quick_mountain_car", f"tracking.uri={store}", "rl.arms=[surrogate]",
+                      "rl.eval_every=20000", "rl.eval_episodes=1", "progress_bar=false")
+    summary = run_train(cfg, build_fit_job(cfg), None)
+    assert summary["surrogate/real_transitions_model"] == 75
+    assert summary["surrogate/final_return_mean"] >= 90
+    assert summary["surrogate/success_rate"] == 1.0
