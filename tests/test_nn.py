@@ -184,12 +184,13 @@ def test_sindy_nn_multirun_fits_both_on_identical_data(store, tmp_path):
 
 
 def test_nn_surrogate_passes_the_env_checks():
-    surrogate = pytest.importorskip("sdrl_bench.surrogate")
     from gymnasium.utils.env_checker import check_env as gym_check_env
     from stable_baselines3.common.env_checker import check_env as sb3_check_env
 
     from sdrl_bench.data import collect, heuristic_policy
+    from sdrl_bench import surrogate
     from sdrl_bench.envs import MountainCarSpec
+    from sdrl_bench.vec_surrogate import SurrogateVecEnv
 
     spec = MountainCarSpec()
     data = collect(spec, heuristic_policy, 75, 0.2, 0)
@@ -203,7 +204,7 @@ def test_nn_surrogate_passes_the_env_checks():
     obs, _ = env.reset(seed=0)
     nxt, *_ = env.step(np.array([1.0], dtype=np.float32))
     assert nxt.shape == (2,) and np.all(np.isfinite(nxt))
-    vec = pytest.importorskip("sdrl_bench.vec_surrogate").SurrogateVecEnv(model, spec, n_envs=4)
+    vec = SurrogateVecEnv(model, spec, n_envs=4)
     vec.seed(0)
     first = vec.reset()
     obs, rewards, dones, infos = vec.step(np.ones((4, 1), dtype=np.float32))
