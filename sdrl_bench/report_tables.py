@@ -240,6 +240,8 @@ def missing_metrics(runs: Iterable[Run]) -> list[str]:
     out = []
     for r in finished(runs):
         keys = needed.get(r["tags"].get("sdrl.kind", ""), ())
+        if r["tags"].get("arms"):  # a transfer run that ran some arms only: ask for those
+            keys = tuple(f"{a}/final_return_mean" for a in r["tags"]["arms"].split(","))
         lacking = [k for k in keys if k not in r["metrics"]]
         if lacking:
             out.append(f"run {r['run_id']} ({r['tags'].get('mlflow.runName', '?')}) lacks {', '.join(lacking)}")

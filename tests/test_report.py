@@ -11,7 +11,7 @@ from scipy import stats
 from sdrl_bench import report_tables as rt
 from sdrl_bench import tracking
 from sdrl_bench.report import ReportInput, build_report, main
-from tests.conftest import search
+from conftest import search
 
 EXP = "sdrl-bench"
 
@@ -164,3 +164,14 @@ def test_runs_missing_metrics_are_named(store: str, tmp_path) -> None:
     assert any(run.run_id in p and "real/final_return_mean" in p for p in res.problems)
     assert f"run {run.run_id} (bare) lacks" in (res.folder / "report.md").read_text()
     assert main(["--uri", store, "--tag", "nokeyvalue", "--out", str(tmp_path)]) == 2
+
+
+def test_single_arm_transfer_runs_are_not_reported_as_missing_the_other_arm():
+    from sdrl_bench.report_tables import missing_metrics
+
+    base = {"status": "FINISHED", "tags": {"sdrl.kind": "transfer", "mlflow.runName": "t"}}
+    one_arm = {**base, "run_id": "a", "tags": {**base["tags"], "arms": "surrogate"},
+               "metrics": {"surrogate/final_return_mean": 1.0}}
+    both = {**base, "run_id": "b", "tags": {**base["tags"], "arms": "surrogate,real"},
+            "metrics": {"surrogate/final_return_mean": 1.0}}
+    assert missing_metrics([one_arm, both]) == ["run b (t) lacks real/final_return_mean"]
