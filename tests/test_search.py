@@ -300,7 +300,6 @@ def test_four_parallel_workers_share_one_study(tmp_path, uri):
 
 @pytest.mark.slow
 def test_submitit_local_executor_runs_two_workers(tmp_path, uri):
-    pytest.importorskip("hydra_plugins.hydra_submitit_launcher")
     args = _cli(tmp_path, uri, "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10",
                 "study.worker=0,1", "study.name=submitit", "search.n_trials=8", multirun=True)
     res = subprocess.run(args, cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=600)
