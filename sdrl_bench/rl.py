@@ -164,8 +164,8 @@ class RealEvalCallback(BaseCallback):
         self.counts, self.on_point = counts, on_point
         self.curve = Curve()
         self._next = every
-        self._eval_seconds = 0.0
-        self._eval_cpu = 0.0
+        self.eval_wall_seconds = 0.0
+        self.eval_cpu_seconds = 0.0
         self._t0 = 0.0
 
     def _on_training_start(self) -> None:
@@ -185,9 +185,9 @@ class RealEvalCallback(BaseCallback):
     def _point(self) -> None:
         t, c = time.perf_counter(), time.process_time()
         res = evaluate_real(self.model, self.spec, self.episodes, self.seed, self.counts, "evaluate")
-        self._eval_seconds += time.perf_counter() - t
-        self._eval_cpu += time.process_time() - c
-        wall = time.perf_counter() - self._t0 - self._eval_seconds
+        self.eval_wall_seconds += time.perf_counter() - t
+        self.eval_cpu_seconds += time.process_time() - c
+        wall = time.perf_counter() - self._t0 - self.eval_wall_seconds
         c = self.curve
         c.steps.append(int(self.num_timesteps))
         c.means.append(res.mean)
@@ -222,7 +222,7 @@ def train(
     t0, c0 = time.perf_counter(), time.process_time()
     model.learn(total_timesteps=int(steps), callback=callback, progress_bar=progress_bar)
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
-    eval_wall = callback._eval_seconds if callback is not None else 0.0
-    eval_cpu = callback._eval_cpu if callback is not None else 0.0
+    eval_wall = callback.eval_wall_seconds if callback is not None else 0.0
+    eval_cpu = callback.eval_cpu_seconds if callback is not None else 0.0
     curve = callback.curve if callback is not None else Curve()
     return TrainResult(model, curve, wall - eval_wall, cpu - eval_cpu, eval_wall)

@@ -12,6 +12,8 @@ from collections import Counter
 from dataclasses import dataclass, field, replace
 from typing import Any, Callable
 
+import numpy as np
+
 from sdrl_bench import ConfigError
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.pipeline import FitJob, FitResult, check, fit_dynamics
@@ -19,6 +21,8 @@ from sdrl_bench.policy_maps import PolicyMap, compute_maps
 from sdrl_bench.rl import AgentConfig, Curve, RealEvalCallback, StepCounter, check_budget, evaluate_real, real_vec_env, train
 
 ARMS = ("surrogate", "real")
+# reset seeds of the real-env evaluations, far from the collection seeds (seed + episode)
+CURVE_EVAL_SEED, FINAL_EVAL_SEED = 1_000_000, 2_000_000
 
 
 @dataclass(frozen=True)
@@ -78,8 +82,6 @@ class ArmResult:
 
     def metrics(self, spec: EnvSpec, train_steps: int) -> dict[str, float]:
         """The accounting, as the paper counts it (real transitions + surrogate steps)."""
-        import numpy as np
-
         rets = np.asarray(self.final_returns)
         real_model = self.counts.get("collect", 0)
         real_train = self.counts.get("train", 0)
@@ -135,7 +137,7 @@ def run_arm(
         venv = real_vec_env(spec, job.agent.n_envs, job.seed, counts, "train")
         steps = job.real_steps
     callback = RealEvalCallback(
-        spec, job.eval_every, job.eval_episodes, seed=1_000_000 + job.seed * 1000, counts=counts,
+        spec, job.eval_every, job.eval_episodes, seed=CURVE_EVAL_SEED + job.seed * 1000, counts=counts,
         on_point=(lambda s, m, sd: on_point(arm, s, m, sd)) if on_point else None,
     )
     logger = logger_factory(arm) if logger_factory else None
@@ -146,7 +148,7 @@ def run_arm(
         stats = {"diverged_episodes": float(sum(venv.n_diverged))}
     venv.close()
     t0, c0 = time.perf_counter(), time.process_time()
-    final = evaluate_real(result.model, spec, job.final_episodes, seed=2_000_000 + job.seed * 1000, counts=counts, phase="final")
+    final = evaluate_real(result.model, spec, job.final_episodes, seed=FINAL_EVAL_SEED + job.seed * 1000, counts=counts, phase="final")
     seconds.update(evaluate_wall=time.perf_counter() - t0, evaluate_cpu=time.process_time() - c0)
     maps = compute_maps(result.model, spec)
     return ArmResult(
