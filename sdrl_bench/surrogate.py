@@ -31,6 +31,7 @@ import numpy as np
 
 from sdrl_bench import ConfigError
 from sdrl_bench.envs import EnvSpec, LunarLanderContinuousSpec, LunarLanderSpec, MountainCarSpec
+from sdrl_bench.envs.base import observed_initial_states
 from sdrl_bench.models.base import load_model
 from sdrl_bench.models.fast import batch_predictor, scalar_predictor
 
@@ -57,6 +58,14 @@ def real_spaces(spec: EnvSpec) -> tuple[gym.Space, gym.Space]:
         _SPACES[key] = (env.observation_space, env.action_space)
         env.close()
     return _SPACES[key]
+
+
+def _as_slice(index: np.ndarray) -> slice | np.ndarray:
+    """``index`` as a slice if it is a contiguous ascending range, else unchanged."""
+    index = np.asarray(index)
+    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
+        return slice(int(index[0]), int(index[0]) + len(index))
+    return index
 
 
 class Surrogate:
@@ -101,7 +110,15 @@ class Surrogate:
             if init.ndim != 2 or init.shape[1] != len(spec.state_names) or not len(init) or not np.all(np.isfinite(init)):
                 raise ConfigError(f"initial_states: need a finite (K, {len(spec.state_names)}) array, got shape {init.shape}")
             self._initial = init
+        # The default reset distribution (states observed after real resets), looked up once.
+        self._pool = self._initial
+        if self._pool is None and type(spec).initial_states is EnvSpec.initial_states:
+            self._pool = observed_initial_states(spec)
         self.step_one = spec.make_step_one(self.predictor, self.obs_low, self.obs_high) or self._generic_step_one
+        self._step_batch = spec.make_step_batch(self.limit, self.obs_low, self.obs_high)
+        self.state_order = "F" if self._step_batch is None else "C"
+        """Memory layout of the states ``transition`` returns (and steps fastest): a spec's fused
+        step reads states row by row ("C"); the numpy composition works column by column ("F")."""
         # The batched step feeds the model input columns (EnvSpec.model_inputs, without copies).
         self._columnar = type(spec).model_inputs is EnvSpec.model_inputs
         self._predict_rows = batch_predictor(model)
@@ -110,6 +127,13 @@ class Surrogate:
         # slice(None) when the states are the model's first inputs, in order (no copy needed)
         self._input_index = slice(None) if np.array_equal(index, np.arange(len(index))) else index
         self._one_hot = bool(spec.n_discrete_actions) and type(spec).encode_actions is EnvSpec.encode_actions
+        self._action_ids = np.arange(spec.n_discrete_actions)[:, None]
+        self._limit_col = self.limit[:, None]
+        # Columns of the next state: regressed, derived (exogenous), neither (carried over);
+        # slices where they are contiguous (cheaper to assign than index arrays).
+        self._targets, self._exogenous = _as_slice(spec.target_index), _as_slice(spec.exogenous_index)
+        passive = np.setdiff1d(np.arange(len(spec.state_names)), index)
+        self._passive = _as_slice(passive) if len(passive) else None
 
     def _check_spaces(self, obs_space: gym.Space, act_space: gym.Space) -> None:
         spec = self.spec
@@ -140,16 +164,22 @@ class Surrogate:
 
     # ------------------------------------------------------------------ stepping
     def initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
-        if self._initial is not None:
-            return self._initial[rng.integers(len(self._initial), size=n)]
+        if self._pool is not None:  # the same draws as EnvSpec.initial_states
+            return self._pool[rng.integers(len(self._pool), size=n)]
         return self.spec.initial_states(rng, n)
 
     def raw_actions(self, actions: Any, n: int) -> np.ndarray:
-        """Actions as (n, raw width) floats; discrete actions must be valid indices."""
+        """Actions as (n, raw width) floats (integer arrays of discrete actions stay integers);
+        discrete actions must be valid indices."""
         raw = np.asarray(actions)
-        a = raw.astype(float).reshape(n, self.spec.raw_action_width)
         k = self.spec.n_discrete_actions
-        if k and (a.min() < 0 or a.max() >= k or (raw.dtype.kind not in "iub" and np.any(a != np.round(a)))):
+        if k and raw.dtype.kind in "iu":  # integer indices stay integers (no float copy)
+            a = raw.reshape(n, 1)
+            if a.min() < 0 or a.max() >= k:
+                raise ValueError(f"actions must be integers in [0, {k}), got {actions!r}")
+            return a
+        a = raw.astype(float).reshape(n, self.spec.raw_action_width)
+        if k and (a.min() < 0 or a.max() >= k or (raw.dtype.kind != "b" and np.any(a != np.round(a)))):
             raise ValueError(f"actions must be integers in [0, {k}), got {actions!r}")
         return a
 
@@ -157,36 +187,45 @@ class Surrogate:
         """One batched step: (next states, rewards, terminated, diverged), all (N, ...).
 
         Diverged rows keep their state, get reward 0 and terminated False (see module doc).
+        The next states are in Fortran order (each variable a contiguous column), as the
+        per-variable rules below read them.
         """
         spec, states = self.spec, np.asarray(states, dtype=float)
         with np.errstate(all="ignore"):
-            if self._columnar:  # model inputs as rows of z (inputs x N); pred (N, m) in F order
+            if self._columnar:  # model inputs as rows of z (inputs x N) -> predictions (m, N)
                 n_s = self._n_state_inputs
                 z = np.empty((n_s + len(spec.action_names), len(states)))
                 z[:n_s] = states.T[self._input_index]
                 if self._one_hot:
-                    z[n_s:] = actions[:, 0] == np.arange(spec.n_discrete_actions)[:, None]
+                    np.equal(actions[:, 0], self._action_ids, out=z[n_s:], casting="unsafe")
                 else:
                     z[n_s:] = spec.encode_actions(actions).T
-                pred = self._predict_rows(z).T
+                rows = self._predict_rows(z)
             else:
-                pred = np.asarray(self.model.predict(*spec.model_inputs(states, actions)), dtype=float)
-            ok = (np.abs(pred) <= self.limit).all(axis=1)  # False for NaN and inf
+                rows = np.asarray(self.model.predict(*spec.model_inputs(states, actions)), dtype=float).T
+            if self._step_batch is not None:  # the spec's fused step does the rest
+                return self._step_batch(states, actions, rows)
+            ok = (np.abs(rows) <= self._limit_col).all(axis=0)  # False for NaN and inf
         bad = None if ok.all() else np.flatnonzero(~ok)
+        pred = rows.T  # (N, m), Fortran order
         if bad is not None:  # placeholders (the current state) so that the rules see finite values
             pred = np.array(pred, order="F")
             pred[bad] = states[bad][:, spec.target_index]
-        nxt = np.array(states, dtype=float, order="F")  # columns contiguous: cheap per-variable work
-        nxt[:, spec.target_index] = spec.apply_bounds(states, pred)
+        nxt = np.empty(states.shape, order="F")
+        if self._passive is not None:  # neither regressed nor derived: carried over
+            nxt[:, self._passive] = states[:, self._passive]
+        nxt[:, self._targets] = spec.apply_bounds(states, pred)
         if spec.exogenous_names:
-            nxt[:, spec.exogenous_index] = spec.exogenous(states, actions, nxt)
+            nxt[:, self._exogenous] = spec.exogenous(states, actions, nxt)
         if self._clip:  # only the columns that leave the space (np.clip on all is slow)
             outside = (nxt.min(axis=0) < self.obs_low) | (nxt.max(axis=0) > self.obs_high)
             for j in np.flatnonzero(outside):
                 np.clip(nxt[:, j], self.obs_low[j], self.obs_high[j], out=nxt[:, j])
         rewards, terminated = spec.reward_terminated(states, actions, nxt)
-        rewards, terminated = np.array(rewards, dtype=float), np.array(terminated, dtype=bool)
+        rewards = np.asarray(rewards, dtype=float)
+        terminated = np.asarray(terminated, dtype=bool)
         if bad is not None:
+            rewards, terminated = rewards.copy(), terminated.copy()
             nxt[bad] = states[bad]
             rewards[bad], terminated[bad] = 0.0, False
         return nxt, rewards, terminated, ~ok

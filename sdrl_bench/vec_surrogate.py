@@ -111,7 +111,7 @@ class SurrogateVecEnv(VecEnv):
         self._views = [SurrogateEnvView(self, i) for i in range(n)]
         super().__init__(n, sur.observation_space, sur.action_space)
         self._rng = np.random.default_rng(seed)
-        self._states = np.asfortranarray(sur.initial_states(self._rng, n))
+        self._states = np.asarray(sur.initial_states(self._rng, n), order=sur.state_order)
         self._t = np.zeros(n, dtype=np.int64)
         self._max_steps = sur.spec.max_episode_steps
         self._obs_dtype = sur.observation_space.dtype
@@ -129,7 +129,8 @@ class SurrogateVecEnv(VecEnv):
         seeds = [s for s in self._seeds if s is not None]
         if seeds:
             self._rng = np.random.default_rng(seeds)
-        self._states = np.asfortranarray(self.surrogate.initial_states(self._rng, self.num_envs))
+        self._states = np.asarray(self.surrogate.initial_states(self._rng, self.num_envs),
+                                  order=self.surrogate.state_order)
         self._t[:] = 0
         self._reset_seeds()
         self._reset_options()
@@ -145,7 +146,7 @@ class SurrogateVecEnv(VecEnv):
         step_one, rows = self.surrogate.step_one, self._states.tolist()
         acts = actions.astype(int).ravel().tolist() if self.surrogate.spec.n_discrete_actions else actions
         out = [step_one(rows[i], acts[i]) for i in range(self.num_envs)]
-        nxt = np.array([o[1] for o in out], dtype=float, order="F")
+        nxt = np.array([o[1] for o in out], dtype=float, order=self.surrogate.state_order)
         rewards = np.array([o[2] for o in out], dtype=float)
         return nxt, rewards, np.array([o[3] for o in out], dtype=bool), np.array([o[4] for o in out], dtype=bool)
 

@@ -124,6 +124,38 @@ def test_one_state_step_agrees_with_batched_step(models, spec):
     assert terminated.any() and not terminated.all()
 
 
+@pytest.mark.parametrize("spec", ["lunar_lander", "lunar_lander_continuous"])
+def test_fused_batched_step_agrees_with_the_composed_task_functions(models, spec):
+    """LunarLander's compiled step (``make_step_batch``) against the numpy composition of the
+    spec's pure functions (apply_bounds, exogenous, clipping, reward_terminated), on states near
+    the ground and predictions that include NaN, inf and out-of-limit values."""
+    sur, rng = Surrogate(models[spec], spec), np.random.default_rng(3)
+    n, spec_ = 400, sur.spec
+    states = sur.initial_states(rng, n)
+    states[:, 1] = rng.uniform(-0.1, 0.2, n)
+    states[:, 2:6] = rng.normal(0, 0.3, (n, 4))
+    states[:, 6:8] = rng.integers(0, 2, (n, 2))
+    actions = rng.integers(0, 4, (n, 1)) if spec == "lunar_lander" else rng.uniform(-1.2, 1.2, (n, 2))
+    pred = states[:, :6] + rng.normal(0, 0.05, (n, 6))
+    pred[:20, 4] = rng.uniform(-8, 8, 20)  # beyond the observation space's angle bounds: clipped
+    pred[20, 0], pred[21, 3], pred[22, 5] = np.nan, np.inf, 1e6  # diverged
+    nxt, rewards, terminated, diverged = sur._step_batch(states, actions, pred.T.copy())
+
+    ok = np.ones(n, dtype=bool)
+    ok[20:23] = False
+    assert np.array_equal(diverged, ~ok)
+    ref = states.copy()
+    ref[:, :6] = spec_.apply_bounds(states, pred)
+    ref[:, 6:8] = spec_.exogenous(states, actions, ref)
+    ref = np.clip(ref, sur.obs_low, sur.obs_high)
+    ref_r, ref_t = spec_.reward_terminated(states, actions, ref)
+    assert np.array_equal(nxt[ok], ref[ok]) and np.array_equal(nxt[~ok], states[~ok])
+    assert np.allclose(rewards[ok], ref_r[ok], rtol=0, atol=1e-9)
+    assert np.array_equal(terminated[ok], ref_t[ok])
+    assert np.all(rewards[~ok] == 0) and not terminated[~ok].any()
+    assert 0 < terminated.sum() < n and np.any(nxt[:20, 4] == sur.obs_high[4])
+
+
 # ---------------------------------------------------------------------- MountainCar exactness
 def test_mountain_car_task_is_exact_on_real_transitions():
     spec = MountainCarSpec()

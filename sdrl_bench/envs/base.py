@@ -242,6 +242,15 @@ class EnvSpec:
         same order. Must agree with the batched functions; the tests check it."""
         return None
 
+    def make_step_batch(self, limit, obs_low, obs_high) -> Callable | None:
+        """A fused batched step after the model's prediction (or None: the surrogate composes
+        ``apply_bounds``, ``exogenous``, clipping and ``reward_terminated`` with numpy).
+        ``step(states (N, n_state), raw actions (N, w), predictions (n_target, N))`` returns
+        (next states (N, n_state), rewards, terminated, diverged), following
+        ``sdrl_bench.surrogate.Surrogate.transition`` with divergence ``limit`` and observation
+        bounds ``[obs_low, obs_high]``. Must agree with the composed functions; the tests check it."""
+        return None
+
     # ------------------------------------------------------------------ held-out test set
     def test_set_recipe(self) -> "TestSetRecipe":
         """The fixed, named held-out test set every model of this env is scored on."""

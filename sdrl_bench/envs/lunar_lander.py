@@ -82,6 +82,9 @@ class LunarLanderSpec(EnvSpec):
             self.rules, bool(self.n_discrete_actions), predictor, self.divergence_limit(), low, high
         )
 
+    def make_step_batch(self, limit, obs_low, obs_high) -> Callable:
+        return task.make_step_batch(self.rules, bool(self.n_discrete_actions), limit, obs_low, obs_high)
+
     def test_set_recipe(self) -> TestSetRecipe:
         """Twelve full episodes: the heuristic at eps 0 / 0.2 / 0.5 and uniform random actions,
         three of each (landings, crashes and flights off-screen)."""

@@ -28,6 +28,11 @@ calibration episodes disjoint from the held-out test set (``benchmarks/calibrate
   (with +100) up to 25 steps earlier than the real one would.
 * ``|x'| >= 1`` ends the episode with -100, as in the real env; a rest overrides a crash, as in
   the real env (its sleep check comes last).
+
+The batched functions run compiled loops (``lunar_lander_kernels``, numba): a surrogate's
+vectorized step does all of the above in one pass over the rows. ``make_step_one`` is the same
+step for one state in plain Python (a single env's step is too short to pay for a call into
+compiled code with arrays); the tests check that the two agree.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass
+from functools import lru_cache
 from operator import le
 from typing import Callable, Sequence
 
@@ -76,55 +82,46 @@ _DISCRETE_COST = np.array([0.0, 0.03, 0.30, 0.03])  # noop, left, main, right: 0
 def engine_cost(actions: np.ndarray, discrete: bool) -> np.ndarray:
     """0.3 x main engine power + 0.03 x side engine power, as the real env computes the powers
     from the raw action (continuous: main 0.5..1 when a0 > 0, side 0.5..1 when |a1| > 0.5)."""
-    a = np.asarray(actions, dtype=float).reshape(len(actions), -1)
+    a = np.asarray(actions)
     if discrete:
-        return _DISCRETE_COST[a[:, 0].astype(np.intp)]
-    a = np.clip(a, -1.0, 1.0)
+        return _DISCRETE_COST[a.reshape(len(a), -1)[:, 0].astype(np.intp)]
+    a = np.clip(a.astype(float).reshape(len(a), -1), -1.0, 1.0)
     main = np.where(a[:, 0] > 0.0, (np.clip(a[:, 0], 0.0, 1.0) + 1.0) * 0.5, 0.0)
     side = np.where(np.abs(a[:, 1]) > 0.5, np.clip(np.abs(a[:, 1]), 0.5, 1.0), 0.0)
     return main * 0.30 + side * 0.03
 
 
-def shaping(s: np.ndarray) -> np.ndarray:
-    """The real env's shaping potential of observations (N, 8), in its order of operations."""
-    x, y, vx, vy = s[:, 0], s[:, 1], s[:, 2], s[:, 3]
-    return (
-        -100 * np.sqrt(x * x + y * y) - 100 * np.sqrt(vx * vx + vy * vy) - 100 * np.abs(s[:, 4])
-        + 10 * s[:, 6] + 10 * s[:, 7]
-    )
+@lru_cache(maxsize=None)
+def rules_vector(rules: LanderRules) -> np.ndarray:
+    """The constants the compiled loops take (``lunar_lander_kernels``: indices named there)."""
+    k = np.array([rules.leg_tilt, rules.touch_height, rules.release_height, rules.floor,
+                  rules.impact_height, rules.crash_speed, rules.tip_angle, rules.rest_speed**2,
+                  rules.rest_angvel, 1.0 / _VX_PER_MPS, 1.0 / _VY_PER_MPS])
+    k.setflags(write=False)
+    return k
+
+
+def _kernels():
+    """The compiled loops (numba compiles them on first use; imported lazily so that code not
+    touching LunarLander's rules does not load numba)."""
+    from sdrl_bench.envs import lunar_lander_kernels
+
+    return lunar_lander_kernels
 
 
 def leg_contacts(rules: LanderRules, states: np.ndarray, next_states: np.ndarray) -> np.ndarray:
     """Leg flags (N, 2) of s' from its height and attitude, with hysteresis on s's flags."""
-    y, tilt = next_states[:, 1], rules.leg_tilt * np.sin(next_states[:, 4])
-    height = np.empty((2, len(y)))
-    np.add(y, tilt, out=height[0])
-    np.subtract(y, tilt, out=height[1])
-    touching = np.asarray(states)[:, 6:8].T > 0.5
-    down = (height <= rules.touch_height) | (touching & (height <= rules.release_height))
-    return down.T.astype(float)
+    s, ns = np.asarray(states, dtype=float), np.asarray(next_states, dtype=float)
+    out = np.empty((len(s), 2))
+    _kernels().leg_contacts(s, ns, rules_vector(rules), out)
+    return out
 
 
 def events(rules: LanderRules, states: np.ndarray, next_states: np.ndarray) -> tuple[np.ndarray, ...]:
-    """(crash, out of bounds, at rest) per row; leg flags of s' are read from ``next_states``.
-    Crash and rest are evaluated only on the rows that can have them (low; both legs down)."""
+    """(crash, out of bounds, at rest) per row; leg flags of s' are read from ``next_states``."""
     s, ns = np.asarray(states, dtype=float), np.asarray(next_states, dtype=float)
-    y = ns[:, 1]
-    crash = y <= rules.impact_height  # candidates (floor < impact_height)
-    if crash.any():
-        i = np.flatnonzero(crash)
-        y0, yi = s[i, 1], y[i]
-        crash[i] = (
-            ((yi <= rules.floor) & (y0 > rules.floor))
-            | ((y0 > rules.impact_height) & (s[i, 3] <= -rules.crash_speed))
-            | (np.abs(ns[i, 4]) >= rules.tip_angle)
-        )
-    out = np.abs(ns[:, 0]) >= 1.0
-    rest = (ns[:, 6] > 0.5) & (ns[:, 7] > 0.5)  # candidates
-    if rest.any():
-        i = np.flatnonzero(rest)
-        vx, vy = ns[i, 2] * (1.0 / _VX_PER_MPS), ns[i, 3] * (1.0 / _VY_PER_MPS)
-        rest[i] = (vx * vx + vy * vy <= rules.rest_speed**2) & (np.abs(ns[i, 5]) <= rules.rest_angvel)
+    crash, out, rest = (np.empty(len(s), dtype=bool) for _ in range(3))
+    _kernels().events(s, ns, rules_vector(rules), crash, out, rest)
     return crash, out, rest
 
 
@@ -132,10 +129,9 @@ def reward_terminated(rules: LanderRules, discrete: bool, states, actions, next_
     """(reward, terminated): +100 at rest, else -100 on crash or |x'| >= 1, else
     phi(s') - phi(s) - engine costs; terminated on any of the three."""
     s, ns = np.asarray(states, dtype=float), np.asarray(next_states, dtype=float)
-    shaped = shaping(ns) - shaping(s) - engine_cost(actions, discrete)
-    crash, out, rest = events(rules, s, ns)
-    crash |= out
-    return np.where(rest, 100.0, np.where(crash, -100.0, shaped)), crash | rest
+    reward, ended = np.empty(len(s)), np.empty(len(s), dtype=bool)
+    _kernels().reward_terminated(s, ns, engine_cost(actions, discrete), rules_vector(rules), reward, ended)
+    return reward, ended
 
 
 def reward(rules: LanderRules, discrete: bool, states, actions, next_states) -> np.ndarray:
@@ -143,8 +139,25 @@ def reward(rules: LanderRules, discrete: bool, states, actions, next_states) -> 
 
 
 def terminated(rules: LanderRules, states, actions, next_states) -> np.ndarray:
-    crash, out, rest = events(rules, states, next_states)
-    return crash | out | rest
+    return reward_terminated(rules, False, states, np.zeros((len(states), 2)), next_states)[1]
+
+
+def make_step_batch(rules: LanderRules, discrete: bool, limit, obs_low, obs_high):
+    """The surrogate's batched step after the model's prediction, in one compiled loop:
+    ``step(states, actions, pred)`` with predictions (6, N) -> (next states (N, 8) in C order,
+    rewards, terminated, diverged); the same rules as the functions above, in the order
+    of ``sdrl_bench.surrogate.Surrogate.transition`` (see ``lunar_lander_kernels.step``)."""
+    kern, k = _kernels(), rules_vector(rules)
+    limit, low, high = (np.array(v, dtype=float) for v in (limit, obs_low, obs_high))
+
+    def step(states: np.ndarray, actions: np.ndarray, pred: np.ndarray):
+        n = len(states)
+        nxt = np.empty((n, 8))
+        reward, ended, diverged = np.empty(n), np.empty(n, dtype=bool), np.empty(n, dtype=bool)
+        kern.step(states, pred, engine_cost(actions, discrete), limit, low, high, k, nxt, reward, ended, diverged)
+        return nxt, reward, ended, diverged
+
+    return step
 
 
 def make_step_one(
@@ -155,7 +168,8 @@ def make_step_one(
     obs_low: Sequence[float],
     obs_high: Sequence[float],
 ):
-    """The functions above for one state in plain floats (same operations, same order).
+    """The rules above for one state in plain floats (same operations, same order as the
+    compiled loops of ``lunar_lander_kernels``).
 
     ``predictor(fixed)`` gives the model's one-state evaluator with inputs ``fixed`` held at
     given values: for discrete actions, one evaluator per action, taking the 8 state values.
