@@ -41,6 +41,17 @@ def test_every_combination_instantiates(env, library, optimizer):
     assert len(library_obj.libraries) == len(cfg.library.parts)
 
 
+def test_each_env_has_its_default_library_and_the_command_line_wins():
+    """LunarLander defaults to polynomials (its env config overrides the library group);
+    MountainCar keeps poly_trig; an explicit library= always wins."""
+    defaults = {env: build_fit_job(compose_cfg(f"env={env}")) for env in ("mountain_car", "lunar_lander", "lunar_lander_continuous")}
+    assert {env: job.names["library"] for env, job in defaults.items()} == {
+        "mountain_car": "poly_trig", "lunar_lander": "polynomial", "lunar_lander_continuous": "polynomial"}
+    assert len(check(defaults["lunar_lander"])[0].libraries) == 1  # no trigonometric part
+    assert build_fit_job(compose_cfg("env=lunar_lander", "library=poly_trig")).names["library"] == "poly_trig"
+    assert build_fit_job(compose_cfg("experiment=paper_mountain_car")).names["library"] == "poly_trig"
+
+
 def test_lunar_lander_spec_encodes_actions_one_hot():
     job = build_fit_job(compose_cfg("env=lunar_lander"))
     assert job.spec.control_names == ("leg_left", "leg_right", "a_noop", "a_left", "a_main", "a_right")
