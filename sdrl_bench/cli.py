@@ -43,6 +43,14 @@ def _inputs(value: Any) -> str | tuple[str, ...]:
     return tuple(str(v) for v in OmegaConf.to_container(value, resolve=True))
 
 
+def _episode_cut(value: Any) -> int | None:
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+        raise ConfigError(f"collector.max_steps_per_episode must be a positive integer or null, got {value!r}")
+    return value
+
+
 def build_fit_job(cfg: DictConfig) -> FitJob:
     """Turn a composed config into a typed ``FitJob`` (no env steps, no fit)."""
     for group in ("env", "collector", "library", "optimizer", "surrogate"):
@@ -65,6 +73,7 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
         n_transitions=int(cfg.n_transitions),
         policy=policy,
         epsilon=float(cfg.collector.epsilon),
+        max_steps_per_episode=_episode_cut(cfg.collector.get("max_steps_per_episode")),
         seed=int(cfg.seed),
         dataset_path=cfg.dataset.path,
         exclude_bound_transitions=bool(cfg.dataset.exclude_bound_transitions),

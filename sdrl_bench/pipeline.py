@@ -37,6 +37,9 @@ class FitJob:
     """Collector policy factory (None: uniform random)."""
     epsilon: float = 0.2
     """Probability of a uniform random action instead of the policy's."""
+    max_steps_per_episode: int | None = None
+    """Cut each collected episode after this many steps and start the next one (None: play
+    each episode to its end or the env's limit)."""
     seed: int = 0
     """Seed of the collection (episode resets, exploration) and the fit."""
     dataset_path: str | None = None
@@ -113,7 +116,8 @@ def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = N
     seconds: dict[str, float] = {}
     t0, c0 = time.perf_counter(), time.process_time()
     if data is None:
-        data = collect(spec, job.policy or _random, job.n_transitions, job.epsilon, job.seed, wrap_env=job.wrap_env)
+        data = collect(spec, job.policy or _random, job.n_transitions, job.epsilon, job.seed,
+                       max_steps_per_episode=job.max_steps_per_episode, wrap_env=job.wrap_env)
     seconds["collect_wall"] = time.perf_counter() - t0
     seconds["collect_cpu"] = time.process_time() - c0
 

@@ -141,7 +141,8 @@ def study_data(job: FitJob, k_folds: int) -> StudyData:
     """Collect (or load) the study's data once, as ``pipeline.fit_dynamics`` would."""
     _, loaded = check(job)
     data = loaded if loaded is not None else collect(
-        job.spec, job.policy or random_policy, job.n_transitions, job.epsilon, job.seed
+        job.spec, job.policy or random_policy, job.n_transitions, job.epsilon, job.seed,
+        max_steps_per_episode=job.max_steps_per_episode,
     )
     return StudyData(
         spec=job.spec, data=data, folds=make_folds(data, k_folds), floor=resolution_floor(job.spec, data),

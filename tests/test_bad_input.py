@@ -45,6 +45,22 @@ def test_fewer_transitions_than_library_terms(store):
     assert no_running_runs(store) == 0
 
 
+@pytest.mark.parametrize("value", ["0", "-5", "abc", "2.5"])
+def test_bad_episode_cut_is_rejected_naming_the_key(store, value):
+    with pytest.raises(ConfigError, match=r"collector.max_steps_per_episode must be a positive integer or null"):
+        run_fit(compose_cfg(f"collector.max_steps_per_episode={value}", f"tracking.uri={store}"))
+    assert no_running_runs(store) == 0
+
+
+def test_episode_cut_splits_the_collection_into_episodes(store):
+    """n_transitions=200 cut every 30 steps: 7 episodes (six of 30, one of 20), all logged."""
+    res = run_fit(compose_cfg("n_transitions=200", "collector.max_steps_per_episode=30", f"tracking.uri={store}"))
+    assert len(set(res.data.episode.tolist())) == 7 and len(res.data) == 200
+    runs = search(store)
+    assert runs["params.collector.max_steps_per_episode"].tolist() == ["30"]
+    assert runs["metrics.n_episodes"].tolist() == [7.0]
+
+
 def _dataset(tmp_path, mutate):
     from sdrl_bench.data import collect, heuristic_policy, save_csv
     from sdrl_bench.envs import MountainCarSpec
