@@ -15,7 +15,7 @@ import numpy as np
 
 from sdrl_bench.data import Transitions
 from sdrl_bench.envs.base import EnvSpec
-from sdrl_bench.metrics import mse, pearson, r2
+from sdrl_bench.metrics import mse, pearson, r2, spearman
 
 
 class DynamicsModel(Protocol):
@@ -37,6 +37,9 @@ class FidelityReport:
     true_next: np.ndarray | None = None
     pred_next: np.ndarray | None = None
     rollout: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    pred_std: np.ndarray | None = None
+    """Per test transition and regressed state: the model's own uncertainty (an ensemble's member
+    spread), for models that have one."""
 
 
 def evaluate(
@@ -73,6 +76,9 @@ def evaluate(
             m[f"mse_smooth/{n}"] = float(err_s[i])
     if norm_std is not None:
         m["mse_norm/mean"] = float(np.mean([m[f"mse_norm/{n}"] for n in names]))
+    if _has_uncertainty(model):
+        rep.pred_std = std = np.asarray(model.predict_std(*spec.model_inputs(test.states, test.actions)), dtype=float)
+        m.update(uncertainty_metrics(names, np.abs(pred - true)[finite], std[finite]))
     for k in horizons:
         final_true, final_pred, diverged = rollouts(model, spec, test, k, stride)
         m[f"rollout{k}/n"] = float(len(diverged))
@@ -83,6 +89,24 @@ def evaluate(
             m[f"rollout{k}_mse/{n}"] = float(e[i])
         rep.rollout[k] = (final_true, final_pred)
     return rep
+
+
+def _has_uncertainty(model) -> bool:
+    return callable(getattr(model, "predict_std", None)) and getattr(model, "ensemble_size", 1) > 1
+
+
+def uncertainty_metrics(names, abs_err: np.ndarray, std: np.ndarray) -> dict[str, float]:
+    """Is the model's uncertainty informative? Per regressed state: the mean predicted std, the
+    Spearman rank correlation of std with the absolute one-step error (does the spread rank the
+    transitions by error?), and the share of errors within 2 std (0.95 for calibrated Gaussian
+    errors; ensembles of few members are usually overconfident)."""
+    m: dict[str, float] = {}
+    rank = spearman(std, abs_err)
+    for i, n in enumerate(names):
+        m[f"uncertainty/mean_std/{n}"] = float(np.mean(std[:, i]))
+        m[f"uncertainty/spearman/{n}"] = float(rank[i])
+        m[f"uncertainty/within_2std/{n}"] = float(np.mean(abs_err[:, i] <= 2 * std[:, i]))
+    return m
 
 
 def smooth_mask(spec: EnvSpec, test: Transitions) -> np.ndarray:

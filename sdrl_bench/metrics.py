@@ -29,3 +29,12 @@ def r2(y_true: np.ndarray, y_pred: np.ndarray) -> np.ndarray:
     sst = np.sum((y - y.mean(axis=0)) ** 2, axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(sst > 0, 1.0 - sse / np.where(sst > 0, sst, 1), np.nan)
+
+
+def spearman(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Spearman rank correlation per column (average ranks for ties; nan for a constant column)."""
+    from scipy.stats import rankdata
+
+    ra = rankdata(np.asarray(a, dtype=float), axis=0)
+    rb = rankdata(np.asarray(b, dtype=float), axis=0)
+    return pearson(ra, rb)

@@ -286,6 +286,23 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None, prefix: str = ""
         title=f"{spec.name}: {result.test_name} (one step; episode 0 open loop)",
     )
     run.log_figure(fig, "figures/predicted_vs_true.png")
+    if result.fidelity.pred_std is not None:
+        run.log_text(uncertainty_table(result).to_csv(index=False), "fidelity/uncertainty.csv")
+
+
+def uncertainty_table(result):
+    """Per held-out transition: episode, step, and per regressed state the true and predicted
+    next value, the absolute error and the model's predicted std (an ensemble's spread)."""
+    import pandas as pd
+
+    rep, test, names = result.fidelity, result.test, result.job.spec.target_names
+    cols = {"episode": test.episode, "step": test.step}
+    for i, n in enumerate(names):
+        cols[f"{n}_true"] = rep.true_next[:, i]
+        cols[f"{n}_pred"] = rep.pred_next[:, i]
+        cols[f"{n}_abs_err"] = abs(rep.pred_next[:, i] - rep.true_next[:, i])
+        cols[f"{n}_std"] = rep.pred_std[:, i]
+    return pd.DataFrame(cols)
 
 
 # ---------------------------------------------------------------------- RL transfer runs

@@ -11,7 +11,7 @@ import pytest
 import torch
 from mlflow.tracking import MlflowClient
 
-from conftest import compose_cfg, run_cli
+from conftest import compose_cfg, run_cli, search
 from sdrl_bench import ConfigError, tracking
 from sdrl_bench.cli import run_fit
 from sdrl_bench.compare import pair_fit_runs, surrogate_ratios
@@ -181,6 +181,36 @@ def test_sindy_nn_multirun_fits_both_on_identical_data(store, tmp_path):
     local = client.download_artifacts(nn["run_id"], "model", str(tmp_path / "dl"))
     model = load_model(f"{local}/model.json")
     assert model.predict(np.array([[-0.5, 0.0]]), np.array([[1.0]])).shape == (1, 2)
+
+
+def test_uncertainty_metrics_by_hand():
+    from sdrl_bench.fidelity import uncertainty_metrics
+
+    err = np.array([[0.1, 1.0], [0.2, 3.0], [0.3, 2.0], [0.4, 4.0]])
+    std = np.array([[1.0, 0.1], [2.0, 0.4], [3.0, 0.3], [4.0, 0.2]])
+    m = uncertainty_metrics(("a", "b"), err, std)
+    assert m["uncertainty/spearman/a"] == pytest.approx(1.0)  # same ranking
+    assert m["uncertainty/spearman/b"] == pytest.approx(0.4)  # ranks (1, 3, 2, 4) vs (1, 4, 3, 2)
+    assert m["uncertainty/within_2std/a"] == 1.0 and m["uncertainty/within_2std/b"] == 0.0
+    assert m["uncertainty/mean_std/a"] == pytest.approx(2.5)
+
+
+def test_ensemble_fit_logs_its_disagreement_per_held_out_transition(store, tmp_path):
+    """surrogate=nn with 3 members: uncertainty metrics and a per-transition CSV in the run."""
+    import pandas as pd
+
+    res = run_fit(compose_cfg("surrogate=nn", "surrogate.model.ensemble_size=3", "surrogate.model.max_steps=400",
+                              f"tracking.uri={store}"))
+    run = search(store).iloc[0]
+    for n in ("x", "v"):
+        assert 0 < run[f"metrics.uncertainty/mean_std/{n}"] < 0.1
+        assert -1 <= run[f"metrics.uncertainty/spearman/{n}"] <= 1
+        assert 0 <= run[f"metrics.uncertainty/within_2std/{n}"] <= 1
+    path = MlflowClient(store).download_artifacts(run["run_id"], "fidelity/uncertainty.csv", str(tmp_path))
+    table = pd.read_csv(path)
+    assert len(table) == len(res.test) and (table["v_std"] > 0).all()
+    assert np.allclose(table["x_abs_err"], np.abs(table["x_pred"] - table["x_true"]))
+    assert np.allclose(table["v_std"], res.fidelity.pred_std[:, 1])
 
 
 def test_nn_surrogate_passes_the_env_checks():
