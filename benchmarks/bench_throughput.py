@@ -2,8 +2,10 @@
 
 For MountainCarContinuous-v0 and LunarLander-v3: the real env (``gymnasium.make``, single; and
 SB3's DummyVecEnv with ``--dummy-n`` copies) and the surrogate (``gym.make("sdrl/Surrogate-v0")``,
-single; and ``SurrogateVecEnv`` at N = 1, 64, 1024, 16384). Uniform random actions, drawn before
-timing; a finished episode is reset (auto-reset in the vectorized envs). Each configuration is
+single; and ``SurrogateVecEnv`` at N = 1, 64, 1024, 16384). For a spec with a fused batched
+step (LunarLander's compiled loop), also the VecEnv at N = 1024 with the spec's numpy functions
+composed instead ("numpy composition"): what the compiled loop buys. Uniform random actions,
+drawn before timing; a finished episode is reset (auto-reset in the vectorized envs). Each configuration is
 timed ``--repeats`` times, interleaved with the others (so that a busy machine slows all of them
 alike), for about ``--seconds`` of this process's CPU time each (``--clock wall`` for elapsed
 time); the table shows medians and ratios to the real single env.
@@ -27,7 +29,7 @@ import numpy as np
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import sdrl_bench  # noqa: F401  (registers sdrl/Surrogate-v0)
-from sdrl_bench.surrogate import load_model
+from sdrl_bench.surrogate import Surrogate, load_model
 from sdrl_bench.vec_surrogate import SurrogateVecEnv
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -89,7 +91,8 @@ def measure(run: Callable[[int], int], seconds: float, clock: Callable[[], float
         n = max(n * 2, int(n * seconds / max(dt, 1e-6) * 1.1))
 
 
-def configs(gym_id: str, model, spec: str, dummy_n: int, vec_ns: list[int], seed: int) -> dict[str, Callable]:
+def configs(gym_id: str, model, spec: str, dummy_n: int, vec_ns: list[int], seed: int,
+            compare_n: int = 1024) -> dict[str, Callable]:
     out = {
         "real, single": single_stepper(gym.make(gym_id), seed),
         f"real, DummyVecEnv N={dummy_n}": vec_stepper(DummyVecEnv([lambda: gym.make(gym_id)] * dummy_n), seed),
@@ -97,6 +100,10 @@ def configs(gym_id: str, model, spec: str, dummy_n: int, vec_ns: list[int], seed
     }
     for n in vec_ns:
         out[f"surrogate, vectorized N={n}"] = vec_stepper(SurrogateVecEnv(model, spec, n, seed=seed), seed)
+    composed = Surrogate(model, spec, fused=False)
+    if composed.state_order != Surrogate(model, spec).state_order:  # the spec has a fused step
+        n = compare_n
+        out[f"  same, numpy composition N={n}"] = vec_stepper(SurrogateVecEnv(composed, n_envs=n, seed=seed), seed)
     return out
 
 

@@ -78,9 +78,12 @@ class Surrogate:
     spec : an ``EnvSpec`` with a task (reward, termination), or a name in ``SPECS``.
     initial_states : optional (K, n_state) states to reset from (uniformly); default: the spec's
         initial-state distribution.
+    fused : use the spec's fused batched step when it has one (``EnvSpec.make_step_batch``);
+        False composes the spec's numpy functions instead (same results; for comparisons).
     """
 
-    def __init__(self, model: Any, spec: EnvSpec | str, initial_states: np.ndarray | None = None):
+    def __init__(self, model: Any, spec: EnvSpec | str, initial_states: np.ndarray | None = None,
+                 fused: bool = True):
         self.spec = spec = resolve_spec(spec)
         source = f"model file {model}" if isinstance(model, (str, Path)) else "model"
         self.model = model = load_model(model) if isinstance(model, (str, Path)) else model
@@ -115,7 +118,7 @@ class Surrogate:
         if self._pool is None and type(spec).initial_states is EnvSpec.initial_states:
             self._pool = observed_initial_states(spec)
         self.step_one = spec.make_step_one(self.predictor, self.obs_low, self.obs_high) or self._generic_step_one
-        self._step_batch = spec.make_step_batch(self.limit, self.obs_low, self.obs_high)
+        self._step_batch = spec.make_step_batch(self.limit, self.obs_low, self.obs_high) if fused else None
         self.state_order = "F" if self._step_batch is None else "C"
         """Memory layout of the states ``transition`` returns (and steps fastest): a spec's fused
         step reads states row by row ("C"); the numpy composition works column by column ("F")."""
@@ -160,7 +163,7 @@ class Surrogate:
         return scalar_predictor(self.model, fixed)
 
     def __reduce__(self):  # compiled functions are rebuilt, not pickled
-        return (Surrogate, (self.model, self.spec, self._initial))
+        return (Surrogate, (self.model, self.spec, self._initial, self._step_batch is not None))
 
     # ------------------------------------------------------------------ stepping
     def initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:

@@ -155,6 +155,10 @@ def test_fused_batched_step_agrees_with_the_composed_task_functions(models, spec
     assert np.array_equal(terminated[ok], ref_t[ok])
     assert np.all(rewards[~ok] == 0) and not terminated[~ok].any()
     assert 0 < terminated.sum() < n and np.any(nxt[:20, 4] == sur.obs_high[4])
+    # the whole transition (model included), fused and composed
+    fused, composed = sur.transition(states, actions), Surrogate(models[spec], spec, fused=False).transition(states, actions)
+    assert np.array_equal(fused[0], composed[0]) and np.allclose(fused[1], composed[1], rtol=0, atol=1e-9)
+    assert np.array_equal(fused[2], composed[2]) and np.array_equal(fused[3], composed[3])
 
 
 # ---------------------------------------------------------------------- MountainCar exactness
