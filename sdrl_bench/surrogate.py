@@ -132,11 +132,9 @@ class Surrogate:
         self._one_hot = bool(spec.n_discrete_actions) and type(spec).encode_actions is EnvSpec.encode_actions
         self._action_ids = np.arange(spec.n_discrete_actions)[:, None]
         self._limit_col = self.limit[:, None]
-        # Columns of the next state: regressed, derived (exogenous), neither (carried over);
-        # slices where they are contiguous (cheaper to assign than index arrays).
+        # Columns of the regressed and the derived (exogenous) variables: slices where they are
+        # contiguous (cheaper to assign than index arrays).
         self._targets, self._exogenous = _as_slice(spec.target_index), _as_slice(spec.exogenous_index)
-        passive = np.setdiff1d(np.arange(len(spec.state_names)), index)
-        self._passive = _as_slice(passive) if len(passive) else None
 
     def _check_spaces(self, obs_space: gym.Space, act_space: gym.Space) -> None:
         spec = self.spec
@@ -190,8 +188,8 @@ class Surrogate:
         """One batched step: (next states, rewards, terminated, diverged), all (N, ...).
 
         Diverged rows keep their state, get reward 0 and terminated False (see module doc).
-        The next states are in Fortran order (each variable a contiguous column), as the
-        per-variable rules below read them.
+        The next states are laid out in ``state_order``: Fortran order (each variable a
+        contiguous column) for the numpy composition, C order from a spec's fused step.
         """
         spec, states = self.spec, np.asarray(states, dtype=float)
         with np.errstate(all="ignore"):
@@ -214,9 +212,7 @@ class Surrogate:
         if bad is not None:  # placeholders (the current state) so that the rules see finite values
             pred = np.array(pred, order="F")
             pred[bad] = states[bad][:, spec.target_index]
-        nxt = np.empty(states.shape, order="F")
-        if self._passive is not None:  # neither regressed nor derived: carried over
-            nxt[:, self._passive] = states[:, self._passive]
+        nxt = np.array(states, order="F")  # columns contiguous: cheap per-variable work
         nxt[:, self._targets] = spec.apply_bounds(states, pred)
         if spec.exogenous_names:
             nxt[:, self._exogenous] = spec.exogenous(states, actions, nxt)
