@@ -70,6 +70,23 @@ def _client(uri: str):
     return MlflowClient(tracking_uri=uri)
 
 
+def use_wal(db: Path) -> bool:
+    """Put a SQLite store in write-ahead-log mode (a setting kept in the file): readers (the
+    MLflow UI, a report) no longer block the writers of a running sweep, and parallel jobs
+    commit faster (``benchmarks/tracking_writes.py``). Returns whether the store is in WAL mode;
+    a store busy right now is left as it is."""
+    import sqlite3
+
+    try:
+        with contextlib.closing(sqlite3.connect(db, timeout=1.0)) as con:
+            mode = con.execute("PRAGMA journal_mode").fetchone()[0]
+            if mode != "wal":
+                mode = con.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+        return mode == "wal"
+    except sqlite3.Error:
+        return False
+
+
 def ensure_experiment(uri: str, name: str) -> str:
     """Create the store (tables) and the experiment if needed; returns the experiment id.
 
@@ -78,11 +95,13 @@ def ensure_experiment(uri: str, name: str) -> str:
     """
     check_writable(uri)
     client = _client(uri)
-    exp = client.get_experiment_by_name(name)
+    exp = client.get_experiment_by_name(name)  # creates the tables of a new store
+    local = _sqlite_path(uri)
+    if local is not None:
+        use_wal(local)
     if exp is not None:
         return exp.experiment_id
     location = None
-    local = _sqlite_path(uri)
     if local is not None:
         location = (local.parent / "artifacts" / name).resolve().as_uri()
     try:

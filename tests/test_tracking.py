@@ -88,3 +88,21 @@ def test_a_failing_sweep_job_leaves_no_run_running(store, tmp_path):
     runs = search(store)
     assert "RUNNING" not in set(runs["status"])
     assert runs[runs["tags.sdrl.kind"] == "sweep"].iloc[0]["status"] == "FAILED"
+
+
+def test_the_sqlite_store_is_put_in_wal_mode_and_stays_readable(store, tmp_path):
+    """ensure_experiment switches a new store to write-ahead logging (kept in the file); runs
+    written then read back through MLflow, and a second call leaves the mode alone."""
+    import sqlite3
+
+    from sdrl_bench import tracking
+
+    db = tracking._sqlite_path(store)
+    tracking.ensure_experiment(store, "sdrl-bench")
+    with sqlite3.connect(db) as con:
+        assert con.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
+    with tracking.start_run(store, "sdrl-bench", "r", {"k": "v"}) as run:
+        run.log_metrics({"m": 1.5})
+    runs = search(store)
+    assert runs["metrics.m"].tolist() == [1.5] and runs["status"].tolist() == ["FINISHED"]
+    assert tracking.use_wal(db) is True
