@@ -271,7 +271,7 @@ class SurrogateEnv(gym.Env):
 
     @property
     def state(self) -> np.ndarray | None:
-        return None if self._state is None else np.array(self._state)
+        return None if self._state is None else np.array(self._state, dtype=float)
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
@@ -281,8 +281,10 @@ class SurrogateEnv(gym.Env):
                 raise ValueError(f"options['state'] must be a finite array of shape {self.observation_space.shape}")
         else:
             s = self.surrogate.initial_states(self.np_random, 1)[0]
-        self._state, self._t = s.tolist(), 0
-        return np.array(self._state, dtype=self.observation_space.dtype), {}
+        # numpy scalars, as the real env keeps its state (float64 after a reset): a spec's
+        # one-state step may compute in the real env's arithmetic (see MountainCarSpec)
+        self._state, self._t = list(s), 0
+        return s.astype(self.observation_space.dtype), {}
 
     def step(self, action: Any):
         if self._state is None:

@@ -9,6 +9,7 @@ real env's float32 state (see ``terminated``).
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable
 
@@ -82,27 +83,37 @@ class MountainCarSpec(EnvSpec):
         return np.stack([x, np.zeros(n)], axis=1)
 
     def make_step_one(self, predictor: Callable[..., Callable], obs_low=None, obs_high=None) -> StepOne:
-        """``apply_bounds``, ``terminated`` and ``reward`` for one state, in plain floats (the
-        bounds are the observation space's: no further clipping needed)."""
+        """``apply_bounds``, ``terminated`` and ``reward`` for one state, in the real env's own
+        arithmetic (the bounds are the observation space's: no further clipping needed).
+
+        gymnasium's step computes with numpy scalars: the float64 start after a reset, the
+        float32 state after a step, the action's own dtype, Python floats for its constants and
+        ``math.cos``. This step takes and returns the same scalars (the state list holds numpy
+        scalars, the action is not converted) and the model's evaluator imposes no type of its
+        own, so numpy's promotion rules round every operation as the real env does. When the
+        model's position equation is x + v' (``integrates``), the position moves by the bounded
+        new velocity as in gymnasium; with the exact law a replay is then bit-identical.
+        """
         predict_one = predictor()
+        semi_implicit = getattr(predict_one, "integrates", {}).get(0) == 1
         lim_x, lim_v = (float(v) for v in self.divergence_limit())
-        lo, hi, ms, goal, f32 = MIN_POSITION, MAX_POSITION, MAX_SPEED, _GOAL_F32, np.float32
+        lo, hi, ms, goal, f32, power = MIN_POSITION, MAX_POSITION, MAX_SPEED, GOAL_POSITION, np.float32, math.pow
 
         def step_one(state: list, action) -> tuple[np.ndarray, list, float, bool, bool]:
-            a = float(action[0])
-            force = -1.0 if a < -1.0 else (1.0 if a > 1.0 else a)
-            x_pred, v_pred = predict_one((state[0], state[1], force))
-            if not (abs(x_pred) <= lim_x and abs(v_pred) <= lim_v):  # also catches NaN
+            a = action[0]
+            force = -1.0 if a < -1.0 else (1.0 if a > 1.0 else a)  # min(max(a, -1), 1), NaN kept
+            x = state[0]
+            x_pred, v_pred = predict_one((x, state[1], force))
+            if not (-lim_x <= x_pred <= lim_x and -lim_v <= v_pred <= lim_v):  # also catches NaN
                 return np.array(state, dtype=f32), state, 0.0, False, True
             v = -ms if v_pred < -ms else (ms if v_pred > ms else v_pred)
-            x = x_pred - (v_pred - v)
+            x = x + v if semi_implicit else x_pred - (v_pred - v)
             x = lo if x < lo else (hi if x > hi else x)
-            if x <= lo and v < 0:
+            if x == lo and v < 0:
                 v = 0.0
+            term = bool(x >= goal and v >= 0.0)
             obs = np.array((x, v), dtype=f32)
-            nxt = obs.tolist()
-            term = nxt[0] >= goal and nxt[1] >= 0.0
-            return obs, nxt, (100.0 if term else 0.0) - a * a * 0.1, term, False
+            return obs, [obs[0], obs[1]], (100.0 if term else 0.0) - power(a, 2) * 0.1, term, False
 
         return step_one
 

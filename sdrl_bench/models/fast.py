@@ -7,9 +7,19 @@ time, so the model's structured terms and coefficients are turned into the sourc
 Python function of plain floats::
 
     def predict(z):
-        z0, z1, z2 = z
+        z0, z1, z2, = z
         f0 = _cos(3.0 * z0)
-        return [1.0 * z0 + 1.0 * z1 + 0.0015 * z2 - 0.0025 * f0, ...]
+        o1 = z1 + (0.0015 * z2 + -0.0025 * f0)
+        o0 = z0 + o1
+        return [o0, o1]
+
+An equation whose own state enters with coefficient exactly 1 is evaluated in increment form,
+``s + (the other terms)``, the way a simulator writes its update; one whose other terms are
+exactly another equation (x' = x + v': semi-implicit Euler, as MountainCar's exact law has it)
+reuses that equation's result (``integrates_from`` finds these pairs). The function uses no
+type of its own: given the numpy scalars a real env keeps, numpy's promotion rules make it
+compute in that env's arithmetic (float32 for MountainCar), which lets the MountainCar
+surrogate replay the real env bit for bit.
 
 The source is generated only from validated data: input indices (ints), op names from a fixed
 whitelist, and coefficients / parameters written with ``repr(float)`` (finite numbers only), so
@@ -110,28 +120,102 @@ def scalar_source(terms: Sequence[Term], coef: np.ndarray, n_inputs: int, fixed:
         else:
             term_expr[k] = f"t{k}"
             lines.append(f"    t{k} = {' * '.join(parts)}")
-    outputs = []
-    for row in coef:
+
+    def total(row: np.ndarray) -> str:
         summands = [
             _number(row[k]) if term_expr[k] is None else f"{_number(row[k])} * {term_expr[k]}"
             for k in active
             if row[k] != 0
         ]
-        outputs.append(" + ".join(summands) if summands else "0.0")
-    lines.append(f"    return [{', '.join(outputs)}]")
+        return " + ".join(summands) if summands else "0.0"
+
+    chains = integrates_from(terms, coef)
+    for i in _evaluation_order(len(coef), chains):
+        own = _identity_term(terms, i)
+        if i in chains:
+            expr = f"{names[i]} + o{chains[i]}"
+        elif own is not None and coef[i, own] == 1.0 and np.count_nonzero(coef[i]) > 1:
+            rest = coef[i].copy()
+            rest[own] = 0.0
+            expr = f"{names[i]} + ({total(rest)})"
+        else:
+            expr = total(coef[i])
+        lines.append(f"    o{i} = {expr}")
+    lines.append(f"    return [{', '.join(f'o{i}' for i in range(len(coef)))}]")
     return "\n".join(lines) + "\n"
+
+
+def _identity_term(terms: Sequence[Term], i: int) -> int | None:
+    """Index of the term that is input ``i`` itself (the state's own value), if any."""
+    for k, term in enumerate(terms):
+        if len(term) == 1 and term[0][0] == i and term[0][1] == "pow":
+            return k
+    return None
+
+
+def integrates_from(terms: Sequence[Term], coef: np.ndarray) -> dict[int, int]:
+    """{i: j} for every equation i that reads s_i' = s_i + s_j' exactly: its own state with
+    coefficient 1 plus precisely the terms and coefficients of equation j (semi-implicit Euler:
+    a position moved by the *new* velocity). Equation i is input i (states come first)."""
+    coef = np.asarray(coef, dtype=float)
+    out: dict[int, int] = {}
+    for i in range(len(coef)):
+        own = _identity_term(terms, i)
+        if own is None or coef[i, own] != 1.0:
+            continue
+        rest = coef[i].copy()
+        rest[own] = 0.0
+        for j in range(len(coef)):
+            if j != i and np.any(rest != 0) and np.array_equal(rest, coef[j]):
+                out[i] = j
+                break
+    return out
+
+
+def _evaluation_order(n: int, chains: dict[int, int]) -> list[int]:
+    """Equations in an order that computes each chained equation's source first."""
+    order: list[int] = []
+
+    def visit(i: int) -> None:
+        if i not in order:
+            if i in chains:
+                visit(chains[i])
+            order.append(i)
+
+    for i in range(n):
+        visit(i)
+    return order
 
 
 def compile_scalar(
     terms: Sequence[Term], coef: np.ndarray, n_inputs: int, fixed: dict[int, float] | None = None
 ) -> ScalarPredict:
     """A function of one input vector -> list of outputs. With ``fixed`` ({input index: value}),
-    the function takes only the other inputs, in index order, and is specialised to the values."""
+    the function takes only the other inputs, in index order, and is specialised to the values.
+    Its ``integrates`` attribute holds ``integrates_from``'s pairs."""
     if fixed:
         terms, coef = partial_terms(terms, coef, fixed)
     namespace: dict[str, Any] = {"__builtins__": {}, "_sin": math.sin, "_cos": math.cos}
     exec(compile(scalar_source(terms, coef, n_inputs, tuple(fixed or ())), "<sindy-scalar>", "exec"), namespace)
-    return namespace["predict"]
+    predict = namespace["predict"]
+    if np.max(np.abs(coef), initial=0.0) > _QUIET_ABOVE:
+        predict = _quiet(predict)
+    predict.integrates = integrates_from(terms, coef)
+    return predict
+
+
+# Inputs of a surrogate step are bounded (clipped states, clipped actions), so float32 arithmetic
+# on numpy scalars can overflow only through absurd coefficients; such a model's evaluator runs
+# with numpy's floating-point warnings off (its inf / NaN end the episode in the divergence guard).
+_QUIET_ABOVE = 1e30
+
+
+def _quiet(predict: ScalarPredict) -> ScalarPredict:
+    def quiet(z: Sequence[float]) -> list:
+        with np.errstate(all="ignore"):
+            return predict(z)
+
+    return quiet
 
 
 def scalar_predictor(model: Any, fixed: dict[int, float] | None = None) -> ScalarPredict:

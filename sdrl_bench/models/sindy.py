@@ -3,7 +3,10 @@
 pysindy's ``predict`` costs about a millisecond a call, so the fitted model is compiled: its
 active library terms become a structured feature program (see ``libraries``), and prediction
 is that feature matrix times the coefficient matrix. The compiled evaluator is checked against
-pysindy's ``predict`` on the training inputs at fit time. The model saves as JSON data.
+pysindy's ``predict`` on the training inputs at fit time. An equation that holds to the data's
+float precision then has its coefficients snapped to the shortest decimals the data cannot
+reject (``models.snap``): MountainCar's law comes out as 0.0015, not 0.0014999988. The model
+saves as JSON data.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from pysindy.feature_library.base import BaseFeatureLibrary
 
 from sdrl_bench import ConfigError
 from sdrl_bench.models.libraries import Term, compile_terms, evaluate_terms, validate_terms
+from sdrl_bench.models.snap import snap_equation
 
 FORMAT = "sdrl-bench/sindy-model-v1"
 
@@ -51,15 +55,26 @@ class SindyModel:
     library : an unfitted pysindy feature library over inputs [states..., controls...].
     optimizer : an unfitted pysindy optimizer; cloned for every fit.
     seed : seeds numpy's global RNG during the fit (pysindy's ensembles draw from it).
+    snap_alpha : level of the test that decides how far an exact law's coefficients are rounded
+        (``models.snap.snap_equation``); None keeps the fitted coefficients as they are.
+    snap_rtol : an equation counts as exact (and may be snapped) when its residual RMS is at most
+        this fraction of its target's RMS.
     """
 
     kind = "sindy"
     summary_file = "equations.txt"
 
-    def __init__(self, library: BaseFeatureLibrary | None, optimizer=None, seed: int = 0):
+    def __init__(self, library: BaseFeatureLibrary | None, optimizer=None, seed: int = 0,
+                 snap_alpha: float | None = 0.01, snap_rtol: float = 1e-6):
+        if snap_alpha is not None and not 0.0 < float(snap_alpha) < 1.0:
+            raise ConfigError(f"surrogate.model.snap_alpha must be in (0, 1) or null, got {snap_alpha!r}")
+        if not isinstance(snap_rtol, (int, float)) or not snap_rtol > 0.0:
+            raise ConfigError(f"surrogate.model.snap_rtol must be positive, got {snap_rtol!r}")
         self.library = library
         self.optimizer = optimizer
         self.seed = seed
+        self.snap_alpha = None if snap_alpha is None else float(snap_alpha)
+        self.snap_rtol = float(snap_rtol)
 
     # ------------------------------------------------------------------ fit
     def fit(
@@ -106,7 +121,22 @@ class SindyModel:
             raise RuntimeError(
                 f"compiled SINDy evaluator differs from pysindy.predict by {self.compile_max_abs_diff_:g}"
             )
+        self._snap(np.concatenate([x, u], axis=1), x_next)
         return self
+
+    def _snap(self, z: np.ndarray, x_next: np.ndarray) -> None:
+        """Round each exact equation's coefficients (see ``models.snap``); ``snap_digits_`` holds
+        the significant digits kept per equation (0: left as fitted)."""
+        self.snap_digits_ = [0] * len(self.state_names_)
+        if self.snap_alpha is None:
+            return
+        for i, row in enumerate(self.coef_):
+            active = np.flatnonzero(row)
+            theta = evaluate_terms([self.terms_[k] for k in active], z)
+            row[active], self.snap_digits_[i] = snap_equation(
+                theta, x_next[:, i], row[active], self.snap_alpha, self.snap_rtol)
+        if any(self.snap_digits_):
+            self._compile()
 
     def _check_columns(self, x: np.ndarray, u: np.ndarray, names: list[str]) -> None:
         """normalize_columns divides by each library column's norm: an all-zero column (a leg
@@ -170,6 +200,8 @@ class SindyModel:
             "n_active_terms": float(self.n_active_terms),
             "n_parameters": float(self.n_active_terms),
             "compile_max_abs_diff": float(getattr(self, "compile_max_abs_diff_", 0.0)),
+            "n_snapped_equations": float(sum(d > 0 for d in self.snap_digits_)),
+            **{f"snap_digits/{s}": float(d) for s, d in zip(self.state_names_, self.snap_digits_)},
         }
 
     def coefficients_by_name(self) -> dict[str, dict[str, float]]:
@@ -192,6 +224,7 @@ class SindyModel:
             "library": self.library_description_,
             "optimizer": self.optimizer_description_,
             "n_fit_samples": self.n_fit_samples_,
+            "snap_digits": list(self.snap_digits_),
         }
 
     def save(self, path: str | Path) -> Path:
@@ -218,6 +251,10 @@ class SindyModel:
             model.library_description_ = str(d.get("library", ""))
             model.optimizer_description_ = str(d.get("optimizer", ""))
             model.n_fit_samples_ = int(d.get("n_fit_samples", 0))
+            digits = d.get("snap_digits", [0] * len(model.state_names_))  # absent in older files
+            model.snap_digits_ = [int(v) for v in digits]
+            if len(model.snap_digits_) != len(model.state_names_):
+                raise ValueError(f"snap_digits has {len(digits)} entries for {len(model.state_names_)} states")
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"{source}: not a valid SINDy model file ({exc})") from exc
         model._compile()
