@@ -53,6 +53,14 @@ def test_exact_law_recovered_in_at_least_9_of_10_seeds_including_wall_hits(ten_f
         assert r.n_fit_rows < len(r.data) if w else True
 
 
+def test_recovered_laws_are_snapped_to_the_exact_coefficients(ten_fits):
+    """Every recovered law comes out with the law's own decimals (0.0015, not 0.0014999988):
+    the fit's snapping (sdrl_bench/models/snap.py), which the bit-identical replay relies on."""
+    for r in ten_fits:
+        if recovered(r.model):
+            assert r.model.coefficients_by_name() == TRUE and r.model.snap_digits_ == [2, 2]
+
+
 def test_wall_transition_breaks_the_fit_when_not_excluded(ten_fits):
     seed = next(i for i, r in enumerate(ten_fits) if np.any(r.data.next_states[:, 0] <= -1.2))
     result = fit_dynamics(poly_trig_job(seed, exclude_bound_transitions=False))

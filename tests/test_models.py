@@ -103,3 +103,70 @@ def test_ensemble_fit_is_deterministic_under_a_seed():
         return SindyModel(lib, opt, seed=seed).fit(x, u, x_next, state_names=["s0", "s1", "s2"], control_names=["c0", "c1"]).coef_
 
     np.testing.assert_array_equal(fit(3), fit(3))
+
+
+# ---------------------------------------------------------------------- snapping exact laws
+def float32_law(seed: int = 0, n: int = 120, noise: float = 0.0):
+    """y = s0 + 0.25 s1 - 0.0035 c0 + 0.6 s0 s1 on float32 inputs, rounded to float32 (an exact
+    law seen through float32 observations), plus optional Gaussian noise."""
+    rng = np.random.default_rng(seed)
+    x = rng.uniform(-1, 1, size=(n, 3)).astype(np.float32).astype(float)
+    u = rng.uniform(-1, 1, size=(n, 2)).astype(np.float32).astype(float)
+    y = x[:, 0] + 0.25 * x[:, 1] - 0.0035 * u[:, 0] + 0.6 * x[:, 0] * x[:, 1]
+    y = y.astype(np.float32).astype(float) + noise * rng.standard_normal(n)
+    return x, u, np.column_stack([y, x[:, 1], x[:, 2]])
+
+
+def fit_law(x, u, x_next, **kw):
+    lib = build_library(LIBRARIES["poly3"], ["s0", "s1", "s2"], ["c0", "c1"])
+    return SindyModel(lib, ps.STLSQ(threshold=1e-3, alpha=0.0), **kw).fit(
+        x, u, x_next, state_names=["s0", "s1", "s2"], control_names=["c0", "c1"])
+
+
+def test_an_exact_law_in_float32_data_snaps_to_its_decimals():
+    x, u, x_next = float32_law()
+    raw, snapped = fit_law(x, u, x_next, snap_alpha=None), fit_law(x, u, x_next)
+    law = {"s0": 1.0, "s1": 0.25, "c0": -0.0035, "s0 s1": 0.6}
+    assert snapped.coefficients_by_name()["s0"] == law  # exactly, not approximately
+    assert raw.coefficients_by_name()["s0"] != law
+    assert raw.coefficients_by_name()["s0"] == pytest.approx(law, rel=1e-6)
+    assert snapped.snap_digits_[0] == 2 and raw.snap_digits_ == [0, 0, 0]
+    assert snapped.summary_metrics()["n_snapped_equations"] >= 1
+    assert snapped.summary_metrics()["snap_digits/s0"] == 2.0
+
+
+def test_noisy_equations_are_never_snapped():
+    x, u, x_next = float32_law(noise=1e-3)
+    snapped, raw = fit_law(x, u, x_next), fit_law(x, u, x_next, snap_alpha=None)
+    assert snapped.snap_digits_[0] == 0
+    np.testing.assert_array_equal(snapped.coef_[0], raw.coef_[0])
+
+
+def test_snapping_keeps_the_digits_the_data_demand():
+    """0.00153 is not rounded to 0.0015: the test rejects the shorter value on exact data."""
+    from sdrl_bench.models.snap import snap_equation
+
+    rng = np.random.default_rng(1)
+    theta = rng.uniform(-1, 1, size=(200, 2))
+    y = theta @ np.array([1.0, 0.00153]) + 1e-9 * rng.standard_normal(200)
+    coef = np.linalg.lstsq(theta, y, rcond=None)[0]
+    snapped, digits = snap_equation(theta, y, coef)
+    assert snapped.tolist() == [1.0, 0.00153] and digits == 3
+    assert snap_equation(theta, y, coef, rtol=1e-12)[1] == 0  # outside the exact regime: kept
+
+
+def test_snap_digits_round_trip_and_older_files_load(tmp_path):
+    x, u, x_next = float32_law()
+    model = fit_law(x, u, x_next)
+    loaded = SindyModel.load(model.save(tmp_path / "m.json"))
+    assert loaded.snap_digits_ == model.snap_digits_
+    old = {k: v for k, v in model.to_dict().items() if k != "snap_digits"}
+    (tmp_path / "old.json").write_text(json.dumps(old))
+    assert SindyModel.load(tmp_path / "old.json").snap_digits_ == [0, 0, 0]
+
+
+@pytest.mark.parametrize("kw,needle", [({"snap_alpha": 1.5}, "surrogate.model.snap_alpha"),
+                                       ({"snap_rtol": 0.0}, "surrogate.model.snap_rtol")])
+def test_bad_snap_settings_name_the_key(kw, needle):
+    with pytest.raises(ConfigError, match=needle):
+        SindyModel(None, **kw)
