@@ -279,6 +279,14 @@ def test_mountain_car_replay_is_bit_identical(mc_default_fit, case):
     assert np.abs(np.array(law[1:]) - s_real[1:]).max() > 1e-9 or len(acts) < 200
 
 
+def test_checkers_pass_on_the_exact_law_surrogate(mc_default_fit):
+    """The numpy-scalar step (snapped, semi-implicit model) passes both checkers without warnings."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        gym_check_env(gym.make("sdrl/Surrogate-v0", model=mc_default_fit.model, spec="mountain_car").unwrapped)
+        sb3_check_env(SurrogateEnv(mc_default_fit.model, "mountain_car"), warn=True)
+
+
 def test_unsnapped_coefficients_drift_from_the_real_env(mc_default_fit):
     """(1) above: the same fit without snapping (coefficients a few ulps off) loses bit-identity
     over a 999-step episode, though it stays within 1e-4 and keeps every reward."""

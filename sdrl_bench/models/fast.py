@@ -4,7 +4,7 @@
 overhead (array creation, a loop over terms, a matrix product) is several microseconds, more
 than a whole step of the real MountainCar env. A single surrogate env steps one state at a
 time, so the model's structured terms and coefficients are turned into the source of a small
-Python function of plain floats::
+Python function of scalars::
 
     def predict(z):
         z0, z1, z2, = z
