@@ -264,19 +264,22 @@ def test_mountain_car_replay_is_bit_identical(mc_default_fit, case):
     assert len(s_sur) == len(s_real) and np.abs(s_sur - s_real).max() == 0.0
     assert r_sur == r_real and f_sur == f_real
     x, v = s_real[:, 0], s_real[:, 1]
-    if "999 steps" in case:
-        assert len(acts) == 999 and f_real[-1] == (False, True)
     if "goal" in case:
         assert f_real[-1] == (True, False) and r_real[-1] > 99.0
     if "wall" in case:
         assert np.any((x == np.float32(-1.2)) & (v == 0.0))
     if "+0.07" in case or "-0.07" in case:
         assert np.any(np.abs(v) == np.float32(0.07))
-    # (2): the law in float64, rounded afterwards, from the same float64 start
-    law = [(float(start[0]), float(start[1])) if start else (float(np.random.default_rng(seed).uniform(-0.6, -0.4)), 0.0)]
-    for a in acts:
-        law.append(mountain_car_law(*law[-1], float(a[0])))
-    assert np.abs(np.array(law[1:]) - s_real[1:]).max() > 1e-9 or len(acts) < 200
+    if "999 steps" in case:
+        assert len(acts) == 999 and f_real[-1] == (False, True)
+        # (2): the law in float64, rounded afterwards, from the real env's own float64 start,
+        # drifts off by float32 ulps (not more: the start and the law are right)
+        real = gym.make("MountainCarContinuous-v0")
+        real.reset(seed=seed)
+        law = [tuple(float(c) for c in real.unwrapped.state)]
+        for a in acts:
+            law.append(mountain_car_law(*law[-1], float(a[0])))
+        assert 1e-9 < np.abs(np.array(law) - s_real).max() < 1e-4
 
 
 def test_checkers_pass_on_the_exact_law_surrogate(mc_default_fit):
