@@ -77,9 +77,11 @@ def partial_terms(
     return list(merged), np.stack(list(merged.values()), axis=1)
 
 
-def scalar_source(terms: Sequence[Term], coef: np.ndarray, n_inputs: int, fixed: Sequence[int] = ()) -> str:
+def scalar_source(terms: Sequence[Term], coef: np.ndarray, n_inputs: int, fixed: Sequence[int] = (),
+                  chains: dict[int, int] | None = None) -> str:
     """Source of ``predict(z) -> list`` for ``coef @ [term(z) for term in terms]``; ``z`` holds
-    the inputs not in ``fixed``, in index order (terms must not use the ``fixed`` inputs)."""
+    the inputs not in ``fixed``, in index order (terms must not use the ``fixed`` inputs).
+    ``chains``: ``integrates_from(terms, coef)``, if the caller has it already."""
     coef = np.asarray(coef, dtype=float)
     if coef.ndim != 2 or coef.shape[1] != len(terms):
         raise ValueError(f"coefficients of shape {coef.shape} for {len(terms)} terms")
@@ -129,7 +131,7 @@ def scalar_source(terms: Sequence[Term], coef: np.ndarray, n_inputs: int, fixed:
         ]
         return " + ".join(summands) if summands else "0.0"
 
-    chains = integrates_from(terms, coef)
+    chains = integrates_from(terms, coef) if chains is None else chains
     for i in _evaluation_order(len(coef), chains):
         own = _identity_term(terms, i)
         if i in chains:
@@ -195,12 +197,14 @@ def compile_scalar(
     Its ``integrates`` attribute holds ``integrates_from``'s pairs."""
     if fixed:
         terms, coef = partial_terms(terms, coef, fixed)
+    chains = integrates_from(terms, coef)
     namespace: dict[str, Any] = {"__builtins__": {}, "_sin": math.sin, "_cos": math.cos}
-    exec(compile(scalar_source(terms, coef, n_inputs, tuple(fixed or ())), "<sindy-scalar>", "exec"), namespace)
+    source = scalar_source(terms, coef, n_inputs, tuple(fixed or ()), chains)
+    exec(compile(source, "<sindy-scalar>", "exec"), namespace)
     predict = namespace["predict"]
     if np.max(np.abs(coef), initial=0.0) > _QUIET_ABOVE:
         predict = _quiet(predict)
-    predict.integrates = integrates_from(terms, coef)
+    predict.integrates = chains
     return predict
 
 
