@@ -29,21 +29,18 @@ import numpy as np
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import sdrl_bench  # noqa: F401  (registers sdrl/Surrogate-v0)
-from sdrl_bench.surrogate import Surrogate, load_model
-from sdrl_bench.vec_surrogate import SurrogateVecEnv
+from sdrl_bench.surrogate.env import Surrogate, load_model
+from sdrl_bench.surrogate.vec import SurrogateVecEnv
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def fit_default(env: str, overrides: list[str]):
     """The model ``sdrl-bench env=<env> <overrides>`` fits, from the project's config (no tracking)."""
-    from hydra import compose, initialize_config_dir
-
-    from sdrl_bench.cli import CONF_DIR, build_fit_job
+    from sdrl_bench.cli.build import build_fit_job, compose
     from sdrl_bench.pipeline import fit_dynamics
 
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[f"env={env}", *overrides])
+    cfg = compose([f"env={env}", *overrides])
     return fit_dynamics(build_fit_job(cfg)).model
 
 

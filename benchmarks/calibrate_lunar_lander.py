@@ -23,9 +23,9 @@ import numpy as np
 
 from sdrl_bench.data import Transitions, collect, heuristic_policy, held_out_test_set, random_policy
 from sdrl_bench.envs import LunarLanderSpec
-from sdrl_bench.envs.lunar_lander_task import LanderRules, events, leg_contacts
-from sdrl_bench.surrogate import load_model
-from sdrl_bench.task_fidelity import surrogate_fidelity
+from sdrl_bench.envs.lunar_lander.task import LanderRules, events, leg_contacts
+from sdrl_bench.surrogate.env import load_model
+from sdrl_bench.surrogate.fidelity import surrogate_fidelity
 
 FIELDS = ("states", "actions", "rewards", "next_states", "terminated", "truncated", "episode", "step")
 
@@ -69,13 +69,10 @@ def search_crash(d: Transitions, pad: np.ndarray) -> list[tuple]:
 
 
 def fit_default_model():
-    from hydra import compose, initialize_config_dir
-
-    from sdrl_bench.cli import CONF_DIR, build_fit_job
+    from sdrl_bench.cli.build import build_fit_job, compose
     from sdrl_bench.pipeline import fit_dynamics
 
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=["env=lunar_lander"])
+    cfg = compose(["env=lunar_lander"])
     return fit_dynamics(build_fit_job(cfg)).model
 
 

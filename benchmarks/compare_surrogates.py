@@ -1,7 +1,7 @@
 """SINDy vs NN from a tracking store: per-state held-out MSE, fit time and parameter ratios.
 
 Pairs every finished SINDy fit run with the NN fit run of the same env, dataset hash, test-set
-hash and seed (``sdrl_bench.compare``) and prints both models' one-step MSE per state and the
+hash and seed (``sdrl_bench.report.compare``) and prints both models' one-step MSE per state and the
 SINDy / NN ratios. ``--log`` also records the ratios as metrics (``sindy_over_nn/*``) on each
 pair's NN run, so they sit beside the run's own metrics in the MLflow UI.
 
@@ -17,7 +17,7 @@ import argparse
 from tabulate import tabulate
 
 from sdrl_bench import tracking
-from sdrl_bench.compare import PREFIX, comparison_rows, surrogate_ratios
+from sdrl_bench.report.compare import PREFIX, comparison_rows, surrogate_ratios
 
 
 def main() -> None:

@@ -16,19 +16,16 @@ import argparse
 import statistics
 
 import torch
-from hydra import compose, initialize_config_dir
 from tabulate import tabulate
 
-from sdrl_bench.cli import CONF_DIR, build_fit_job
+from sdrl_bench.cli.build import build_fit_job, compose
 from sdrl_bench.data import collect, random_policy
 from sdrl_bench.pipeline import build_model, check
 
 
 def fit_rows(env: str, overrides: list[str]):
     """(sindy job, nn job, library, fit arrays) for ``env`` with the app's defaults."""
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        jobs = [build_fit_job(compose("config", [f"env={env}", f"surrogate={kind}", *overrides]))
-                for kind in ("sindy", "nn")]
+    jobs = [build_fit_job(compose([f"env={env}", f"surrogate={kind}", *overrides])) for kind in ("sindy", "nn")]
     library, _ = check(jobs[0])
     job, spec = jobs[0], jobs[0].spec
     data = collect(spec, job.policy or random_policy, job.n_transitions, job.epsilon, job.seed)

@@ -20,20 +20,17 @@ import gymnasium as gym
 import numpy as np
 
 import sdrl_bench  # noqa: F401
-from sdrl_bench.surrogate import SurrogateEnv
+from sdrl_bench.surrogate.env import SurrogateEnv
 
 TRUE = {"x": {"x": 1.0, "v": 1.0, "u": 0.0015, "cos(3 x)": -0.0025},
         "v": {"v": 1.0, "u": 0.0015, "cos(3 x)": -0.0025}}
 
 
 def fit(seed: int, overrides: list[str]):
-    from hydra import compose, initialize_config_dir
-
-    from sdrl_bench.cli import CONF_DIR, build_fit_job
+    from sdrl_bench.cli.build import build_fit_job, compose
     from sdrl_bench.pipeline import fit_dynamics
 
-    with initialize_config_dir(config_dir=str(CONF_DIR), version_base="1.3"):
-        cfg = compose(config_name="config", overrides=[f"seed={seed}", *overrides])
+    cfg = compose([f"seed={seed}", *overrides])
     return fit_dynamics(build_fit_job(cfg)).model
 
 

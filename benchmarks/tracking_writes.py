@@ -4,7 +4,7 @@ A sweep's jobs log to one SQLite file at once (Hydra's joblib launcher), and the
 report may read it meanwhile. ``tracking.ensure_experiment`` puts the store in WAL mode; this
 measures what that buys. Per journal mode, a fresh store; ``--jobs`` processes each log
 ``--runs`` runs shaped like a fit (40 params, 60 metrics, a 20-point curve, a tag batch, the
-end of the run) through ``sdrl_bench.tracking.Run``; optionally a reader process polls
+end of the run) through ``sdrl_bench.tracking.client.Run``; optionally a reader process polls
 ``search_runs`` meanwhile (``--reader``). Modes are interleaved over ``--repeats``; the table
 shows median wall seconds and the ratio.
 

@@ -8,12 +8,12 @@ class ConfigError(ValueError):
 
 
 def _register_envs() -> None:
-    """Register ``sdrl/Surrogate-v0`` with gymnasium (lazily imported: ``sdrl_bench.surrogate``)."""
+    """Register ``sdrl/Surrogate-v0`` with gymnasium (lazily imported: ``sdrl_bench.surrogate.env``)."""
     import gymnasium
 
     if "sdrl/Surrogate-v0" not in gymnasium.registry:
         # No max_episode_steps: the surrogate truncates at its spec's limit itself.
-        gymnasium.register(id="sdrl/Surrogate-v0", entry_point="sdrl_bench.surrogate:SurrogateEnv")
+        gymnasium.register(id="sdrl/Surrogate-v0", entry_point="sdrl_bench.surrogate.env:SurrogateEnv")
 
 
 _register_envs()

@@ -12,7 +12,7 @@ import hashlib
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from collections.abc import Callable
 
 import gymnasium as gym
 import numpy as np
@@ -40,7 +40,7 @@ class Transitions:
     def __len__(self) -> int:
         return len(self.states)
 
-    def subset(self, mask_or_index: np.ndarray) -> "Transitions":
+    def subset(self, mask_or_index: np.ndarray) -> Transitions:
         return Transitions(**{k: getattr(self, k)[mask_or_index] for k in _FIELDS})
 
     def to_frame(self, spec: EnvSpec) -> pd.DataFrame:
@@ -198,7 +198,7 @@ def _play_episode(spec, policy_factory, epsilon, seed, episode, limit, wrap_env=
 
 
 def _stack(rows: list[tuple]) -> Transitions:
-    cols = list(zip(*rows))
+    cols = list(zip(*rows, strict=True))
     return Transitions(
         states=np.asarray(cols[0], dtype=float),
         actions=np.asarray(cols[1], dtype=float),
@@ -223,18 +223,3 @@ def held_out_test_set(spec: EnvSpec, recipe: TestSetRecipe | None = None) -> tup
         rows += _play_episode(spec, _POLICIES[policy], eps, recipe.seed + i, i, limit)
     return recipe.name, _stack(rows)
 
-
-def split_by_episode(
-    transitions: Transitions, holdout_fraction: float, seed: int
-) -> tuple[Transitions, Transitions]:
-    """Split whole episodes into (train, held-out); with one episode, split it in time."""
-    episodes = np.unique(transitions.episode)
-    if len(episodes) == 1:
-        cut = int(round(len(transitions) * (1 - holdout_fraction)))
-        idx = np.arange(len(transitions))
-        return transitions.subset(idx < cut), transitions.subset(idx >= cut)
-    rng = np.random.default_rng(seed)
-    n_hold = max(1, int(round(len(episodes) * holdout_fraction)))
-    held = rng.choice(episodes, size=n_hold, replace=False)
-    mask = np.isin(transitions.episode, held)
-    return transitions.subset(~mask), transitions.subset(mask)

@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 import numpy as np
 
 from sdrl_bench import ConfigError
-from sdrl_bench.data import PolicyFactory, Transitions, collect, held_out_test_set, load_csv
+from sdrl_bench.data import PolicyFactory, Transitions, collect, held_out_test_set, load_csv, random_policy
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.fidelity import FidelityReport, evaluate, open_loop_episode
 from sdrl_bench.models.libraries import LibraryPart, build_library, count_features
@@ -116,7 +117,7 @@ def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = N
     seconds: dict[str, float] = {}
     t0, c0 = time.perf_counter(), time.process_time()
     if data is None:
-        data = collect(spec, job.policy or _random, job.n_transitions, job.epsilon, job.seed,
+        data = collect(spec, job.policy or random_policy, job.n_transitions, job.epsilon, job.seed,
                        max_steps_per_episode=job.max_steps_per_episode, wrap_env=job.wrap_env)
     seconds["collect_wall"] = time.perf_counter() - t0
     seconds["collect_cpu"] = time.process_time() - c0
@@ -137,7 +138,7 @@ def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = N
     norm = {n: s["std"] for n, s in data.normalization(spec).items()}
     report = evaluate(model, spec, test, norm_std=norm)
     if spec.defines_task:  # reward, termination and derived-flag fidelity of the surrogate built on it
-        from sdrl_bench.task_fidelity import surrogate_fidelity  # noqa: PLC0415
+        from sdrl_bench.surrogate.fidelity import surrogate_fidelity  # noqa: PLC0415
 
         report.metrics.update(surrogate_fidelity(model, spec, test))
     ep_true, ep_pred = open_loop_episode(model, spec, test, int(test.episode[0]))
@@ -159,6 +160,3 @@ def build_model(job: FitJob, library: Any) -> DynamicsModel:
         raise ConfigError(f"surrogate.model: no model factory for surrogate kind {job.surrogate!r}")
     return job.model_factory(seed=job.seed)
 
-
-def _random(spec, env):
-    return None

@@ -2,10 +2,7 @@
 
 from __future__ import annotations
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.figure import Figure
 import numpy as np  # noqa: E402
 
 
@@ -16,11 +13,12 @@ def predicted_vs_true(
     episode_true: np.ndarray,
     episode_pred: np.ndarray,
     title: str,
-) -> plt.Figure:
+) -> Figure:
     """Top row: one-step predicted vs true next state on the test set. Bottom row: one test
     episode, open loop from its first state with its recorded actions."""
     n = len(names)
-    fig, axes = plt.subplots(2, n, figsize=(3.2 * n, 6.0), squeeze=False)
+    fig = Figure(figsize=(3.2 * n, 6.0))
+    axes = fig.subplots(2, n, squeeze=False)
     for i, name in enumerate(names):
         ax = axes[0, i]
         t, p = true_next[:, i], pred_next[:, i]
@@ -51,9 +49,10 @@ def _pad(lo: float, hi: float) -> tuple[float, float]:
 
 
 def learning_curves(curves: dict[str, tuple[list, list, list]], threshold: float | None, title: str,
-                    x_label: str = "training steps (in the env the agent trains in)") -> plt.Figure:
+                    x_label: str = "training steps (in the env the agent trains in)") -> Figure:
     """Real-env return (mean +- std over evaluation episodes) against training steps, per arm."""
-    fig, ax = plt.subplots(figsize=(7, 4))
+    fig = Figure(figsize=(7, 4))
+    ax = fig.subplots()
     for arm, (steps, means, stds) in curves.items():
         steps, means, stds = map(np.asarray, (steps, means, stds))
         ax.plot(steps, means, label=arm)

@@ -11,9 +11,10 @@ env clips to, actions used as they are); subclasses add per-environment knowledg
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields
 from functools import cached_property
-from typing import Any, Callable, Sequence
+from typing import Any, ClassVar
+from collections.abc import Callable, Sequence
 
 import gymnasium as gym
 import numpy as np
@@ -61,6 +62,17 @@ class EnvSpec:
     n_discrete_actions: int = 0
     """0 for a continuous (Box) action space; else the number of discrete actions, one-hot
     encoded as model inputs named by ``action_names``."""
+    action_labels: tuple[str, ...] = ()
+    """Readable names of the discrete actions, for figures (default: ``action_names``)."""
+    policy_map_slices: tuple = ()
+    """2-D slices of the state space the policy maps show: ``(x name, (low, high), y name,
+    (low, high))`` each. Empty: the first two regressed states over their bounds (or +-1)."""
+    policy_map_hold: dict = field(default_factory=dict)
+    """Values of the states off a slice's axes in the policy maps (others are 0)."""
+
+    has_task: ClassVar[bool] = False
+    """Whether the spec defines the env's reward and termination (a surrogate needs them):
+    a class that implements ``reward`` (and ``terminated``) sets it to True."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "state_names", tuple(self.state_names))
@@ -81,7 +93,7 @@ class EnvSpec:
                         f"env.spec.{key}: {len(bound)} values for {len(self.state_names)} states"
                     )
         if self.state_low is not None and self.state_high is not None:
-            if any(lo >= hi for lo, hi in zip(self.state_low, self.state_high)):
+            if any(lo >= hi for lo, hi in zip(self.state_low, self.state_high, strict=True)):
                 raise ConfigError("env.spec.state_low must be below env.spec.state_high everywhere")
         if self.n_discrete_actions and len(self.action_names) != self.n_discrete_actions:
             raise ConfigError(
@@ -90,6 +102,14 @@ class EnvSpec:
             )
         if self.max_episode_steps <= 0:
             raise ConfigError("env.spec.max_episode_steps must be positive")
+        object.__setattr__(self, "action_labels", tuple(self.action_labels))
+        if self.action_labels and len(self.action_labels) != len(self.action_names):
+            raise ConfigError(f"env.spec.action_labels: {len(self.action_labels)} labels for {len(self.action_names)} actions")
+        slices = tuple(_parse_slice(sl, i, self.state_names) for i, sl in enumerate(self.policy_map_slices))
+        object.__setattr__(self, "policy_map_slices", slices)
+        unknown = set(self.policy_map_hold) - set(self.state_names)
+        if unknown:
+            raise ConfigError(f"env.spec.policy_map_hold: {sorted(unknown)} are not state names")
 
     # ------------------------------------------------------------------ names and indices
     # Derived from frozen fields, so computed once (cached_property writes the instance dict,
@@ -187,12 +207,42 @@ class EnvSpec:
 
     # ------------------------------------------------------------------ the task (surrogate envs)
     # Reward, termination, exogenous variables and resets as pure functions, so that a surrogate
-    # env (sdrl_bench.surrogate) can be built from any dynamics model. Batched: states and next
+    # env (sdrl_bench.surrogate.env) can be built from any dynamics model. Batched: states and next
     # states (N, n_state) in ``state_names`` order, raw actions (N, raw width).
     @property
     def defines_task(self) -> bool:
         """Whether this spec knows the env's reward and termination (needed by a surrogate)."""
-        return type(self).reward is not EnvSpec.reward
+        return self.has_task
+
+    def is_success(self, episode_return: float, terminated: bool) -> bool:
+        """Whether a finished episode counts as a success. Default: its return reaches
+        ``solved_threshold`` (specs whose task has a goal state override this)."""
+        return self.solved_threshold is not None and episode_return >= self.solved_threshold
+
+    def map_slices(self) -> tuple[tuple[str, tuple[float, float], str, tuple[float, float]], ...]:
+        """The policy maps' slices: ``policy_map_slices``, else the first two regressed states
+        over their bounds (+-1 where unbounded); one state alone gives no 2-D map."""
+        if self.policy_map_slices:
+            return self.policy_map_slices
+        names = self.target_names[:2]
+        if len(names) < 2:
+            raise ConfigError(f"env.spec.policy_map_slices: '{self.name}' has fewer than two regressed states; name the slices")
+        lows = self.state_low or (-1.0,) * len(self.state_names)
+        highs = self.state_high or (1.0,) * len(self.state_names)
+        ranges = [(lows[self.state_names.index(n)], highs[self.state_names.index(n)]) for n in names]
+        return ((names[0], ranges[0], names[1], ranges[1]),)
+
+    def discrete_action_labels(self) -> tuple[str, ...]:
+        return self.action_labels or self.action_names
+
+    def termination_causes(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> dict[str, np.ndarray]:
+        """Why the surrogate's rules end each transition, per named cause (N,) bool; empty
+        when the spec does not tell causes apart."""
+        return {}
+
+    def observed_termination_causes(self, rewards: np.ndarray, terminated: np.ndarray) -> dict[str, np.ndarray]:
+        """Why the real env ended each transition, per cause named in ``termination_causes``."""
+        return {}
 
     def reward(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
         """Reward of each transition (N,)."""
@@ -237,7 +287,7 @@ class EnvSpec:
         functions with N = 1). ``predictor(fixed=None)`` returns the model's one-state evaluator
         (``sdrl_bench.models.fast.scalar_predictor``: inputs in ``input_names`` order, less
         those held ``fixed`` at given values). The step follows
-        ``sdrl_bench.surrogate.Surrogate.transition`` (divergence check, bounds, exogenous variables,
+        ``sdrl_bench.surrogate.env.Surrogate.transition`` (divergence check, bounds, exogenous variables,
         clipping to the observation space ``[obs_low, obs_high]``, reward, termination) in the
         same order. Must agree with the batched functions; the tests check it."""
         return None
@@ -247,14 +297,44 @@ class EnvSpec:
         ``apply_bounds``, ``exogenous``, clipping and ``reward_terminated`` with numpy).
         ``step(states (N, n_state), raw actions (N, w), predictions (n_target, N))`` returns
         (next states (N, n_state), rewards, terminated, diverged), following
-        ``sdrl_bench.surrogate.Surrogate.transition`` with divergence ``limit`` and observation
+        ``sdrl_bench.surrogate.env.Surrogate.transition`` with divergence ``limit`` and observation
         bounds ``[obs_low, obs_high]``. Must agree with the composed functions; the tests check it."""
         return None
 
     # ------------------------------------------------------------------ held-out test set
-    def test_set_recipe(self) -> "TestSetRecipe":
+    def test_set_recipe(self) -> TestSetRecipe:
         """The fixed, named held-out test set every model of this env is scored on."""
         return TestSetRecipe(name=f"{self.name}-heldout-v1", seed=10_000, episodes=(("random", 1.0),) * 6)
+
+
+def _parse_slice(value: Any, i: int, state_names: tuple[str, ...]) -> tuple:
+    key = f"env.spec.policy_map_slices[{i}]"
+    try:
+        xn, (x0, x1), yn, (y0, y1) = value
+        out = (str(xn), (float(x0), float(x1)), str(yn), (float(y0), float(y1)))
+    except (TypeError, ValueError):
+        raise ConfigError(f"{key}: expected [x name, [low, high], y name, [low, high]], got {value!r}") from None
+    for n in (out[0], out[2]):
+        if n not in state_names:
+            raise ConfigError(f"{key}: '{n}' is not a state name ({list(state_names)})")
+    return out
+
+
+def find_spec(name: str) -> EnvSpec:
+    """The spec class whose ``name`` defaults to ``name`` (the built-in specs, or any user
+    subclass already imported), built with its defaults: the class is the one source of an
+    env's name, so no registry has to be kept beside the configs."""
+    found: dict[str, type[EnvSpec]] = {}
+    todo = list(EnvSpec.__subclasses__())
+    while todo:
+        cls = todo.pop()
+        todo.extend(cls.__subclasses__())
+        default = next((f.default for f in fields(cls) if f.name == "name"), MISSING)
+        if isinstance(default, str):
+            found.setdefault(default, cls)
+    if name not in found:
+        raise ConfigError(f"spec: unknown env {name!r} (one of {sorted(found)}, or an EnvSpec)")
+    return found[name]()
 
 
 @dataclass(frozen=True)

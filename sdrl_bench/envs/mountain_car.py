@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Callable
+from typing import ClassVar
+from collections.abc import Callable
 
 import numpy as np
 
@@ -34,6 +35,13 @@ class MountainCarSpec(EnvSpec):
     state_high: tuple[float, ...] | None = (MAX_POSITION, MAX_SPEED)
     max_episode_steps: int = 999
     solved_threshold: float | None = 90.0
+    policy_map_slices: tuple = (("x", (MIN_POSITION, MAX_POSITION), "v", (-MAX_SPEED, MAX_SPEED)),)
+
+    has_task: ClassVar[bool] = True
+
+    def is_success(self, episode_return: float, terminated: bool) -> bool:
+        """The goal was reached: the episode terminated (a return of 90 can miss it)."""
+        return bool(terminated)
 
     def heuristic_policy(self, env) -> Policy:
         """Push with the sign of the velocity (full force; +1 at rest)."""

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Protocol, Sequence, runtime_checkable
+from typing import Protocol, runtime_checkable
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -25,7 +26,7 @@ class DynamicsModel(Protocol):
     summary_file: str
 
     def fit(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray, *,
-            state_names: Sequence[str], control_names: Sequence[str]) -> "DynamicsModel": ...
+            state_names: Sequence[str], control_names: Sequence[str]) -> DynamicsModel: ...
 
     def predict(self, x: np.ndarray, u: np.ndarray) -> np.ndarray: ...
 

@@ -36,7 +36,8 @@ in Fortran order: each output variable is again a contiguous column.
 from __future__ import annotations
 
 import math
-from typing import Any, Callable, Sequence
+from typing import Any
+from collections.abc import Callable, Sequence
 
 import numpy as np
 

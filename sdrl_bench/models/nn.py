@@ -20,7 +20,8 @@ from __future__ import annotations
 import functools
 import time
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 import torch
@@ -108,7 +109,7 @@ class MLPDynamics:
 
     # ------------------------------------------------------------------ fit
     def fit(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray, *,
-            state_names: Sequence[str], control_names: Sequence[str]) -> "MLPDynamics":
+            state_names: Sequence[str], control_names: Sequence[str]) -> MLPDynamics:
         """Fit on rows (x_t, u_t) -> x_{t+1} (rows independent)."""
         x, u, x_next = (np.asarray(a, dtype=float) for a in (x, u, x_next))
         if x.shape[1] != len(state_names) or u.shape[1] != len(control_names) or x_next.shape != x.shape:
@@ -174,10 +175,10 @@ class MLPDynamics:
                 best_epoch = torch.where(better, epoch, best_epoch)
                 since = torch.where(better, 0, since + 1)
                 if bool(better.all()):
-                    for saved, p in zip(best_params, self.params_):
+                    for saved, p in zip(best_params, self.params_, strict=True):
                         saved.copy_(p)
                 elif bool(better.any()):
-                    for saved, p in zip(best_params, self.params_):
+                    for saved, p in zip(best_params, self.params_, strict=True):
                         saved[better] = p[better]
             if bool(torch.all(since >= self.patience)):
                 break
@@ -268,7 +269,7 @@ class MLPDynamics:
         return nn_io.save(self, Path(path))
 
     @classmethod
-    def load(cls, path: str | Path) -> "MLPDynamics":
+    def load(cls, path: str | Path) -> MLPDynamics:
         """Load a saved model; a weights file that does not match the metadata raises ConfigError."""
         return nn_io.load(cls, Path(path))
 
@@ -289,7 +290,7 @@ def _stats(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def _init_params(sizes: list[int], k: int, dt: torch.dtype, gen: torch.Generator) -> list[torch.Tensor]:
     """[W0, b0, W1, b1, ...]: W (k, fan_in, fan_out), b (k, fan_out), uniform in +-1/sqrt(fan_in)."""
     params = []
-    for fan_in, fan_out in zip(sizes[:-1], sizes[1:]):
+    for fan_in, fan_out in zip(sizes[:-1], sizes[1:], strict=True):
         bound = 1.0 / np.sqrt(fan_in)
         for shape in ((k, fan_in, fan_out), (k, fan_out)):
             t = (torch.rand(shape, generator=gen, dtype=torch.float64) * 2 - 1) * bound

@@ -32,15 +32,15 @@ def param_names(n_layers: int) -> list[str]:
     return [f"layers.{i}.{w}" for i in range(n_layers) for w in ("weight", "bias")]
 
 
-def expected_shapes(model: "MLPDynamics", n_in: int, n_out: int) -> dict[str, tuple[int, ...]]:
+def expected_shapes(model: MLPDynamics, n_in: int, n_out: int) -> dict[str, tuple[int, ...]]:
     sizes = model.layer_sizes(n_in, n_out)
     k, shapes = model.ensemble_size, {}
-    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:])):
+    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
         shapes[f"layers.{i}.weight"], shapes[f"layers.{i}.bias"] = (k, a, b), (k, b)
     return shapes
 
 
-def to_dict(model: "MLPDynamics", weights_file: str, sha256: str) -> dict[str, Any]:
+def to_dict(model: MLPDynamics, weights_file: str, sha256: str) -> dict[str, Any]:
     return {
         "format": FORMAT,
         "kind": model.kind,
@@ -62,11 +62,11 @@ def to_dict(model: "MLPDynamics", weights_file: str, sha256: str) -> dict[str, A
     }
 
 
-def save(model: "MLPDynamics", path: Path) -> Path:
+def save(model: MLPDynamics, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     weights = path.with_suffix(".pt")
     names = param_names(len(model.params_) // 2)
-    torch.save({n: p.detach().clone().contiguous() for n, p in zip(names, model.params_)}, weights)
+    torch.save({n: p.detach().clone().contiguous() for n, p in zip(names, model.params_, strict=True)}, weights)
     sha = hashlib.sha256(weights.read_bytes()).hexdigest()
     path.write_text(json.dumps(to_dict(model, weights.name, sha), indent=1))
     return path
@@ -79,7 +79,7 @@ def _vector(d: dict, key: str, n: int, positive: bool = False) -> np.ndarray:
     return v
 
 
-def load(cls: type["MLPDynamics"], path: Path) -> "MLPDynamics":
+def load(cls: type[MLPDynamics], path: Path) -> MLPDynamics:
     d = read_model_json(path)
     try:
         if not isinstance(d, dict) or d.get("format") != FORMAT:

@@ -15,14 +15,14 @@ import copy
 import json
 import time
 from pathlib import Path
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 import pysindy as ps
 from pysindy.feature_library.base import BaseFeatureLibrary
 
 from sdrl_bench import ConfigError
-from sdrl_bench.models.libraries import Term, compile_terms, evaluate_terms, validate_terms
+from sdrl_bench.models.libraries import compile_terms, evaluate_terms, validate_terms
 from sdrl_bench.models.snap import snap_equation
 
 FORMAT = "sdrl-bench/sindy-model-v1"
@@ -85,7 +85,7 @@ class SindyModel:
         *,
         state_names: Sequence[str],
         control_names: Sequence[str],
-    ) -> "SindyModel":
+    ) -> SindyModel:
         """Fit on rows (x_t, u_t) -> x_{t+1}; rows are independent (``x_next`` is explicit)."""
         x, u, x_next = (np.asarray(a, dtype=float) for a in (x, u, x_next))
         names = list(state_names) + list(control_names)
@@ -183,9 +183,9 @@ class SindyModel:
     def equations(self, precision: int = 6) -> list[str]:
         """One line per regressed state: ``x[k+1] = c1 term1 + c2 term2 ...`` (nonzero terms)."""
         lines = []
-        for name, row in zip(self.state_names_, self.coef_):
+        for name, row in zip(self.state_names_, self.coef_, strict=True):
             parts = [f"{c:+.{precision}g} {n}" if n != "1" else f"{c:+.{precision}g}"
-                     for c, n in zip(row, self.feature_names_) if c != 0]
+                     for c, n in zip(row, self.feature_names_, strict=True) if c != 0]
             rhs = " ".join(parts) if parts else "0"
             lines.append(f"{name}[k+1] = {rhs.lstrip('+')}")
         return lines
@@ -201,14 +201,14 @@ class SindyModel:
             "n_parameters": float(self.n_active_terms),
             "compile_max_abs_diff": float(getattr(self, "compile_max_abs_diff_", 0.0)),
             "n_snapped_equations": float(sum(d > 0 for d in self.snap_digits_)),
-            **{f"snap_digits/{s}": float(d) for s, d in zip(self.state_names_, self.snap_digits_)},
+            **{f"snap_digits/{s}": float(d) for s, d in zip(self.state_names_, self.snap_digits_, strict=True)},
         }
 
     def coefficients_by_name(self) -> dict[str, dict[str, float]]:
         """{state: {feature name: coefficient}} for the nonzero coefficients."""
         return {
-            s: {n: float(c) for n, c in zip(self.feature_names_, row) if c != 0}
-            for s, row in zip(self.state_names_, self.coef_)
+            s: {n: float(c) for n, c in zip(self.feature_names_, row, strict=True) if c != 0}
+            for s, row in zip(self.state_names_, self.coef_, strict=True)
         }
 
     # ------------------------------------------------------------------ persistence (data only)
@@ -234,7 +234,7 @@ class SindyModel:
         return path
 
     @classmethod
-    def from_dict(cls, d: dict, source: str = "model") -> "SindyModel":
+    def from_dict(cls, d: dict, source: str = "model") -> SindyModel:
         try:
             if d.get("format") != FORMAT:
                 raise ValueError(f"format is {d.get('format')!r}, expected {FORMAT!r}")
@@ -261,7 +261,7 @@ class SindyModel:
         return model
 
     @classmethod
-    def load(cls, path: str | Path) -> "SindyModel":
+    def load(cls, path: str | Path) -> SindyModel:
         from sdrl_bench.models.base import read_model_json  # noqa: PLC0415
 
         return cls.from_dict(read_model_json(path), source=str(path))

@@ -1,0 +1,93 @@
+"""Every config group option composes, and every combination instantiates into a FitJob."""
+
+from __future__ import annotations
+
+import itertools
+from importlib import resources
+
+import pytest
+
+from helpers import compose_cfg
+from sdrl_bench import ConfigError
+from sdrl_bench.cli.build import build_fit_job
+from sdrl_bench.pipeline import check
+
+
+def options(group: str) -> list[str]:
+    """The options Hydra finds for a group in the package's configs (pkg://sdrl_bench.conf)."""
+    return sorted(p.name[: -len(".yaml")] for p in resources.files("sdrl_bench.conf").joinpath(group).iterdir()
+                  if p.name.endswith(".yaml"))
+
+
+def test_groups_have_the_expected_options():
+    assert {"mountain_car", "lunar_lander", "lunar_lander_continuous"} <= set(options("env"))
+    assert {"polynomial", "trig", "poly_trig", "rational"} <= set(options("library"))
+    assert {"stlsq", "sr3", "ensemble"} <= set(options("optimizer"))
+    assert {"random", "heuristic"} <= set(options("collector"))
+    assert "sindy" in options("surrogate")
+
+
+@pytest.mark.parametrize(
+    "env,library,optimizer",
+    list(itertools.product(options("env"), options("library"), options("optimizer"))),
+)
+def test_every_combination_instantiates(env, library, optimizer):
+    collector = "random" if env == "pendulum" else "heuristic"
+    cfg = compose_cfg(f"env={env}", f"library={library}", f"optimizer={optimizer}", f"collector={collector}")
+    job = build_fit_job(cfg)
+    library_obj, data = check(job)  # validates budgets against the library size, no env steps
+    assert data is None
+    assert job.spec.name == env
+    assert job.names == {"env": env, "collector": collector, "library": library,
+                         "optimizer": optimizer, "surrogate": "sindy"}
+    assert type(job.optimizer).__name__ in {"STLSQ", "SR3", "EnsembleOptimizer"}
+    assert len(library_obj.libraries) == len(cfg.library.parts)
+
+
+def test_each_env_has_its_default_library_and_the_command_line_wins():
+    """LunarLander defaults to polynomials (its env config overrides the library group);
+    MountainCar keeps poly_trig; an explicit library= always wins."""
+    defaults = {env: build_fit_job(compose_cfg(f"env={env}")) for env in ("mountain_car", "lunar_lander", "lunar_lander_continuous")}
+    assert {env: job.names["library"] for env, job in defaults.items()} == {
+        "mountain_car": "poly_trig", "lunar_lander": "polynomial", "lunar_lander_continuous": "polynomial"}
+    assert len(check(defaults["lunar_lander"])[0].libraries) == 1  # no trigonometric part
+    assert build_fit_job(compose_cfg("env=lunar_lander", "library=poly_trig")).names["library"] == "poly_trig"
+    assert build_fit_job(compose_cfg("experiment=paper_mountain_car")).names["library"] == "poly_trig"
+
+
+def test_lunar_lander_spec_encodes_actions_one_hot():
+    job = build_fit_job(compose_cfg("env=lunar_lander"))
+    assert job.spec.control_names == ("leg_left", "leg_right", "a_noop", "a_left", "a_main", "a_right")
+    assert job.spec.encode_actions([[2], [0]]).tolist() == [[0, 0, 1, 0], [1, 0, 0, 0]]
+    cont = build_fit_job(compose_cfg("env=lunar_lander_continuous")).spec
+    assert cont.control_names == ("leg_left", "leg_right", "main", "lateral")
+    assert cont.make_env().action_space.shape == (2,)
+
+
+def test_budgets_shrink_by_override():
+    job = build_fit_job(compose_cfg("n_transitions=40", "collector.epsilon=0.5", "seed=7"))
+    assert (job.n_transitions, job.epsilon, job.seed) == (40, 0.5, 7)
+
+
+def test_pendulum_needs_no_code_but_has_no_heuristic():
+    with pytest.raises(ConfigError, match="collector: env 'pendulum' has no heuristic"):
+        check(build_fit_job(compose_cfg("env=pendulum")))
+
+
+@pytest.mark.parametrize("pack", options("experiment"))
+def test_every_experiment_pack_composes_and_validates(pack):
+    from sdrl_bench.cli.train import build_transfer_job
+
+    cfg = compose_cfg(f"experiment={pack}")
+    assert cfg.task == "train"
+    job = build_transfer_job(cfg, build_fit_job(cfg))
+    job.check()  # agent fits the action space, budgets positive; no expert is trained here
+    assert job.agent.name in {"sac", "ppo"} and set(job.arms) == {"surrogate", "real"}
+
+
+def test_paper_packs_use_the_papers_budgets():
+    mc = compose_cfg("experiment=paper_mountain_car")
+    ll = compose_cfg("experiment=paper_lunar_lander")
+    assert (mc.n_transitions, mc.rl.surrogate_steps, mc.rl.real_steps, mc.agent.name) == (75, 65000, 100000, "sac")
+    assert (ll.n_transitions, ll.rl.surrogate_steps, ll.rl.real_steps, ll.agent.name) == (1000, 800000, 1000000, "ppo")
+    assert mc.collector.name == ll.collector.name == "expert" and mc.collector.epsilon == 0.2

@@ -1,0 +1,142 @@
+"""Bad input: one clear line naming the key or file, non-zero exit, no run left RUNNING."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from helpers import compose_cfg, run_cli, search
+from sdrl_bench import ConfigError
+from sdrl_bench.cli.main import run_fit
+
+
+def no_running_runs(uri: str) -> int:
+    try:
+        runs = search(uri)
+    except Exception:  # experiment never created: no run at all
+        return 0
+    assert "RUNNING" not in set(runs["status"]) if len(runs) else True
+    return len(runs)
+
+
+@pytest.mark.parametrize("override,needle", [
+    ("env=moon", "env"), ("library=splines", "library"), ("optimizer=adam", "optimizer"),
+    ("collector=oracle", "collector"),
+])
+def test_unknown_group_option_fails_at_composition(store, tmp_path, override, needle):
+    res = run_cli(override, f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode != 0
+    assert f"Could not find '{needle}/" in res.stderr
+    assert no_running_runs(store) == 0
+
+
+def test_negative_threshold_exits_2_with_one_line(store, tmp_path):
+    res = run_cli("optimizer.threshold=-0.1", f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode == 2
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert lines == ["sdrl-bench: error: optimizer: threshold cannot be negative"]
+    assert no_running_runs(store) == 0
+
+
+def test_fewer_transitions_than_library_terms(store):
+    with pytest.raises(ConfigError, match=r"n_transitions=10: fewer transitions than the 12 terms of library 'poly_trig'"):
+        run_fit(compose_cfg("n_transitions=10", f"tracking.uri={store}"))
+    assert no_running_runs(store) == 0
+
+
+@pytest.mark.parametrize("value", ["0", "-5", "abc", "2.5"])
+def test_bad_episode_cut_is_rejected_naming_the_key(store, value):
+    with pytest.raises(ConfigError, match=r"collector.max_steps_per_episode must be a positive integer or null"):
+        run_fit(compose_cfg(f"collector.max_steps_per_episode={value}", f"tracking.uri={store}"))
+    assert no_running_runs(store) == 0
+
+
+def test_episode_cut_splits_the_collection_into_episodes(store):
+    """n_transitions=200 cut every 30 steps: 7 episodes (six of 30, one of 20), all logged."""
+    res = run_fit(compose_cfg("n_transitions=200", "collector.max_steps_per_episode=30", f"tracking.uri={store}"))
+    assert len(set(res.data.episode.tolist())) == 7 and len(res.data) == 200
+    runs = search(store)
+    assert runs["params.collector.max_steps_per_episode"].tolist() == ["30"]
+    assert runs["metrics.n_episodes"].tolist() == [7.0]
+
+
+def _dataset(tmp_path, mutate):
+    from sdrl_bench.data import collect, heuristic_policy, save_csv
+    from sdrl_bench.envs import MountainCarSpec
+
+    spec = MountainCarSpec()
+    path = save_csv(collect(spec, heuristic_policy, 40, 0.2, 0), spec, tmp_path / "d.csv")
+    df = pd.read_csv(path)
+    mutate(df)
+    df.to_csv(path, index=False)
+    return path
+
+
+def test_dataset_with_nan_is_rejected_naming_file_and_column(store, tmp_path):
+    path = _dataset(tmp_path, lambda df: df.__setitem__("ns_v", df["ns_v"].where(df.index != 3, np.nan)))
+    with pytest.raises(ConfigError, match=r"d.csv has a missing or non-numeric value in column 'ns_v' \(data row 4\)"):
+        run_fit(compose_cfg(f"dataset.path={path}", f"tracking.uri={store}"))
+    assert no_running_runs(store) == 0
+
+
+def test_dataset_with_missing_column_is_rejected(store, tmp_path):
+    path = _dataset(tmp_path, lambda df: df.drop(columns=["a_0"], inplace=True))
+    res = run_cli(f"dataset.path={path}", f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode == 2
+    assert res.stderr.strip() == f"sdrl-bench: error: dataset.path: {path} lacks columns ['a_0'] for env 'mountain_car'"
+
+
+def test_dataset_file_can_be_fitted_when_valid(store, tmp_path):
+    path = _dataset(tmp_path, lambda df: None)
+    result = run_fit(compose_cfg(f"dataset.path={path}", f"tracking.uri={store}"))
+    assert len(result.data) == 40
+    assert search(store).iloc[0]["status"] == "FINISHED"
+
+
+def test_unwritable_tracking_location(tmp_path):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("not a folder")
+    uri = f"sqlite:///{blocker / 'mlruns' / 'mlflow.db'}"
+    with pytest.raises(ConfigError, match=r"tracking.uri: cannot write the tracking store at .*a_file/mlruns"):
+        run_fit(compose_cfg(f"tracking.uri={uri}"))
+    assert blocker.read_text() == "not a folder"  # nothing the user had is lost
+
+
+def test_failure_after_the_run_started_marks_it_failed(store, tmp_path):
+    # every transition at a bound: detected only once data exists, inside the run
+    path = _dataset(tmp_path, lambda df: df.__setitem__("ns_x", -1.2))
+    with pytest.raises(ConfigError, match="every transition lies on a state bound"):
+        run_fit(compose_cfg(f"dataset.path={path}", f"tracking.uri={store}", "library=trig"))
+    runs = search(store)
+    assert list(runs["status"]) == ["FAILED"]
+
+
+def test_sigterm_mid_run_marks_the_run_failed(store, tmp_path):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sdrl_bench.cli.main", "task=train", "rl.arms=[real]", "rl.real_steps=100000",
+         "progress_bar=false", f"tracking.uri={store}"],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    )
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:  # wait until the run exists, then stop the process
+        try:
+            if len(search(store)):
+                break
+        except Exception:
+            pass
+        time.sleep(0.5)
+    proc.send_signal(signal.SIGTERM)
+    proc.communicate(timeout=120)
+    assert proc.returncode != 0
+    assert list(search(store)["status"]) == ["FAILED"]
+
+
+def test_unknown_agent_fails_at_composition(tmp_path, store):
+    res = run_cli("task=train", "agent=a2c_magic", f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode != 0 and "Could not find 'agent/a2c_magic'" in res.stderr

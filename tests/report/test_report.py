@@ -1,0 +1,178 @@
+"""The report generator on a real temp SQLite store holding runs logged through tracking.py."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from sdrl_bench.report import tables as rt
+from sdrl_bench import tracking
+from sdrl_bench.cli.report import main
+from sdrl_bench.report.build import ReportInput, build_report
+from helpers import search
+
+EXP = "sdrl-bench"
+
+
+def _fit(uri: str, env: str, library: str, surrogate: str, seed: int, mse: dict[str, float], parent: str | None = None) -> str:
+    tags = {"sdrl.kind": "fit", "env": env, "library": library, "surrogate": surrogate, "seed": seed,
+            "collector": "heuristic", "test_set": f"{env}-heldout-v1"}
+    with tracking.start_run(uri, EXP, f"fit-{env}-{library}-{surrogate}-s{seed}", tags, parent) as run:
+        metrics = {f"mse/{k}": v for k, v in mse.items()}
+        metrics.update({f"corr/{k}": 1 - v for k, v in mse.items()}, **{f"mse_norm/{k}": 10 * v for k, v in mse.items()})
+        metrics.update({"mse/mean": float(np.mean(list(mse.values()))), "fit_wall_seconds": 0.01 * (seed + 1),
+                        "fit_cpu_seconds": 0.02, "n_parameters": 7 if surrogate == "sindy" else 4354})
+        run.log_metrics(metrics)
+    return run.run_id
+
+
+def _transfer(uri: str, seed: int, surrogate_return: float, real_return: float, parent: str | None = None) -> str:
+    tags = {"sdrl.kind": "transfer", "env": "mountain_car", "agent": "sac", "surrogate": "sindy",
+            "library": "poly_trig", "seed": seed, "test_set": "mountain_car-heldout-v1"}
+    with tracking.start_run(uri, EXP, f"train-s{seed}", tags, parent) as run:
+        run.log_metrics({"surrogate/final_return_mean": surrogate_return, "real/final_return_mean": real_return,
+                         "surrogate/real_transitions_model": 75, "surrogate/real_transitions_train": 0,
+                         "surrogate/surrogate_steps": 65_000, "surrogate/total_steps": 65_075,
+                         "real/real_transitions_model": 0, "real/real_transitions_train": 100_000,
+                         "real/surrogate_steps": 0, "real/total_steps": 100_000, "surrogate/success_rate": 1.0,
+                         "real/success_rate": 0.5, "surrogate/train_wall_seconds": 10.0 + seed,
+                         "real/train_wall_seconds": 20.0, "real/solved_real_steps": 25_000.0,
+                         "fit/mse/x": 1e-16, "fit/mse/v": 2e-19, "fit/corr/x": 1.0, "fit/corr/v": 1.0})
+        for arm, ret in (("surrogate", surrogate_return), ("real", real_return)):
+            run.log_text(f"train_steps,return_mean,return_std\n0,-10,1\n1000,{ret},1\n", f"curves/{arm}.csv")
+        run.log_text("x[k+1] = 1 x +1 v +0.0015 u -0.0025 cos(3 x)\nv[k+1] = 1 v +0.0015 u -0.0025 cos(3 x)\n",
+                     "model/equations.txt")
+    return run.run_id
+
+
+@pytest.fixture
+def fits_store(store: str) -> str:
+    _fit(store, "mountain_car", "poly_trig", "sindy", 0, {"x": 1e-16, "v": 3e-19})
+    _fit(store, "mountain_car", "poly_trig", "sindy", 1, {"x": 3e-16, "v": 5e-19})
+    _fit(store, "mountain_car", "polynomial", "sindy", 0, {"x": 4e-6, "v": 2e-7})
+    _fit(store, "mountain_car", "nn", "nn", 0, {"x": 2e-9, "v": 4e-10})
+    return store
+
+
+def _client_metrics(uri: str, filter_string: str) -> list[dict[str, float]]:
+    df = search(uri, EXP, filter_string)
+    return [{c[len("metrics."):]: row[c] for c in df.columns if c.startswith("metrics.") and not math.isnan(row[c])}
+            for _, row in df.iterrows()]
+
+
+def test_tables_equal_the_runs_metrics_read_through_the_client(fits_store: str) -> None:
+    runs = tracking.report_runs(fits_store, EXP)
+    fid = rt.fidelity_table(runs).set_index(["env", "state"])
+    sindy = _client_metrics(fits_store, "tags.library = 'poly_trig' and tags.surrogate = 'sindy'")
+    assert len(sindy) == 2
+    for state in ("x", "v"):
+        row = fid.loc[("mountain_car", state)]
+        assert row["mse"] == pytest.approx(np.mean([m[f"mse/{state}"] for m in sindy]), rel=1e-12)
+        assert row["corr"] == pytest.approx(np.mean([m[f"corr/{state}"] for m in sindy]), rel=1e-12)
+        assert row["paper_mse"] == rt.PAPER_FIDELITY["mountain_car"][state][0]
+        assert row["library"] == "poly_trig" and row["n_fits"] == 2
+    abl = rt.ablation_table(runs).set_index(["env", "library"])
+    poly = _client_metrics(fits_store, "tags.library = 'polynomial'")
+    assert abl.loc[("mountain_car", "polynomial"), "mse_mean"] == poly[0]["mse/mean"]
+    assert math.isnan(abl.loc[("mountain_car", "rational"), "mse_mean"]) and abl.loc[("mountain_car", "rational"), "runs"] == []
+    vs = rt.sindy_vs_nn_table(runs).set_index(["env", "quantity"])
+    nn = _client_metrics(fits_store, "tags.surrogate = 'nn'")[0]
+    assert vs.loc[("mountain_car", "mse/v"), "nn"] == nn["mse/v"]
+    assert vs.loc[("mountain_car", "n_parameters"), "sindy_over_nn"] == pytest.approx(7 / 4354)
+    wall = np.mean([m["fit_wall_seconds"] for m in sindy])
+    assert vs.loc[("mountain_car", "fit_wall_seconds"), "sindy_over_nn"] == pytest.approx(wall / nn["fit_wall_seconds"])
+
+
+def test_bootstrap_ci_matches_a_hand_computation() -> None:
+    three = [90.0, 94.0, 95.5]
+    point, lo, hi, name = rt.bootstrap_ci(three, seed=3)
+    ref = stats.bootstrap((np.array(three),), np.mean, confidence_level=0.95, n_resamples=2000, method="percentile",
+                          rng=np.random.default_rng(3))
+    assert (name, point) == ("mean", pytest.approx(np.mean(three)))
+    assert (lo, hi) == (ref.confidence_interval.low, ref.confidence_interval.high)
+    # a percentile bootstrap by hand: resample seeds, take the 2.5% and 97.5% quantiles
+    rng = np.random.default_rng(0)
+    boots = np.array(three)[rng.integers(0, 3, size=(20000, 3))].mean(axis=1)
+    assert lo == pytest.approx(np.quantile(boots, 0.025), abs=0.6)
+    assert hi == pytest.approx(np.quantile(boots, 0.975), abs=0.6)
+    six = [10.0, 80.0, 90.0, 91.0, 95.0, 200.0]
+    point, lo, hi, name = rt.bootstrap_ci(six)
+    assert name == "IQM" and point == pytest.approx(np.mean(sorted(six)[1:5])) and lo <= point <= hi
+    one = rt.bootstrap_ci([5.0])
+    assert one[0] == 5.0 and math.isnan(one[1]) and math.isnan(one[2])  # no CI from one seed
+    assert math.isnan(rt.bootstrap_ci([])[0])
+
+
+def test_transfer_table_and_report_from_a_sweep(store: str, tmp_path) -> None:
+    parent = tracking.create_parent_run(store, EXP, "sweep", {"sdrl.kind": "sweep"})
+    ids = [_transfer(store, s, r, 90.0 + s, parent) for s, r in enumerate([93.0, 95.0, 94.0])]
+    _fit(store, "mountain_car", "poly_trig", "sindy", 9, {"x": 1e-3, "v": 1e-3})  # outside the sweep
+    with tracking.start_run(store, EXP, "unfinished", {"sdrl.kind": "transfer", "env": "mountain_car"}, parent) as run:
+        pass
+    tracking.Run(store, run.run_id).end("RUNNING")  # still training: must not count
+    runs = tracking.report_runs(store, EXP)
+    tr = rt.transfer_table(runs).set_index(["env", "surrogate", "arm"])
+    sur = tr.loc[("mountain_car", "sindy", "surrogate")]
+    client = _client_metrics(store, f"tags.`mlflow.parentRunId` = '{parent}' and attributes.status = 'FINISHED'")
+    returns = [m["surrogate/final_return_mean"] for m in client]
+    assert sur["n_seeds"] == 3 and sorted(sur["runs"]) == sorted(ids)
+    assert (sur["return"], sur["ci_low"], sur["ci_high"]) == pytest.approx(rt.bootstrap_ci(returns)[:3])
+    assert sur["total_steps"] == 65_075 and sur["real_transitions"] == 75 and sur["train_wall_seconds"] == 11.0
+    assert sur["n_solved"] == 0 and tr.loc[("mountain_car", "sindy", "real"), "solved_real_steps"] == 25_000
+    assert tr.loc[("lunar_lander", "sindy", "surrogate"), "n_seeds"] == 0
+
+    res = build_report(ReportInput(store, EXP, parent_run=parent, ui_url="http://ui:5000"), "t", tmp_path, echo=lambda _: None)
+    md = (res.folder / "report.md").read_text()
+    html = (res.folder / "report.html").read_text()
+    assert res.n_runs == 5 and res.problems == []  # parent, 3 transfers, the RUNNING one
+    assert "http://ui:5000/#/experiments/" in md and f"/runs/{ids[0]}" in md
+    assert "94.0 [" in md and "(mean)" in md and "not run" in md
+    assert "figures/curves_mountain_car_sindy.png" in md and (res.folder / "figures/curves_mountain_car_sindy.png").is_file()
+    assert "data:image/png;base64," in html and "<img class='math'" in html and "src='figures/" not in html
+    logged = search(store, EXP, "tags.`sdrl.kind` = 'report'")
+    assert list(logged["run_id"]) == [res.report_run_id]
+
+
+def test_not_run_when_the_store_holds_only_fits(fits_store: str, tmp_path) -> None:
+    res = build_report(ReportInput(fits_store, EXP), "fits", tmp_path, log_run=False, echo=lambda _: None)
+    md = (res.folder / "report.md").read_text()
+    ll = [line for line in md.splitlines() if line.startswith("| lunar_lander | sindy | surrogate")]
+    assert ll and ll[0].count("not run") >= 5
+    assert "RL transfer: not run" in md and "Optuna search: not run" in md
+    assert "| mountain_car | rational | - | 0 | not run |" in md
+
+
+@pytest.mark.parametrize("case", ["empty", "experiment", "parent"])
+def test_bad_input_gives_a_message_and_a_report(case: str, fits_store: str, tmp_path, capsys) -> None:
+    uri = f"sqlite:///{tmp_path / 'empty' / 'mlflow.db'}" if case == "empty" else fits_store
+    args = ["--uri", uri, "--out", str(tmp_path / "out"), "--name", case]
+    args += {"empty": [], "experiment": ["--experiment", "nope"], "parent": ["--parent-run", "0" * 32]}[case]
+    assert main(args) == 2
+    err = capsys.readouterr()
+    expected = {"empty": "no experiment 'sdrl-bench'", "experiment": "no experiment 'nope'", "parent": "no run '000"}[case]
+    assert expected in err.out and "Traceback" not in err.out + err.err
+    md = (tmp_path / "out" / case / "report.md").read_text()
+    assert expected in md and "not run" in md
+
+
+def test_runs_missing_metrics_are_named(store: str, tmp_path) -> None:
+    with tracking.start_run(store, EXP, "bare", {"sdrl.kind": "transfer", "env": "mountain_car"}) as run:
+        pass
+    res = build_report(ReportInput(store, EXP), "bare", tmp_path, log_run=False, echo=lambda _: None)
+    assert any(run.run_id in p and "real/final_return_mean" in p for p in res.problems)
+    assert f"run {run.run_id} (bare) lacks" in (res.folder / "report.md").read_text()
+    assert main(["--uri", store, "--tag", "nokeyvalue", "--out", str(tmp_path)]) == 2
+
+
+def test_single_arm_transfer_runs_are_not_reported_as_missing_the_other_arm():
+    from sdrl_bench.report.tables import missing_metrics
+
+    base = {"status": "FINISHED", "tags": {"sdrl.kind": "transfer", "mlflow.runName": "t"}}
+    one_arm = {**base, "run_id": "a", "tags": {**base["tags"], "arms": "surrogate"},
+               "metrics": {"surrogate/final_return_mean": 1.0}}
+    both = {**base, "run_id": "b", "tags": {**base["tags"], "arms": "surrogate,real"},
+            "metrics": {"surrogate/final_return_mean": 1.0}}
+    assert missing_metrics([one_arm, both]) == ["run b (t) lacks real/final_return_mean"]

@@ -1,0 +1,362 @@
+"""Search: space validation, tracked studies and their exported config, grid vs TPE, the Pareto
+mode, refinement, resuming after SIGKILL, parallel workers (joblib, submitit), an mlflow server.
+MountainCar's exact law from 100 TPE trials runs under ``-m slow``."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import optuna
+import pytest
+from mlflow.tracking import MlflowClient
+
+from sdrl_bench import ConfigError, tracking
+from sdrl_bench.cli.build import build_fit_job, compose
+from sdrl_bench.cli.search import make_build_job, run_refine, run_search
+from sdrl_bench.data import collect, heuristic_policy, held_out_test_set
+from sdrl_bench.pipeline import fit_dynamics
+from sdrl_bench.search.study import counted, evaluate_params
+from sdrl_bench.search.summary import comparison_table, load_summaries
+from sdrl_bench.search.space import parse_space
+
+ROOT = Path(__file__).resolve().parents[2]
+EXPERIMENT = "sdrl-bench-search"
+EXACT = {"x": {"x", "v", "u", "cos(3 x)"}, "v": {"v", "u", "cos(3 x)"}}
+
+
+@pytest.fixture(scope="module")
+def uri(tmp_path_factory) -> str:
+    """One MLflow store for the module (creating one costs seconds), MLFLOW_TRACKING_URI unset."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.delenv("MLFLOW_TRACKING_URI", raising=False)
+        u = f"sqlite:///{tmp_path_factory.mktemp('store') / 'mlflow.db'}"
+        tracking.ensure_experiment(u, EXPERIMENT)
+        yield u
+
+
+def search_cfg(tmp: Path, uri: str, *overrides: str):
+    """The ``sdrl-bench-search`` config for a temp storage, small folds, quiet."""
+    return compose([f"study.storage='sqlite:///{tmp}/optuna.db'", f"study.export_dir='{tmp}/export'",
+                    f"tracking.uri='{uri}'", "search.k_folds=3", *overrides],
+                   config_name="search_app", return_hydra_config=True)
+
+
+def children(uri: str, parent: str) -> list[dict]:
+    return tracking.find_runs(uri, EXPERIMENT, f"tags.`mlflow.parentRunId` = '{parent}'")
+
+
+def exact_law(equations: str) -> bool:
+    terms = {}
+    for line in equations.strip().splitlines():
+        lhs, rhs = line.split(" = ")
+        terms[lhs.split("[")[0]] = {t.split(" ", 1)[1] if " " in t else "1" for t in rhs.replace(" -", " +").split(" +") if t}
+    return terms == EXACT
+
+
+# ---------------------------------------------------------------------- bad input
+@pytest.mark.parametrize("space, match", [
+    ({"threshold": {"type": "float", "low": 0.1, "high": 0.01}}, r"search.space.threshold: low \(0.1\) must be below high \(0.01\)"),
+    ({"poly_degree": {"type": "int", "low": 2, "high": 2}}, r"search.space.poly_degree: low \(2\) must be below high"),
+    ({"alpha": {"type": "float", "low": 0.0, "high": 1.0, "log": True}}, r"search.space.alpha: a log scale needs positive bounds"),
+    ({"gamma": {"type": "float", "low": 0.1, "high": 1.0}}, r"search.space.gamma: unknown parameter 'gamma'; known parameters: threshold"),
+    ({"poly_degree": {"type": "int", "low": 1.5, "high": 3}}, r"search.space.poly_degree.low: an integer is required"),
+    ({"library": {"type": "categorical", "choices": []}}, r"search.space.library.choices: .*non-empty"),
+    ({"threshold": {"type": "float", "low": 1e-3, "high": 1e-1, "grid": [1e-4]}}, r"search.space.threshold.grid: values \[0.0001\]"),
+    ({"threshold": {"type": "float", "lo": 1e-3, "high": 1e-1}}, r"search.space.threshold: unknown fields \['lo'\]"),
+])
+def test_bad_search_space_is_a_one_line_config_error(space, match):
+    with pytest.raises(ConfigError, match=match) as err:
+        parse_space(space)
+    assert "\n" not in str(err.value)
+
+
+def test_bad_storage_choice_or_mode_fail_before_any_trial(tmp_path, uri):
+    blocker = tmp_path / "file"
+    blocker.write_text("not a folder")
+    cases = [
+        ("study.storage='postgresql://me:secret@127.0.0.1:1/optuna'",
+         r"^study.storage: cannot open postgresql://me:\*\*\*@127.0.0.1:1/optuna \("),
+        (f"study.storage='sqlite:///{blocker}/optuna.db'", rf"^study.storage: cannot open sqlite:///{blocker}/optuna.db"),
+        ("search.space.library.choices=[polynomial,nope]", r"^search.space.library: unknown choice 'nope' \(conf/library has \["),
+        ("search.pruner=median", r"^search.pruner: pruning needs a single objective"),
+    ]
+    for i, (override, match) in enumerate(cases):
+        extra = ["search=pareto"] if "pruner" in override else []
+        cfg = search_cfg(tmp_path, uri, *extra, override, f"study.name=bad{i}")
+        with pytest.raises(ConfigError, match=match) as err:
+            run_search(cfg, quiet=True)
+        assert "\n" not in str(err.value) and "secret" not in str(err.value)
+        assert tracking.find_runs(uri, EXPERIMENT, f"tags.`sdrl.study` = 'bad{i}'") == []
+
+
+def test_resuming_with_a_different_space_is_refused_before_a_trial(tmp_path, uri):
+    run_search(search_cfg(tmp_path, uri, "study.name=same", "search.n_trials=2", "study.final_score=false"), quiet=True)
+    cfg = search_cfg(tmp_path, uri, "study.name=same", "search.n_trials=4", "search.space.threshold.low=1e-5")
+    with pytest.raises(ConfigError, match=r"^study.name: study 'same' in sqlite:///.* was created with a different "
+                                          r"setup \(search space: threshold.low 1e-06 -> 1e-05\); use another study.name"):
+        run_search(cfg, quiet=True)
+    study = optuna.load_study(study_name="same", storage=f"sqlite:///{tmp_path}/optuna.db")
+    assert len(study.trials) == 2
+
+
+# ---------------------------------------------------------------------- a tracked study
+@pytest.fixture(scope="module")
+def mc_study(tmp_path_factory, uri):
+    tmp = tmp_path_factory.mktemp("mc")
+    cfg = search_cfg(tmp, uri, "study.name=mc", "search.n_trials=14")
+    result, summary = run_search(cfg, quiet=True)
+    return cfg, result, summary, tmp
+
+
+def test_every_trial_is_a_child_run_with_params_objective_and_terms(mc_study, uri):
+    _, result, summary, _ = mc_study
+    trials = result.study.trials
+    runs = {int(r["tags"]["optuna.trial"]): r for r in children(uri, result.parent_run_id)
+            if r["tags"].get("sdrl.kind") == "trial"}
+    assert sorted(runs) == [t.number for t in trials] == result.trials
+    for t in trials:
+        r = runs[t.number]
+        assert r["status"] == "FINISHED" and r["tags"]["optuna.state"] == t.state.name
+        assert {k: r["params"][k] for k in t.params} == {k: str(v) for k, v in t.params.items()}
+        if t.state == optuna.trial.TrialState.COMPLETE:
+            assert r["metrics"]["error"] == pytest.approx(t.value, rel=1e-12)
+            assert r["metrics"]["n_terms"] == t.user_attrs["n_terms"]
+            assert r["metrics"]["n_fits"] == 4  # 3 folds + the fit on all the data
+    assert summary.n_trials == 14 and summary.fits_total == sum(int(r["metrics"]["n_fits"]) for r in runs.values())
+
+
+def test_parent_holds_best_params_value_and_figures(mc_study, uri):
+    _, result, summary, _ = mc_study
+    parent = MlflowClient(uri).get_run(result.parent_run_id)
+    assert parent.info.status == "FINISHED"
+    assert parent.data.metrics["best_error"] == pytest.approx(result.study.best_value, rel=1e-12)
+    assert summary.best_number == result.study.best_trial.number
+    assert {k: parent.data.tags[f"best.{k}"] for k in summary.best_params} == {k: str(v) for k, v in summary.best_params.items()}
+    names = {a.path for a in MlflowClient(uri).list_artifacts(result.parent_run_id, "figures")}
+    assert names == {"figures/optimization_history.png", "figures/param_importances.png", "figures/pareto_front.png"}
+    assert parent.data.metrics["test/mse_norm/mean"] == pytest.approx(summary.test_error, rel=1e-12)
+
+
+def test_objective_is_k_fold_on_the_collected_data_and_reproducible(mc_study):
+    cfg, result, summary, _ = mc_study
+    sd = result.data
+    spec = sd.spec
+    assert sd.sha256 == collect(spec, heuristic_policy, 75, 0.2, 0).content_hash()
+    assert sd.sha256 != held_out_test_set(spec)[1].content_hash()
+    rows = sorted(i for f in sd.folds for i in f.valid.tolist())
+    assert rows == list(range(75)) and len(sd.folds) == 3
+    again = evaluate_params(summary.best_params, make_build_job(cfg), sd)
+    assert again.error == result.study.best_value and again.n_terms == summary.best_n_terms
+
+
+def test_exported_best_config_is_what_a_plain_fit_run_uses(mc_study):
+    _, _, summary, tmp = mc_study
+    pack = compose([f"hydra.searchpath=[file://{tmp}/export]", "experiment=mc"])
+    plain = compose(summary.overrides)
+    for cfg in (pack, plain):
+        assert cfg.env.sindy.threshold == summary.best_params["threshold"]
+        fit = fit_dynamics(build_fit_job(cfg))
+        assert fit.fidelity.metrics["mse_norm/mean"] == pytest.approx(summary.test_error, rel=1e-9)
+        assert fit.model.describe() == summary.best_equations
+
+
+def test_journal_storage_resumes_too(tmp_path, uri):
+    journal = f"study.storage='journal:{tmp_path}/optuna.journal'"
+    first, _ = run_search(search_cfg(tmp_path, uri, journal, "study.name=j", "search.n_trials=3",
+                                     "study.final_score=false"), quiet=True)
+    again, summary = run_search(search_cfg(tmp_path, uri, journal, "study.name=j", "search.n_trials=5",
+                                           "study.final_score=false"), quiet=True)
+    assert first.trials == [0, 1, 2] and again.trials == [3, 4] and summary.n_trials == 5
+    assert (tmp_path / "optuna.journal").stat().st_size > 0 and not (tmp_path / "optuna.db").exists()
+
+
+# ---------------------------------------------------------------------- grid, Pareto, refinement
+def test_grid_visits_every_point_once_and_compares_with_tpe(tmp_path, uri):
+    grid = ["search=grid", "search.space.threshold.grid=[1e-4,1e-3,1e-2]", "search.space.alpha.grid=[1e-10,1e-5]"]
+    result, summary = run_search(search_cfg(tmp_path, uri, "study.name=grid", *grid), quiet=True)
+    seen = sorted((t.params["threshold"], t.params["alpha"]) for t in result.study.trials)
+    assert seen == sorted(itertools.product([1e-4, 1e-3, 1e-2], [1e-10, 1e-5]))
+    assert summary.fits_total == 6 * 4 and summary.fits_to_best == 4 * (summary.best_number + 1)
+    rerun, _ = run_search(search_cfg(tmp_path, uri, "study.name=grid", "study.final_score=false", *grid), quiet=True)
+    assert rerun.trials == [] and len(rerun.study.trials) == 6
+    run_search(search_cfg(tmp_path, uri, "study.name=tpe", "search.n_trials=6"), quiet=True)
+    table = comparison_table(load_summaries(f"sqlite:///{tmp_path}/optuna.db", ["grid", "tpe"]))
+    assert table.splitlines()[2].split()[:2] == ["grid", "grid"] and "verdict: " in table
+
+
+def test_pareto_mode_logs_the_non_dominated_front(tmp_path, uri):
+    cfg = search_cfg(tmp_path, uri, "search=pareto", "study.name=pareto", "search.n_trials=10", "study.final_score=false")
+    result, summary = run_search(cfg, quiet=True)
+    front = {(e, k) for _, e, k in summary.pareto}
+    assert front == {(t.values[0], int(t.values[1])) for t in result.study.best_trials}
+    names = {a.path for a in MlflowClient(uri).list_artifacts(result.parent_run_id, "figures")}
+    assert "figures/pareto_front.png" in names
+
+
+def test_refinement_adds_trig_to_polynomials_and_stops(tmp_path, uri):
+    out, fit = run_refine(search_cfg(tmp_path, uri, "search=refine", "study.name=refine"), quiet=True)
+    assert [c.families for c in out.stages[0]] == [()]
+    accepted = [next((c.families for c in s if c.accepted), None) for s in out.stages]
+    assert accepted == [(), ("trig",), None]  # rational never pays after trig
+    assert out.final.families == ("trig",) and out.final.n_terms == 7
+    assert exact_law(fit.model.describe())
+    parent = tracking.find_runs(uri, EXPERIMENT, "tags.`sdrl.kind` = 'refine' and tags.`sdrl.study` = 'refine'")[0]
+    stages = [r for r in children(uri, parent["run_id"]) if r["tags"].get("sdrl.kind") == "refine-stage"]
+    assert sorted(r["tags"]["accepted"] for r in stages) == ["base", "none", "trig"]
+
+
+# ---------------------------------------------------------------------- processes
+def _cli(tmp: Path, uri: str, *args: str, multirun: bool = False) -> list[str]:
+    return [sys.executable, "-m", "sdrl_bench.cli.search", *(["-m"] if multirun else []),
+            f"study.storage='sqlite:///{tmp}/optuna.db'",
+            f"tracking.uri='{uri}'", "search.k_folds=3", "study.final_score=false",
+            f"study.export_dir='{tmp}/export'", f"hydra.run.dir='{tmp}/run'", f"hydra.sweep.dir='{tmp}/sweep'", *args]
+
+
+def _env() -> dict:
+    env = {k: v for k, v in os.environ.items() if k != "MLFLOW_TRACKING_URI"}
+    env["PYTHONPATH"] = str(ROOT)
+    return env
+
+
+def test_sigkill_mid_study_then_rerun_loses_and_duplicates_nothing(tmp_path, uri):
+    storage = f"sqlite:///{tmp_path}/optuna.db"
+    args = _cli(tmp_path, uri, "study.name=killed", "search.n_trials=16", "study.heartbeat_grace=1")
+    proc = subprocess.Popen(args, cwd=tmp_path, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.monotonic() + 240
+        while True:  # wait until the study holds 5 complete trials, then kill the worker mid-study
+            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+            assert time.monotonic() < deadline
+            try:
+                study = optuna.load_study(study_name="killed", storage=storage)
+                if len(study.get_trials(states=(optuna.trial.TrialState.COMPLETE,))) >= 4:
+                    break
+            except Exception:  # the study is not created yet
+                pass
+            time.sleep(0.2)
+    finally:
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    before = {t.number: (t.state, t.params, t.values) for t in study.get_trials() if counted(t)}
+    assert 4 <= len(before) < 16
+    result, summary = run_search(search_cfg(tmp_path, uri, "study.name=killed", "search.n_trials=16",
+                                            "study.heartbeat_grace=1", "study.final_score=false"), quiet=True)
+    trials = result.study.get_trials()
+    assert {t.number: (t.state, t.params, t.values) for t in trials if t.number in before} == before
+    assert summary.n_trials == sum(map(counted, trials)) == 16
+    assert len(result.trials) == 16 - len(before)  # the rerun ran exactly what was missing
+    lost = [t for t in trials if not counted(t)]  # the killed trial: FAIL once its heartbeat went
+    # stale (RUNNING if the kill came before its first heartbeat: Optuna cannot tell it from a live one)
+    assert len(lost) <= 1 and all("error" not in t.user_attrs for t in lost)
+    runs = [r for r in children(uri, result.parent_run_id) if r["tags"].get("sdrl.kind") == "trial"]
+    numbers = [int(r["tags"]["optuna.trial"]) for r in runs]
+    assert len(numbers) == len(set(numbers))  # one run per trial: nothing duplicated
+    by_number = {int(r["tags"]["optuna.trial"]): r for r in runs}
+    for t in trials:
+        if counted(t):
+            assert by_number[t.number]["status"] == "FINISHED"
+            assert by_number[t.number]["tags"]["optuna.state"] == t.state.name
+        elif t.number in by_number and t.state == optuna.trial.TrialState.FAIL:
+            assert by_number[t.number]["status"] == "KILLED"
+    assert len(tracking.find_runs(uri, EXPERIMENT, "tags.`sdrl.kind` = 'study' and tags.`sdrl.study` = 'killed'")) == 1
+
+
+def _check_workers(tmp: Path, uri: str, name: str, n_workers: int) -> None:
+    study = optuna.load_study(study_name=name, storage=f"sqlite:///{tmp}/optuna.db")
+    reports = [json.loads(p.read_text()) for p in sorted((tmp / "sweep").glob("*/worker.json"))]
+    assert sorted(r["worker"] for r in reports) == list(range(n_workers))
+    ran = [n for r in reports for n in r["trials"]]
+    assert sorted(ran) == [t.number for t in study.trials]  # each trial run by exactly one worker
+    assert all(t.state != optuna.trial.TrialState.FAIL for t in study.trials)
+    parents = tracking.find_runs(uri, EXPERIMENT, f"tags.`sdrl.kind` = 'study' and tags.`sdrl.study` = '{name}'")
+    assert len(parents) == 1
+    runs = [r for r in children(uri, parents[0]["run_id"]) if r["tags"].get("sdrl.kind") == "trial"]
+    per_worker = {r["worker"]: len(r["trials"]) for r in reports}
+    assert {w: sum(x["tags"]["sdrl.worker"] == str(w) for x in runs) for w in per_worker} == per_worker
+
+
+@pytest.mark.slow
+def test_four_parallel_workers_share_one_study(tmp_path, uri):
+    args = _cli(tmp_path, uri, "study.worker=0,1,2,3", "hydra.launcher.n_jobs=4",
+                "study.name=parallel", "search.n_trials=24", multirun=True)
+    res = subprocess.run(args, cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "OperationalError" not in res.stderr and "database is locked" not in res.stderr
+    _check_workers(tmp_path, uri, "parallel", 4)
+
+
+@pytest.mark.slow
+def test_submitit_local_executor_runs_two_workers(tmp_path, uri):
+    args = _cli(tmp_path, uri, "hydra/launcher=submitit_local", "hydra.launcher.timeout_min=10",
+                "study.worker=0,1", "study.name=submitit", "search.n_trials=8", multirun=True)
+    res = subprocess.run(args, cwd=tmp_path, env=_env(), capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-3000:]
+    _check_workers(tmp_path, uri, "submitit", 2)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _get(url: str, body: dict | None = None) -> dict:
+    """GET ``url``, or POST ``body`` as JSON: the MLflow REST API over plain HTTP."""
+    data = None if body is None else json.dumps(body).encode()
+    req = urllib.request.Request(url, data=data, headers={"Content-Type": "application/json"})
+    with urllib.request.urlopen(req, timeout=10) as r:
+        return json.loads(r.read())
+
+
+def test_search_against_a_real_mlflow_server(tmp_path):
+    port = _free_port()
+    server = subprocess.Popen(
+        [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", f"sqlite:///{tmp_path}/server.db",
+         "--artifacts-destination", str(tmp_path / "artifacts"), "--host", "127.0.0.1", "--port", str(port),
+         "--workers", "1"],
+        cwd=tmp_path, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    base = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 180
+        while True:
+            assert server.poll() is None and time.monotonic() < deadline
+            try:
+                urllib.request.urlopen(f"{base}/health", timeout=2)
+                break
+            except OSError:
+                time.sleep(0.5)
+        cfg = search_cfg(tmp_path, base, "study.name=served", "search.n_trials=4")
+        result, summary = run_search(cfg, quiet=True)
+        exp = _get(f"{base}/api/2.0/mlflow/experiments/get-by-name?experiment_name={EXPERIMENT}")["experiment"]
+        runs = _get(f"{base}/api/2.0/mlflow/runs/search", {"experiment_ids": [exp["experiment_id"]], "max_results": 100})["runs"]
+        tags = [{t["key"]: t["value"] for t in r["data"].get("tags", [])} for r in runs]
+        kinds = sorted(t.get("sdrl.kind") for t in tags)
+        assert kinds == ["fit", "study"] + ["trial"] * 4
+        parent = next(r for r, t in zip(runs, tags) if t.get("sdrl.kind") == "study")
+        metrics = {m["key"]: m["value"] for m in parent["data"]["metrics"]}
+        assert metrics["best_error"] == pytest.approx(summary.best_error, rel=1e-12) and metrics["n_trials"] == 4
+        listed = _get(f"{base}/api/2.0/mlflow/artifacts/list?run_id={result.parent_run_id}&path=figures")["files"]
+        assert {f["path"] for f in listed} >= {"figures/optimization_history.png", "figures/pareto_front.png"}
+    finally:
+        os.killpg(server.pid, signal.SIGTERM)
+        server.wait(timeout=30)
+
+
+# ---------------------------------------------------------------------- done-when (long)
+@pytest.mark.slow
+def test_mountain_car_100_tpe_trials_find_the_exact_law(tmp_path, uri):
+    result, summary = run_search(search_cfg(tmp_path, uri, "study.name=mc100", "search.k_folds=5",
+                                            "search.n_trials=100"), quiet=True)
+    assert summary.n_trials == 100
+    assert exact_law(summary.best_equations), summary.best_equations
+    assert summary.test_error < 1e-13
