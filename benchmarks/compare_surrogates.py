@@ -27,7 +27,7 @@ def main() -> None:
     parser.add_argument("--log", action="store_true", help="log the ratios on each pair's NN run")
     args = parser.parse_args()
     uri = tracking.resolve_uri(args.uri)
-    runs = tracking.runs_as_data(uri, args.experiment, "tags.`sdrl.kind` = 'fit'")
+    runs = tracking.find_runs(uri, args.experiment, "tags.`sdrl.kind` = 'fit'", missing_ok=False)
     rows = comparison_rows(runs)
     if not rows:
         print(f"no (sindy, nn) fit pairs on identical data in {uri}")

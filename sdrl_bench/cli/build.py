@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 from typing import Any
 from collections.abc import Sequence
 
@@ -63,6 +64,38 @@ def _episode_cut(value: Any) -> int | None:
     return value
 
 
+def int_key(cfg: DictConfig, key: str, minimum: int | None = None) -> int:
+    """The integer at ``key`` (``1.5``, ``abc`` and ``true`` are refused, not truncated)."""
+    value = OmegaConf.select(cfg, key)
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ConfigError(f"{key}: an integer is required, got {value!r}")
+    if minimum is not None and value < minimum:
+        raise ConfigError(f"{key} must be >= {minimum}, got {value}")
+    return value
+
+
+def float_key(cfg: DictConfig, key: str, low: float | None = None, high: float | None = None) -> float:
+    """The finite number at ``key`` within [low, high] (nan, inf and strings are refused)."""
+    value = OmegaConf.select(cfg, key)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
+        raise ConfigError(f"{key}: a finite number is required, got {value!r}")
+    if (low is not None and value < low) or (high is not None and value > high):
+        raise ConfigError(f"{key} must be within [{low}, {high}], got {value}")
+    return float(value)
+
+
+def _check_finite(node: Any, key: str) -> None:
+    """Every number in a config subtree is finite (a nan threshold fits an all-zero model)."""
+    if isinstance(node, dict):
+        for k, v in node.items():
+            _check_finite(v, f"{key}.{k}")
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            _check_finite(v, f"{key}[{i}]")
+    elif isinstance(node, float) and not math.isfinite(node):
+        raise ConfigError(f"{key}: a finite number is required, got {node!r}")
+
+
 def build_fit_job(cfg: DictConfig) -> FitJob:
     """Turn a composed config into a typed ``FitJob`` (no env steps, no fit)."""
     for group in ("env", "collector", "library", "optimizer", "surrogate"):
@@ -74,19 +107,23 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
         LibraryPart(instantiate_key(p.library, f"library.parts[{i}].library"), _inputs(p.get("inputs", "all")))
         for i, p in enumerate(cfg.library.parts)
     )
+    seed = int_key(cfg, "seed", minimum=0)
+    n_transitions = int_key(cfg, "n_transitions", minimum=1)
+    epsilon = float_key(cfg, "collector.epsilon", 0.0, 1.0)
     opt_cfg = OmegaConf.to_container(cfg.optimizer, resolve=True)
     opt_cfg.pop("name", None)
+    _check_finite(opt_cfg, "optimizer")
     optimizer = instantiate_key(opt_cfg, "optimizer")
     model_factory = instantiate_key(cfg.surrogate.model, "surrogate.model")
     return FitJob(
         spec=spec,
         library_parts=parts,
         optimizer=optimizer,
-        n_transitions=int(cfg.n_transitions),
+        n_transitions=n_transitions,
         policy=policy,
-        epsilon=float(cfg.collector.epsilon),
+        epsilon=epsilon,
         max_steps_per_episode=_episode_cut(cfg.collector.get("max_steps_per_episode")),
-        seed=int(cfg.seed),
+        seed=seed,
         dataset_path=cfg.dataset.path,
         exclude_bound_transitions=bool(cfg.dataset.exclude_bound_transitions),
         surrogate=str(cfg.surrogate.kind),
@@ -105,11 +142,10 @@ def build_transfer_job(cfg: DictConfig, fit_job) -> TransferJob:
     agent = instantiate_key(cfg.agent, "agent")
     rl = cfg.rl
     arms = tuple(str(a) for a in rl.arms)
-    return TransferJob(
-        fit=fit_job, agent=agent, arms=arms, surrogate_steps=int(rl.surrogate_steps),
-        real_steps=int(rl.real_steps), eval_every=int(rl.eval_every), eval_episodes=int(rl.eval_episodes),
-        final_episodes=int(rl.final_episodes), seed=int(cfg.seed), progress_bar=bool(cfg.progress_bar),
-    )
+    steps = {k: int_key(cfg, f"rl.{k}") for k in ("surrogate_steps", "real_steps", "eval_every", "eval_episodes",
+                                                   "final_episodes")}
+    return TransferJob(fit=fit_job, agent=agent, arms=arms, seed=int_key(cfg, "seed", minimum=0),
+                       progress_bar=bool(cfg.progress_bar), **steps)
 
 
 def real_arm_key(cfg: DictConfig) -> str:

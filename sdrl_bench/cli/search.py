@@ -1,12 +1,12 @@
 """``sdrl-bench-search``: a thin Hydra entry point around ``search.run_study`` and ``refine``.
 
-    sdrl-bench-search                                   # TPE study, MountainCar (conf/search_app.yaml)
+    sdrl-bench-search                                   # TPE study, MountainCar (sdrl_bench/conf/search_app.yaml)
     sdrl-bench-search search=grid                       # the paper's threshold x alpha grid
     sdrl-bench-search search=pareto                     # error vs active terms (Pareto front)
     sdrl-bench-search search=refine                     # residual-guided library refinement
     sdrl-bench-search -m study.worker=0,1,2,3 hydra.launcher.n_jobs=4   # 4 workers, one study
 
-A trial's parameters become overrides of the ``sdrl-bench`` config (``search_space.PARAM_KEYS``),
+A trial's parameters become overrides of the ``sdrl-bench`` config (``search.space.PARAM_KEYS``),
 so every trial is a fit that ``sdrl-bench`` could run, and the best one is exported as such.
 """
 
@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import copy
 import functools
-import dataclasses
 import json
 import sys
 from pathlib import Path
@@ -29,8 +28,9 @@ from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from sdrl_bench import ConfigError, tracking
 from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job, compose
-from sdrl_bench.pipeline import FitJob, fit_dynamics
-from sdrl_bench.search.study import BuildJob, StudySettings, run_study, study_data
+from sdrl_bench.pipeline import FitJob
+from sdrl_bench.search.refine import run_refinement
+from sdrl_bench.search.study import BuildJob, StudySettings, run_study
 from sdrl_bench.search.summary import comparison_table, load_summaries, summarize
 from sdrl_bench.search.space import GROUP_PARAMS, PARAM_KEYS, parse_space
 from sdrl_bench.search.storage import open_storage, resolve_storage
@@ -50,7 +50,7 @@ def load_group(group: str, name: str) -> DictConfig:
         return compose([f"{group}={name}"])[group]
     except MissingConfigException as exc:
         known = sorted(o for o in (exc.options or []))
-        raise ConfigError(f"search.space.{group}: unknown choice '{name}'" + (f" (known: {known})" if known else "")) from None
+        raise ConfigError(f"search.space.{group}: unknown choice '{name}' (the {group} group has {known})") from None
 
 
 def make_build_job(cfg: DictConfig) -> BuildJob:
@@ -167,9 +167,6 @@ def _print_summary(summary, result, export_dir: str | None) -> None:
 
 def run_refine(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet: bool = False):
     """Residual-guided refinement from ``search.base_library`` with ``search.families``."""
-    from sdrl_bench.search.refine import log_refinement, refine
-    from sdrl_bench.search.plots import refinement_figure
-
     choices = choices or runtime_choices(cfg)
     sc = cfg.search
     build = make_build_job(cfg)
@@ -177,37 +174,16 @@ def run_refine(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet:
     family_cfgs = {str(k): OmegaConf.create({"name": str(k), "parts": v}) for k, v in sc.families.items()}
     families = {k: _parts(cfg, v) for k, v in family_cfgs.items()}
     optimizers = [(f"threshold={t:g}", build({"threshold": float(t)}).optimizer) for t in sc.thresholds]
-    sd = study_data(base_job, int(sc.k_folds))
-    uri = tracking.resolve_uri(cfg.tracking.uri)
     name = cfg.study.name or f"{choices.get('env', 'env')}-refine-s{cfg.seed}"
-    parent = tracking.create_parent_run(uri, cfg.tracking.experiment, f"refine-{name}",
-                                        {"sdrl.kind": "refine", "sdrl.study": name, "env": sd.spec.name})
-    try:
-        out = refine(sd, base_job.library_parts, families, optimizers, float(sc.margin), int(cfg.seed),
-                     on_stage=lambda i, c: log_refinement(uri, cfg.tracking.experiment, parent, name, i, c))
-        final = out.final
-        opt = dict(optimizers)[final.optimizer]
-        parts = tuple(base_job.library_parts) + tuple(p for f in final.families for p in families[f])
-        job = dataclasses.replace(base_job, library_parts=parts, optimizer=opt)
-        fit = fit_dynamics(job)
-        with tracking.start_run(uri, cfg.tracking.experiment, f"{name}-final", {"sdrl.kind": "fit"}, parent) as run:
-            tracking.log_fit(run, fit, {"library": "+".join((str(sc.base_library), *final.families)),
-                                        "optimizer": final.optimizer})
-        run = tracking.Run(uri, parent)
-        tried = [c for stage in out.stages for c in stage]
-        run.log_figure(refinement_figure(["+".join(("base", *c.families)) for c in tried], [c.error for c in tried],
-                                         [c.accepted for c in tried], f"{name}: refinement (margin {out.margin:g})"),
-                       "figures/refinement.png")
-        library_yaml = _library_yaml(load_group("library", str(sc.base_library)), family_cfgs, final.families, name)
-        run.log_text(library_yaml, f"best/library_{name}.yaml")
-        run.log_metrics({"final_error": final.error, "final_n_terms": final.n_terms, "n_fits": out.n_fits,
-                         "test/mse_norm/mean": fit.fidelity.metrics["mse_norm/mean"], "n_stages": len(out.stages)})
-        run.set_tags({"final.library": "+".join(("base", *final.families)), "final.optimizer": final.optimizer})
-    except BaseException:
-        tracking.end_run(uri, parent, "FAILED")
-        raise
-    tracking.end_run(uri, parent, "FINISHED")
+    base_library = load_group("library", str(sc.base_library))
+    out, fit = run_refinement(
+        base_job, families, optimizers, margin=float(sc.margin), seed=int(cfg.seed), k_folds=int(sc.k_folds),
+        uri=tracking.resolve_uri(cfg.tracking.uri), experiment=str(cfg.tracking.experiment), name=name,
+        library_label=str(sc.base_library),
+        export_library=lambda chosen: _library_yaml(base_library, family_cfgs, chosen, name),
+    )
     if not quiet:
+        final = out.final
         for i, stage in enumerate(out.stages):
             for c in stage:
                 score = "" if c.residual_score is None else f", residual score {c.residual_score:.3f}"
@@ -237,7 +213,7 @@ def _parts(cfg: DictConfig, library_cfg: DictConfig) -> tuple:
 def _library_yaml(base: DictConfig, families: Mapping[str, DictConfig], chosen, name: str) -> str:
     parts = list(OmegaConf.to_container(base.parts)) + [p for f in chosen for p in OmegaConf.to_container(families[f].parts)]
     body = {"name": name, "parts": parts}
-    return f"# Library found by residual-guided refinement '{name}' (copy into conf/library/).\n" + yaml.safe_dump(body, sort_keys=False)
+    return f"# Library found by residual-guided refinement '{name}' (copy into a library/ folder of your --config-dir).\n" + yaml.safe_dump(body, sort_keys=False)
 
 
 class SearchStorageCallback(Callback):

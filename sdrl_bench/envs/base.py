@@ -7,6 +7,10 @@ inputs, and applies the known state bounds the way the real environment applies 
 
 A new environment needs only a YAML file when this generic behaviour fits (box bounds that the
 env clips to, actions used as they are); subclasses add per-environment knowledge.
+
+Longer than the project's ~300-line habit on purpose: ``EnvSpec`` is the whole contract a user
+writes against (names, bounds, encodings, task, success, policy-map slices, test set), and it
+reads best as one class in one file.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Tracking store -> reports/<name>/report.md and a self-contained report.html, our numbers
 beside the paper's, also logged to MLflow as the artifacts of a "report" run.
 
-Reads the store only through ``tracking.py``; the tables come from ``report_tables`` (pure
+Reads the store only through ``tracking``; the tables come from ``report.tables`` (pure
 functions over run dicts); the figures are the runs' own artifacts plus learning curves
 pooled across seeds. What the store does not hold prints as "not run"; bad input (an empty
 store, an unknown experiment or parent run) gives a message and a report saying what is missing.
@@ -55,7 +55,7 @@ def select_runs(inp: ReportInput) -> tuple[list[dict[str, Any]], list[str]]:
         known = ", ".join(repr(n) for n in names) or "none: the store is empty"
         return [], [f"no experiment {inp.experiment!r} in {tracking.display_uri(inp.uri)} (experiments: {known})"]
     filters = [f"tags.`{k}` = '{v}'" for k, v in inp.tags.items()]
-    runs = tracking.report_runs(inp.uri, inp.experiment, " and ".join(filters))
+    runs = tracking.find_runs(inp.uri, inp.experiment, " and ".join(filters), missing_ok=False, key="--experiment")
     runs = [r for r in runs if r["tags"].get("sdrl.kind") != "report"]
     if inp.parent_run:
         if not tracking.run_exists(inp.uri, inp.parent_run):

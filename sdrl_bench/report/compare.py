@@ -48,12 +48,12 @@ def surrogate_ratios(sindy: Mapping[str, float], nn: Mapping[str, float]) -> dic
 def pair_fit_runs(runs: Sequence[Mapping[str, Any]]) -> list[tuple[Mapping[str, Any], Mapping[str, Any]]]:
     """(SINDy run, NN run) pairs of finished fit runs on identical data and test set.
 
-    ``runs`` are plain dicts with ``tags`` and ``metrics`` mappings (``tracking.runs_as_data``).
+    ``runs`` are plain dicts with ``tags`` and ``metrics`` mappings (``tracking.find_runs``).
     Runs match on tags ``env``, ``dataset_sha256``, ``test_set_sha256`` and ``seed``; when a key
-    has several finished runs of a kind, the first listed is used (MLflow lists newest first).
+    has several finished runs of a kind, the newest (latest ``start_time``) is used.
     """
     by_key: dict[tuple, dict[str, Mapping[str, Any]]] = {}
-    for run in runs:
+    for run in sorted(runs, key=lambda r: r.get("start_time") or 0, reverse=True):
         tags = run["tags"]
         if tags.get("sdrl.kind") != "fit" or run.get("status", "FINISHED") != "FINISHED":
             continue

@@ -1,6 +1,6 @@
 """The report's figures: learning curves pooled across seeds (drawn here), and the runs' own
 figure artifacts (policy maps, predicted vs true, Optuna history and Pareto front) and
-equations, fetched through ``tracking.py`` into the report folder."""
+equations, fetched through ``tracking`` into the report folder."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The report's tables, built from plain run dicts (``tracking.report_runs``): pure functions.
+"""The report's tables, built from plain run dicts (``tracking.find_runs``): pure functions.
 
 Every table is a ``pandas.DataFrame`` with numeric values (NaN where the store holds nothing:
 the renderer prints "not run") and a ``runs`` column listing the run ids behind the row, so

@@ -2,7 +2,9 @@
 beside the baseline arm (the same agent trained in the real env).
 
 Plain functions over typed arguments; every real-env step is counted by a wrapper, per phase.
-Nothing here logs: ``tracking`` records the ``ArmResult``s.
+Nothing here logs: ``run_transfer`` hands every result to a ``TransferRecorder`` as soon as it
+exists (``tracking.transfer.RunRecorder`` writes them into an MLflow run), and asks it for a
+finished real arm to reuse.
 """
 
 from __future__ import annotations
@@ -10,7 +12,8 @@ from __future__ import annotations
 import time
 from collections import Counter
 from dataclasses import dataclass, field, replace
-from typing import Any
+from pathlib import Path
+from typing import Any, Protocol
 from collections.abc import Callable
 
 import numpy as np
@@ -18,7 +21,8 @@ import numpy as np
 from sdrl_bench import ConfigError
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.pipeline import FitJob, FitResult, check, fit_dynamics
-from sdrl_bench.rl.policy_maps import PolicyMap, compute_maps
+from sdrl_bench.plots import learning_curves
+from sdrl_bench.rl.policy_maps import PolicyMap, agreement, compute_maps, figure
 from sdrl_bench.rl.agents import AgentConfig, Curve, RealEvalCallback, StepCounter, check_budget, evaluate_real, real_vec_env, train
 
 ARMS = ("surrogate", "real")
@@ -121,9 +125,11 @@ def run_arm(
     logger_factory: Callable[[str], Any] | None = None,
     on_point: Callable[[str, int, float, float], None] | None = None,
     make_surrogate: Callable[..., Any] | None = None,
+    on_fit: Callable[[FitResult], None] | None = None,
 ) -> ArmResult:
     """Run one arm end to end. ``make_surrogate(model, spec, n_envs, seed)`` builds the vector
-    env the agent trains in (default: ``surrogate_vec_env``)."""
+    env the agent trains in (default: ``surrogate_vec_env``); ``on_fit`` receives the
+    surrogate's fit before the agent trains (so a run stopped during training keeps it)."""
     spec = job.fit.spec
     counts: Counter = Counter()
     seconds: dict[str, float] = {}
@@ -131,6 +137,8 @@ def run_arm(
     if arm == "surrogate":
         fit_job = replace(job.fit, wrap_env=lambda env: StepCounter(env, counts, "collect"))
         fit_result = fit_dynamics(fit_job, checked)
+        if on_fit is not None:
+            on_fit(fit_result)
         seconds.update({k: v for k, v in fit_result.seconds.items() if not k.startswith("evaluate")})
         venv = (make_surrogate or surrogate_vec_env)(fit_result.model, spec, job.agent.n_envs, job.seed)
         steps = job.surrogate_steps
@@ -157,3 +165,84 @@ def run_arm(
         final_successes=final.successes.tolist(), final_steps=final.steps, counts=dict(counts),
         seconds=seconds, maps=maps, fit=fit_result, surrogate_stats=stats,
     )
+
+
+@dataclass
+class ReusedArm:
+    """A finished real arm found in the store: its agent (SB3 zip), curve and metrics."""
+
+    agent_path: Path
+    curve: Curve
+    metrics: dict[str, float]
+    """The ``real/*`` metrics as that run recorded them."""
+
+
+class TransferRecorder(Protocol):
+    """Where ``run_transfer`` puts what it produces, the moment it exists."""
+
+    def reusable_real_arm(self) -> ReusedArm | None: ...
+
+    def sb3_logger(self, arm: str) -> Any: ...
+
+    def curve_point(self, arm: str, step: int, mean: float, std: float) -> None: ...
+
+    def fit_done(self, fit: FitResult) -> None: ...
+
+    def arm_done(self, result: ArmResult, metrics: dict[str, float]) -> None: ...
+
+    def figure(self, fig: Any, artifact_file: str) -> None: ...
+
+    def metrics(self, metrics: dict[str, float]) -> None: ...
+
+
+@dataclass
+class TransferOutcome:
+    summary: dict[str, float]
+    """Every arm's metrics, keyed ``<arm>/<metric>``, and ``policy_map_agreement``."""
+    model_text: str
+    """The surrogate's equations (or summary), empty without a surrogate arm."""
+
+
+def run_transfer(job: TransferJob, checked: tuple[Any, Any] | None, recorder: TransferRecorder,
+                 reuse_real_arm: bool = True) -> TransferOutcome:
+    """Run the job's arms (reusing a finished real arm the recorder finds), then the learning
+    curves, the policy maps and their agreement."""
+    spec = job.fit.spec
+    maps: dict[str, list[PolicyMap]] = {}
+    curves: dict[str, tuple] = {}
+    summary: dict[str, float] = {}
+    model_text = ""
+    for arm in job.arms:
+        found = recorder.reusable_real_arm() if arm == "real" and reuse_real_arm else None
+        if found is not None:
+            algo_cls = getattr(job.agent.algo, "func", job.agent.algo)
+            maps["real"] = compute_maps(algo_cls.load(found.agent_path, device="cpu"), spec)
+            curves["real"] = (found.curve.steps, found.curve.means, found.curve.stds)
+            summary.update(found.metrics)
+            continue
+        result = run_arm(job, arm, checked if arm == "surrogate" else None, logger_factory=recorder.sb3_logger,
+                         on_point=recorder.curve_point, on_fit=recorder.fit_done)
+        # the steps the agent took (SB3 rounds a budget up to whole rollouts / train_freq)
+        metrics = result.metrics(spec, int(result.model.num_timesteps))
+        recorder.arm_done(result, metrics)
+        if result.fit is not None:
+            model_text = result.fit.model.describe()
+        summary.update({f"{arm}/{k}": v for k, v in metrics.items()})
+        maps[arm] = result.maps
+        curves[arm] = (result.curve.steps, result.curve.means, result.curve.stds)
+    if curves:
+        recorder.figure(learning_curves(curves, spec.solved_threshold, f"{spec.name}: {job.agent.name}, seed {job.seed}"),
+                        "figures/learning_curves.png")
+    kind = job.fit.names.get("surrogate", "surrogate")
+    if len(maps) == 2:
+        score = agreement(maps["surrogate"], maps["real"], discrete=bool(spec.n_discrete_actions))
+        summary["policy_map_agreement"] = score
+        recorder.metrics({"policy_map_agreement": score})
+        label = "fraction of equal actions" if spec.n_discrete_actions else "mean |action difference|"
+        fig = figure({"trained in the real env": maps["real"], f"trained in the {kind} surrogate": maps["surrogate"]},
+                     spec, f"{spec.name} policy maps ({label}: {score:.3f})")
+        recorder.figure(fig, "figures/policy_maps.png")
+    elif maps:
+        arm = next(iter(maps))
+        recorder.figure(figure({arm: maps[arm]}, spec, f"{spec.name} policy map ({arm} arm)"), "figures/policy_maps.png")
+    return TransferOutcome(summary, model_text)

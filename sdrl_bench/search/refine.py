@@ -12,6 +12,7 @@ folds as the search, and every stage lists its candidates in residual-score orde
 from __future__ import annotations
 
 import copy
+import dataclasses
 import warnings
 from dataclasses import dataclass, field
 from typing import Any
@@ -23,7 +24,8 @@ from sdrl_bench import ConfigError, tracking
 from sdrl_bench.models.base import DynamicsModel
 from sdrl_bench.models.libraries import LibraryPart, build_library
 from sdrl_bench.models.sindy import SindyModel
-from sdrl_bench.search.study import StudyData
+from sdrl_bench.pipeline import FitJob, FitResult, fit_dynamics
+from sdrl_bench.search.study import StudyData, study_data
 from sdrl_bench.search.validation import aggregate, fit_model, fold_residuals
 
 
@@ -163,3 +165,42 @@ def log_refinement(uri: str, experiment: str, parent: str, name: str, stage: int
         run.log_dict({"candidates": [c.__dict__ for c in candidates]}, "stage.json")
         run.set_tags({"accepted": "+".join(chosen.families) or "base" if chosen else "none",
                       "best_candidate": "+".join(best.families) or "base", "optimizer": best.optimizer})
+
+
+def run_refinement(
+    base_job: FitJob, families: Mapping[str, tuple[LibraryPart, ...]], optimizers: Sequence[tuple[str, Any]], *,
+    margin: float, seed: int, k_folds: int, uri: str, experiment: str, name: str, library_label: str,
+    export_library: Callable[[Sequence[str]], str],
+) -> tuple[Refinement, FitResult]:
+    """Refinement as one tracked job: a parent run with a child run per candidate, then the
+    final library fitted and scored on the env's fixed test set (a child "fit" run); the
+    parent carries the figure, the final error, and the library as YAML
+    (``export_library(chosen families)``). The parent ends FAILED if anything raises."""
+    from sdrl_bench.search.plots import refinement_figure
+
+    sd = study_data(base_job, k_folds)
+    parent = tracking.create_parent_run(uri, experiment, f"refine-{name}",
+                                        {"sdrl.kind": "refine", "sdrl.study": name, "env": sd.spec.name})
+    try:
+        out = refine(sd, base_job.library_parts, families, optimizers, margin, seed,
+                     on_stage=lambda i, c: log_refinement(uri, experiment, parent, name, i, c))
+        final = out.final
+        opt = dict(optimizers)[final.optimizer]
+        parts = tuple(base_job.library_parts) + tuple(p for f in final.families for p in families[f])
+        fit = fit_dynamics(dataclasses.replace(base_job, library_parts=parts, optimizer=opt))
+        with tracking.start_run(uri, experiment, f"{name}-final", {"sdrl.kind": "fit"}, parent) as run:
+            tracking.log_fit(run, fit, {"library": "+".join((library_label, *final.families)), "optimizer": final.optimizer})
+        run = tracking.Run(uri, parent)
+        tried = [c for stage in out.stages for c in stage]
+        run.log_figure(refinement_figure(["+".join(("base", *c.families)) for c in tried], [c.error for c in tried],
+                                         [c.accepted for c in tried], f"{name}: refinement (margin {out.margin:g})"),
+                       "figures/refinement.png")
+        run.log_text(export_library(final.families), f"best/library_{name}.yaml")
+        run.log_metrics({"final_error": final.error, "final_n_terms": final.n_terms, "n_fits": out.n_fits,
+                         "test/mse_norm/mean": fit.fidelity.metrics["mse_norm/mean"], "n_stages": len(out.stages)})
+        run.set_tags({"final.library": "+".join(("base", *final.families)), "final.optimizer": final.optimizer})
+    except BaseException:
+        tracking.end_run(uri, parent, "FAILED")
+        raise
+    tracking.end_run(uri, parent, "FINISHED")
+    return out, fit

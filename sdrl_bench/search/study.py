@@ -4,11 +4,14 @@ The data are collected once per study (same seed, same data for every trial and 
 its hash is part of the study). A trial samples parameters from the search space, builds the
 fit they describe (``build_job(params)``: the ``sdrl-bench`` config with those overrides) and
 scores it by k-fold validation on the collected data (``validation``); the env's fixed test
-set is only used to score the best trial at the end (``search_report.summarize``).
+set is only used to score the best trial at the end (``search.summary.summarize``).
 
 ``run_study`` is one worker: any number of them, in one process, several processes or several
 machines, can share a study through its storage. ``n_trials`` is the study's budget (finished
 trials over all workers and reruns), so a rerun after a crash completes the study.
+
+About 320 lines: the settings, the data, the objective and the worker loop (with heartbeats and
+stale-trial repair) are one unit that a reader follows top to bottom.
 """
 
 from __future__ import annotations
@@ -49,7 +52,7 @@ class StudySettings:
     name: str
     """Study name: rerunning with the same name (and storage) resumes the study."""
     space: SearchSpace
-    """Parameters and distributions (``search_space.parse_space``)."""
+    """Parameters and distributions (``search.space.parse_space``)."""
     storage: str | None = None
     """Optuna storage URL; None: ``sqlite:///mlruns/optuna.db``; ``journal:<file>`` for a journal."""
     objectives: tuple[str, ...] = ("error",)

@@ -142,7 +142,7 @@ def _describe_best(summary: StudySummary, best, done, context: Mapping[str, Any]
     header = (f"Best trial {best.number} of study '{summary.name}' ({summary.sampler}): held-out "
               f"error {summary.best_error:.4g}, {summary.best_n_terms} active terms.\n"
               f"Use: sdrl-bench 'hydra.searchpath=[file://<the folder holding experiment/>]' "
-              f"experiment={summary.name}\n(or copy it into conf/experiment/ and run: sdrl-bench experiment={summary.name})")
+              f"experiment={summary.name}\n(or copy it into <your --config-dir>/experiment/ and run: sdrl-bench experiment={summary.name})")
     summary.experiment_yaml = experiment_pack(best.params, choices, values, header)
 
 

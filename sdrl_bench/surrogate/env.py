@@ -1,7 +1,7 @@
 """Surrogate environments: a real env's task with a fitted dynamics model in place of its physics.
 
 ``Surrogate`` binds a model to an env spec once (validation, spaces, compiled evaluators) and
-steps it: ``transition`` is the batched step that ``SurrogateVecEnv`` (``vec_surrogate``) uses,
+steps it: ``transition`` is the batched step that ``SurrogateVecEnv`` (``surrogate.vec``) uses,
 and ``step_one`` the plain-Python step of one state that ``SurrogateEnv`` uses. A step is:
 
 1. model inputs from (s, a) -> the model's prediction of the regressed variables;

@@ -1,7 +1,7 @@
 """How well a surrogate's task matches the real env, measured on held-out real transitions.
 
 The surrogate's reward, termination and exogenous variables (LunarLander's leg contacts) come
-from the env spec's rules; some are approximations (``envs/lunar_lander_task.py``). This module
+from the env spec's rules; some are approximations (``envs/lunar_lander/task.py``). This module
 measures them on real transitions, as plain numbers for the tracking layer to log.
 """
 

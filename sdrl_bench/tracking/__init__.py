@@ -1,8 +1,48 @@
 """The one door to MLflow: the only package that imports mlflow.
 
-``from sdrl_bench import tracking`` and call ``tracking.<function>``; the submodules hold the
-client wrapper and store handling, fit logging, transfer logging, the SB3 writer and the
-report's read side.
+``from sdrl_bench import tracking`` and call ``tracking.<function>``. The submodules:
+``client`` (where the store is, creating it safely, one run's writes), ``fit`` (a fit's
+metrics, dataset, model and figures), ``transfer`` (an RL run's arms, curves, agents and the
+reuse of a finished real arm), ``sb3`` (SB3's logger into a run) and ``read`` (runs as plain
+dicts for the report and the search).
 """
 
-from sdrl_bench.tracking.client import *  # noqa: F401,F403
+from sdrl_bench.tracking.client import (
+    DEFAULT_DB,
+    PARENT_TAG,
+    RUN_NAME_TAG,
+    Run,
+    check_writable,
+    create_parent_run,
+    delete_run,
+    display_uri,
+    end_run,
+    ensure_experiment,
+    flatten,
+    git_commit,
+    log_report,
+    mlflow_client,
+    resolve_uri,
+    sqlite_path,
+    start_run,
+    use_wal,
+)
+from sdrl_bench.tracking.fit import fit_metrics, log_fit, uncertainty_table
+from sdrl_bench.tracking.read import (
+    child_statuses,
+    download_artifact,
+    find_runs,
+    list_artifacts,
+    list_experiments,
+    run_exists,
+)
+from sdrl_bench.tracking.sb3 import sb3_logger
+from sdrl_bench.tracking.transfer import find_real_arm, log_arm, log_curve_point, reuse_real_arm
+
+__all__ = [
+    "DEFAULT_DB", "PARENT_TAG", "RUN_NAME_TAG", "Run", "check_writable", "child_statuses", "create_parent_run",
+    "delete_run", "display_uri", "download_artifact", "end_run", "ensure_experiment", "find_real_arm", "find_runs",
+    "fit_metrics", "flatten", "git_commit", "list_artifacts", "list_experiments", "log_arm", "log_curve_point",
+    "log_fit", "log_report", "mlflow_client", "resolve_uri", "reuse_real_arm", "run_exists", "sb3_logger", "sqlite_path",
+    "start_run", "uncertainty_table", "use_wal",
+]

@@ -1,4 +1,4 @@
-"""The one door to MLflow: every MLflow call of the project is in this module.
+"""The tracking store and its runs: where the store is, creating it, one run's writes.
 
 Default store: ``sqlite:///<cwd>/mlruns/mlflow.db`` with artifacts under ``mlruns/artifacts``.
 ``MLFLOW_TRACKING_URI`` (e.g. an ``mlflow server``) or an explicit URI takes precedence.
@@ -35,7 +35,7 @@ def resolve_uri(uri: str | None = None) -> str:
 
 def display_uri(uri: str) -> str:
     """The URI as a user would type it: a SQLite store under the current folder, relative."""
-    local = _sqlite_path(uri)
+    local = sqlite_path(uri)
     if local is None:
         return uri
     try:
@@ -44,13 +44,13 @@ def display_uri(uri: str) -> str:
         return uri
 
 
-def _sqlite_path(uri: str) -> Path | None:
+def sqlite_path(uri: str) -> Path | None:
     return Path(uri[len("sqlite:///"):]) if uri.startswith("sqlite:///") else None
 
 
 def check_writable(uri: str) -> None:
     """Fail fast, naming the location, when a local store cannot be written."""
-    local = _sqlite_path(uri)
+    local = sqlite_path(uri)
     if local is None:
         return
     folder = local.parent
@@ -65,10 +65,63 @@ def check_writable(uri: str) -> None:
         raise ConfigError(f"tracking.uri: cannot write the tracking store at {folder} ({reason})") from None
 
 
-def _client(uri: str):
+_READY: set[str] = set()
+
+
+def mlflow_client(uri: str):
+    """An ``MlflowClient`` on ``uri`` (mlflow imported on first use).
+
+    A local SQLite store is checked and opened once per process under a file lock
+    (``store_lock``): its integrity is checked (a damaged file is named in one line, before any
+    work), and a new store's tables are created, or an old one's migrated, by one process at a
+    time (processes racing to create the tables crash and can leave the store unusable).
+    """
     from mlflow.tracking import MlflowClient
 
-    return MlflowClient(tracking_uri=uri)
+    client = MlflowClient(tracking_uri=uri)
+    local = sqlite_path(uri)
+    if local is not None and uri not in _READY:
+        with store_lock(local):
+            check_integrity(local)
+            try:
+                client.search_experiments(max_results=1)  # creates or migrates the tables
+            except Exception as exc:
+                detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise ConfigError(f"tracking.uri: cannot open the tracking store {local} ({detail[:200]})") from None
+            use_wal(local)
+        _READY.add(uri)
+    return client
+
+
+@contextlib.contextmanager
+def store_lock(db: Path) -> Iterator[None]:
+    """An exclusive lock across processes (``flock`` on ``<db>.lock`` beside the store)."""
+    import fcntl
+
+    db.parent.mkdir(parents=True, exist_ok=True)
+    with open(db.with_name(db.name + ".lock"), "a+") as fh:
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
+
+
+def check_integrity(db: Path) -> None:
+    """SQLite's own integrity check on an existing store (milliseconds at these sizes); a file
+    that is not a database, or a damaged one, is a ConfigError naming it."""
+    import sqlite3
+
+    if not db.is_file() or db.stat().st_size == 0:
+        return
+    try:
+        with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=30.0)) as con:
+            rows = [r[0] for r in con.execute("PRAGMA integrity_check").fetchall()]
+    except sqlite3.Error as exc:
+        raise ConfigError(f"tracking.uri: {db} is not a usable SQLite store ({exc}); move it aside or restore it") from None
+    if rows != ["ok"]:
+        raise ConfigError(f"tracking.uri: {db} is damaged (SQLite integrity check: {rows[0][:160]}); "
+                          "move it aside or restore it")
 
 
 def use_wal(db: Path) -> bool:
@@ -91,15 +144,13 @@ def use_wal(db: Path) -> bool:
 def ensure_experiment(uri: str, name: str) -> str:
     """Create the store (tables) and the experiment if needed; returns the experiment id.
 
-    Call this once in the driver before parallel workers start: processes racing to create
-    the SQLite tables crash.
+    Safe from parallel processes: a local store is created under a file lock
+    (``mlflow_client``), and an experiment created meanwhile by another process is found.
     """
     check_writable(uri)
-    client = _client(uri)
-    exp = client.get_experiment_by_name(name)  # creates the tables of a new store
-    local = _sqlite_path(uri)
-    if local is not None:
-        use_wal(local)
+    client = mlflow_client(uri)  # creates or migrates a local store, under a lock
+    exp = client.get_experiment_by_name(name)
+    local = sqlite_path(uri)
     if exp is not None:
         return exp.experiment_id
     location = None
@@ -140,7 +191,7 @@ class Run:
     def __init__(self, uri: str, run_id: str):
         self.uri = uri
         self.run_id = run_id
-        self._client = _client(uri)
+        self._client = mlflow_client(uri)
 
     def log_params(self, params: Mapping[str, Any]) -> None:
         from mlflow.entities import Param
@@ -195,7 +246,7 @@ def start_run(
     all_tags = {RUN_NAME_TAG: run_name, **(tags or {})}
     if parent_run_id:
         all_tags[PARENT_TAG] = parent_run_id
-    run_info = _client(uri).create_run(exp_id, tags={k: str(v) for k, v in all_tags.items()}, run_name=run_name)
+    run_info = mlflow_client(uri).create_run(exp_id, tags={k: str(v) for k, v in all_tags.items()}, run_name=run_name)
     run = Run(uri, run_info.info.run_id)
     try:
         yield run
@@ -211,231 +262,19 @@ def start_run(
 def create_parent_run(uri: str, experiment: str, run_name: str, tags: Mapping[str, Any]) -> str:
     """Create a sweep's parent run (left RUNNING; end it with ``end_run``)."""
     exp_id = ensure_experiment(uri, experiment)
-    info = _client(uri).create_run(exp_id, tags={RUN_NAME_TAG: run_name, **{k: str(v) for k, v in tags.items()}}, run_name=run_name)
+    info = mlflow_client(uri).create_run(exp_id, tags={RUN_NAME_TAG: run_name, **{k: str(v) for k, v in tags.items()}}, run_name=run_name)
     return info.info.run_id
 
 
 def end_run(uri: str, run_id: str, status: str) -> None:
-    client = _client(uri)
+    client = mlflow_client(uri)
     if client.get_run(run_id).info.status == "RUNNING":
         client.set_terminated(run_id, status)
 
 
-def find_runs(uri: str, experiment: str, filter_string: str = "") -> list[dict[str, Any]]:
-    """Active runs of ``experiment`` matching an MLflow filter, oldest first (ties by run id):
-    dicts with ``run_id``, ``status``, ``start_time``, ``tags``, ``params``, ``metrics``."""
-    client = _client(uri)
-    exp = client.get_experiment_by_name(experiment)
-    if exp is None:
-        return []
-    runs = client.search_runs([exp.experiment_id], filter_string=filter_string, max_results=50000)
-    out = [
-        {"run_id": r.info.run_id, "status": r.info.status, "start_time": r.info.start_time,
-         "tags": dict(r.data.tags), "params": dict(r.data.params), "metrics": dict(r.data.metrics)}
-        for r in runs
-    ]
-    return sorted(out, key=lambda r: (r["start_time"] or 0, r["run_id"]))
-
-
 def delete_run(uri: str, run_id: str) -> None:
     """Mark a run deleted (it leaves searches and the UI's default view)."""
-    _client(uri).delete_run(run_id)
-
-
-def child_statuses(uri: str, experiment: str, parent_run_id: str) -> list[str]:
-    exp = _client(uri).get_experiment_by_name(experiment)
-    runs = _client(uri).search_runs([exp.experiment_id], filter_string=f"tags.{PARENT_TAG} = '{parent_run_id}'")
-    return [r.info.status for r in runs]
-
-
-def runs_as_data(uri: str, experiment: str, filter_string: str = "") -> list[dict[str, Any]]:
-    """An experiment's runs as plain dicts (run_id, status, tags, metrics), newest first, for
-    pure comparisons (``compare.py``); an unknown experiment raises ConfigError."""
-    client = _client(uri)
-    exp = client.get_experiment_by_name(experiment)
-    if exp is None:
-        raise ConfigError(f"tracking.experiment: no experiment {experiment!r} in {uri}")
-    runs = client.search_runs([exp.experiment_id], filter_string=filter_string, max_results=50_000)
-    return [{"run_id": r.info.run_id, "status": r.info.status, "tags": dict(r.data.tags),
-             "metrics": dict(r.data.metrics)} for r in runs]
-
-
-def fit_metrics(result) -> dict[str, float]:
-    """The metrics a fit run records (``result`` is a ``pipeline.FitResult``)."""
-    model, data = result.model, result.data
-    return {
-        **result.fidelity.metrics,
-        "n_transitions": len(data),
-        "n_fit_rows": result.n_fit_rows,
-        "n_excluded_at_bound": len(data) - result.n_fit_rows,
-        "n_episodes": len(set(data.episode.tolist())),
-        "n_test_transitions": len(result.test),
-        **model.summary_metrics(),
-        **{f"{k}_seconds": v for k, v in result.seconds.items()},
-    }
-
-
-def log_fit(run: Run, result, params: Mapping[str, Any] | None, prefix: str = "") -> None:
-    """Record a fit: params, metrics, data and test-set hashes, and the artifacts (dataset CSV
-    with its normalization sidecar, the saved model, its equations or summary, the
-    predicted-vs-true figure)."""
-    from sdrl_bench.data import save_csv
-    from sdrl_bench.plots import predicted_vs_true
-
-    spec, model = result.job.spec, result.model
-    if params is not None:
-        run.log_params(params)
-    run.log_metrics({f"{prefix}{k}": v for k, v in fit_metrics(result).items()})
-    run.set_tags(
-        {"dataset_sha256": result.dataset_hash, "test_set": result.test_name, "test_set_sha256": result.test_hash}
-    )
-    with tempfile.TemporaryDirectory() as tmp:
-        csv = save_csv(result.data, spec, Path(tmp) / f"{spec.name}_transitions.csv")
-        run.log_artifact(csv, "data")
-        run.log_artifact(f"{csv}.stats.json", "data")
-        model_dir = Path(tmp) / "model"
-        model.save(model_dir / "model.json")
-        for path in sorted(model_dir.iterdir()):
-            run.log_artifact(path, "model")
-    run.log_text(model.describe(), f"model/{model.summary_file}")
-    fig = predicted_vs_true(
-        spec.target_names, result.fidelity.true_next, result.fidelity.pred_next,
-        result.episode_true, result.episode_pred,
-        title=f"{spec.name}: {result.test_name} (one step; episode 0 open loop)",
-    )
-    run.log_figure(fig, "figures/predicted_vs_true.png")
-    if result.fidelity.pred_std is not None:
-        run.log_text(uncertainty_table(result).to_csv(index=False), "fidelity/uncertainty.csv")
-
-
-def uncertainty_table(result):
-    """Per held-out transition: episode, step, and per regressed state the true and predicted
-    next value, the absolute error and the model's predicted std (an ensemble's spread)."""
-    import pandas as pd
-
-    rep, test, names = result.fidelity, result.test, result.job.spec.target_names
-    cols = {"episode": test.episode, "step": test.step}
-    for i, n in enumerate(names):
-        cols[f"{n}_true"] = rep.true_next[:, i]
-        cols[f"{n}_pred"] = rep.pred_next[:, i]
-        cols[f"{n}_abs_err"] = abs(rep.pred_next[:, i] - rep.true_next[:, i])
-        cols[f"{n}_std"] = rep.pred_std[:, i]
-    return pd.DataFrame(cols)
-
-
-# ---------------------------------------------------------------------- RL transfer runs
-def sb3_logger(run: Run, prefix: str):
-    """An SB3 Logger whose only output is this run: SB3's training metrics reach MLflow here."""
-    from stable_baselines3.common.logger import KVWriter, Logger
-
-    class MlflowKVWriter(KVWriter):
-        def write(self, key_values, key_excluded, step=0):
-            numeric = {f"{prefix}/{k}": v for k, v in key_values.items()
-                       if isinstance(v, (int, float)) and not isinstance(v, bool)}
-            run.log_metrics(numeric, step=int(step))
-
-        def close(self):
-            pass
-
-    return Logger(folder=None, output_formats=[MlflowKVWriter()])
-
-
-def log_curve_point(run: Run, arm: str, step: int, mean: float, std: float) -> None:
-    run.log_metrics({f"{arm}/curve_return_mean": mean, f"{arm}/curve_return_std": std}, step=step)
-
-
-def log_arm(run: Run, arm_result, metrics: Mapping[str, float]) -> None:
-    """An arm's accounting metrics (prefixed ``<arm>/``), its curve and its trained agent."""
-    import pandas as pd
-
-    arm = arm_result.arm
-    run.log_metrics({f"{arm}/{k}": v for k, v in metrics.items()})
-    if arm_result.surrogate_stats:
-        run.log_metrics({f"{arm}/surrogate_{k}": v for k, v in arm_result.surrogate_stats.items()})
-    c = arm_result.curve
-    curve = pd.DataFrame({"train_steps": c.steps, "return_mean": c.means, "return_std": c.stds, "train_wall_seconds": c.wall})
-    run.log_text(curve.to_csv(index=False), f"curves/{arm}.csv")
-    run.log_text(pd.DataFrame({"return": arm_result.final_returns, "success": arm_result.final_successes}).to_csv(index=False),
-                 f"final_eval/{arm}.csv")
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / f"{arm}.zip"
-        arm_result.model.save(path)
-        run.log_artifact(path, "agents")
-
-
-def find_real_arm(uri: str, experiment: str, key: str) -> dict | None:
-    """A finished run whose real arm has the same key: its id, real/* metrics and curve."""
-    client = _client(uri)
-    exp = client.get_experiment_by_name(experiment)
-    if exp is None:
-        return None
-    runs = client.search_runs([exp.experiment_id], filter_string=f"tags.real_arm_key = '{key}' and attributes.status = 'FINISHED'",
-                              order_by=["attributes.start_time DESC"], max_results=5)
-    for r in runs:
-        if "real/final_return_mean" in r.data.metrics and r.data.tags.get("real_arm_reused_from") is None:
-            return {"run_id": r.info.run_id, "metrics": {k: v for k, v in r.data.metrics.items() if k.startswith("real/")}}
-    return None
-
-
-def reuse_real_arm(run: Run, found: dict, local_dir: str | Path) -> tuple[Path, Path]:
-    """Copy a reused real arm's metrics and curve into ``run``; returns (agent zip, curve CSV)."""
-    run.log_metrics(found["metrics"])
-    run.set_tags({"real_arm_reused_from": found["run_id"]})
-    client = _client(run.uri)
-    curve = client.download_artifacts(found["run_id"], "curves/real.csv", str(local_dir))
-    run.log_artifact(curve, "curves")
-    for m in client.get_metric_history(found["run_id"], "real/curve_return_mean"):
-        run.log_metrics({"real/curve_return_mean": m.value}, step=m.step)
-    return Path(client.download_artifacts(found["run_id"], "agents/real.zip", str(local_dir))), Path(curve)
-
-
-# ---------------------------------------------------------------------- report (read side)
-def list_experiments(uri: str) -> list[str]:
-    """Names of the store's active experiments (an empty or missing store: [])."""
-    try:
-        return sorted(e.name for e in _client(uri).search_experiments())
-    except Exception:  # a store that cannot be opened holds nothing to report
-        return []
-
-
-def report_runs(uri: str, experiment: str, filter_string: str = "") -> list[dict[str, Any]]:
-    """An experiment's active runs for the report: run_id, experiment_id, status, start_time,
-    tags, params, metrics; oldest first. An unknown experiment raises ConfigError."""
-    client = _client(uri)
-    exp = client.get_experiment_by_name(experiment)
-    if exp is None:
-        raise ConfigError(f"--experiment: no experiment {experiment!r} in {display_uri(uri)}")
-    runs = client.search_runs([exp.experiment_id], filter_string=filter_string, max_results=50_000)
-    out = [{"run_id": r.info.run_id, "experiment_id": r.info.experiment_id, "status": r.info.status,
-            "start_time": r.info.start_time, "tags": dict(r.data.tags), "params": dict(r.data.params),
-            "metrics": dict(r.data.metrics)} for r in runs]
-    return sorted(out, key=lambda r: (r["start_time"] or 0, r["run_id"]))
-
-
-def run_exists(uri: str, run_id: str) -> bool:
-    """Whether the store holds a run with this id."""
-    try:
-        _client(uri).get_run(run_id)
-        return True
-    except Exception:
-        return False
-
-
-def list_artifacts(uri: str, run_id: str, folder: str | None = None) -> list[str]:
-    """Artifact paths directly under ``folder`` of a run ([] when there are none)."""
-    try:
-        return [a.path for a in _client(uri).list_artifacts(run_id, folder)]
-    except Exception:
-        return []
-
-
-def download_artifact(uri: str, run_id: str, path: str, dst: str | Path) -> Path | None:
-    """Fetch one artifact of a run into ``dst``; None when the run has no such artifact."""
-    Path(dst).mkdir(parents=True, exist_ok=True)
-    try:
-        return Path(_client(uri).download_artifacts(run_id, path, str(dst)))
-    except Exception:
-        return None
+    mlflow_client(uri).delete_run(run_id)
 
 
 def log_report(uri: str, experiment: str, name: str, folder: str | Path, tags: Mapping[str, Any]) -> str:

@@ -51,7 +51,7 @@ def test_a_failing_sweep_job_leaves_no_run_running(store, tmp_path):
 def test_sindy_nn_multirun_fits_both_on_identical_data(store, tmp_path):
     res = run_cli("-m", "surrogate=sindy,nn", f"tracking.uri={store}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
-    runs = tracking.runs_as_data(store, "sdrl-bench")
+    runs = tracking.find_runs(store, "sdrl-bench", missing_ok=False)
     children = [r for r in runs if r["tags"].get("sdrl.kind") == "fit"]
     assert sorted(r["tags"]["surrogate"] for r in children) == ["nn", "sindy"]
     assert {r["status"] for r in children} == {"FINISHED"}

@@ -64,7 +64,7 @@ def _client_metrics(uri: str, filter_string: str) -> list[dict[str, float]]:
 
 
 def test_tables_equal_the_runs_metrics_read_through_the_client(fits_store: str) -> None:
-    runs = tracking.report_runs(fits_store, EXP)
+    runs = tracking.find_runs(fits_store, EXP, missing_ok=False)
     fid = rt.fidelity_table(runs).set_index(["env", "state"])
     sindy = _client_metrics(fits_store, "tags.library = 'poly_trig' and tags.surrogate = 'sindy'")
     assert len(sindy) == 2
@@ -113,7 +113,7 @@ def test_transfer_table_and_report_from_a_sweep(store: str, tmp_path) -> None:
     with tracking.start_run(store, EXP, "unfinished", {"sdrl.kind": "transfer", "env": "mountain_car"}, parent) as run:
         pass
     tracking.Run(store, run.run_id).end("RUNNING")  # still training: must not count
-    runs = tracking.report_runs(store, EXP)
+    runs = tracking.find_runs(store, EXP, missing_ok=False)
     tr = rt.transfer_table(runs).set_index(["env", "surrogate", "arm"])
     sur = tr.loc[("mountain_car", "sindy", "surrogate")]
     client = _client_metrics(store, f"tags.`mlflow.parentRunId` = '{parent}' and attributes.status = 'FINISHED'")

@@ -63,7 +63,7 @@ def test_the_sqlite_store_is_put_in_wal_mode_and_stays_readable(store, tmp_path)
 
     from sdrl_bench import tracking
 
-    db = tracking._sqlite_path(store)
+    db = tracking.sqlite_path(store)
     tracking.ensure_experiment(store, "sdrl-bench")
     with sqlite3.connect(db) as con:
         assert con.execute("PRAGMA journal_mode").fetchone()[0] == "wal"

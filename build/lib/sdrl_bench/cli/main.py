@@ -1,0 +1,112 @@
+"""Command-line entry points (Hydra). The only module that composes configs and instantiates.
+
+``sdrl-bench`` runs a tracked SINDy fit: collect -> fit -> fidelity -> MLflow.
+"""
+
+from __future__ import annotations
+
+import os
+
+# SB3's small matrices run fastest single-threaded; BLAS reads this once, at numpy's import
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+import signal
+import sys
+from typing import Any
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.types import RunMode
+from omegaconf import DictConfig, OmegaConf
+
+from sdrl_bench import ConfigError, tracking
+from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job
+from sdrl_bench.cli.callbacks import parent_run_id
+from sdrl_bench.pipeline import FitResult, check, fit_dynamics
+
+
+def _sweep_parent() -> str | None:
+    if not HydraConfig.initialized():
+        return None
+    hc = HydraConfig.get()
+    return parent_run_id(hc.sweep.dir) if hc.mode == RunMode.MULTIRUN else None
+
+
+def run_fit(cfg: DictConfig, parent: str | None = None) -> FitResult:
+    """Validate, then fit inside one MLflow run (FAILED if anything raises)."""
+    job = build_fit_job(cfg)
+    checked = check(job)
+    uri = tracking.resolve_uri(cfg.tracking.uri)
+    tracking.check_writable(uri)
+    names = job.names
+    tags = {
+        "sdrl.kind": "fit", "env": names["env"], "library": names["library"],
+        "optimizer": names["optimizer"], "collector": names["collector"],
+        "surrogate": names["surrogate"], "seed": job.seed, "git_commit": tracking.git_commit(),
+    }
+    model_name = f"{names['library']}-{names['optimizer']}" if names["surrogate"] == "sindy" else names["surrogate"]
+    run_name = f"fit-{names['env']}-{model_name}-s{job.seed}"
+    with tracking.start_run(uri, cfg.tracking.experiment, run_name, tags, parent) as run:
+        result = fit_dynamics(job, checked)
+        tracking.log_fit(run, result, tracking.flatten(OmegaConf.to_container(cfg, resolve=True)))
+    _print_summary(result, uri, run.run_id)
+    return result
+
+
+def _print_summary(result: FitResult, uri: str, run_id: str) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    m = result.fidelity.metrics
+    spec = result.job.spec
+    table = Table(title=f"{spec.name}: {len(result.data)} transitions -> held-out '{result.test_name}' "
+                        f"({len(result.test)} transitions)")
+    for col in ("state", "MSE (raw)", "MSE (normalized)", "corr", "R^2", "10-step MSE", "50-step MSE"):
+        table.add_column(col, justify="right")
+    for n in spec.target_names:
+        table.add_row(n, f"{m[f'mse/{n}']:.3e}", f"{m.get(f'mse_norm/{n}', float('nan')):.3e}",
+                      f"{m[f'corr/{n}']:.6f}", f"{m[f'r2/{n}']:.6f}",
+                      f"{m[f'rollout10_mse/{n}']:.3e}", f"{m[f'rollout50_mse/{n}']:.3e}")
+    console = Console(width=120)
+    console.print(table)
+    console.print(f"diverged rollouts: 10-step {m['rollout10/diverged_fraction']:.1%}, "
+                  f"50-step {m['rollout50/diverged_fraction']:.1%}; "
+                  f"parameters {int(result.model.summary_metrics()['n_parameters'])}; "
+                  f"fit {result.seconds['fit_wall']:.3f} s")
+    lines = result.model.describe().strip().splitlines()
+    console.print(f"{result.model.summary_file[:-4]}:\n  " + "\n  ".join(lines), highlight=False, markup=False)
+    console.print(f"MLflow run {run_id} in {uri}", highlight=False)
+    console.print("browse: mlflow ui --backend-store-uri " + tracking.display_uri(uri) + "  (then open http://127.0.0.1:5000)",
+                  highlight=False)
+
+
+def _terminate(signum: int, frame: Any) -> None:
+    raise SystemExit(128 + signum)
+
+
+@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")
+def main(cfg: DictConfig) -> float:
+    """Entry point of ``sdrl-bench``. ``task=fit`` returns the mean normalized one-step MSE,
+    ``task=train`` the surrogate arm's final real return (values for sweepers)."""
+    # SIGTERM (a cluster scheduler, kill) unwinds like an exception: the open MLflow run ends
+    # FAILED instead of staying RUNNING
+    signal.signal(signal.SIGTERM, _terminate)
+    try:
+        parent = _sweep_parent()
+        if parent is not None:  # no progress bars inside multiruns
+            OmegaConf.update(cfg, "progress_bar", False)
+        if cfg.task == "fit":
+            return float(run_fit(cfg, parent=parent).fidelity.metrics["mse_norm/mean"])
+        if cfg.task == "train":
+            from sdrl_bench.cli.train import run_train
+
+            summary = run_train(cfg, build_fit_job(cfg), parent)
+            return float(summary.get("surrogate/final_return_mean", summary.get("real/final_return_mean", 0.0)))
+        raise ConfigError(f"task: {cfg.task!r} is not one of 'fit', 'train'")
+    except ConfigError as exc:
+        print(f"sdrl-bench: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+if __name__ == "__main__":
+    main()

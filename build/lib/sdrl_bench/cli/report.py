@@ -1,0 +1,54 @@
+"""``sdrl-bench-report``: tracking store -> reports/<name>/report.md and report.html.
+
+    sdrl-bench-report --name reproduction [--uri URI] [--experiment E] [--parent-run ID]
+                      [--tag k=v ...] [--out reports] [--ui-url http://127.0.0.1:5000]
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+from collections.abc import Sequence
+
+from sdrl_bench import ConfigError, tracking
+from sdrl_bench.report.build import ReportInput, build_report
+
+
+def _parse_tags(items: Sequence[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        k, sep, v = item.partition("=")
+        if not sep or not k:
+            raise ConfigError(f"--tag: expected key=value, got {item!r}")
+        out[k] = v
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """The ``sdrl-bench-report`` command; exit code 0, or 2 when the input named nothing to report."""
+    ap = argparse.ArgumentParser(prog="sdrl-bench-report", description=__doc__.splitlines()[0])
+    ap.add_argument("--uri", help="tracking URI (default: MLFLOW_TRACKING_URI, else sqlite:///mlruns/mlflow.db)")
+    ap.add_argument("--experiment", default="sdrl-bench", help="MLflow experiment (default: sdrl-bench)")
+    ap.add_argument("--parent-run", help="only this sweep/study run and its descendants")
+    ap.add_argument("--tag", action="append", default=[], metavar="K=V", help="only runs with this tag (repeatable)")
+    ap.add_argument("--name", default="report", help="report folder name under --out")
+    ap.add_argument("--out", default="reports", type=Path, help="output folder (default: reports/)")
+    ap.add_argument("--ui-url", help="MLflow UI base URL: numbers link to their runs there")
+    ap.add_argument("--no-log", action="store_true", help="do not log the report as an MLflow run")
+    args = ap.parse_args(argv)
+    command = "sdrl-bench-report " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+    try:
+        inp = ReportInput(tracking.resolve_uri(args.uri), args.experiment, args.parent_run, _parse_tags(args.tag), args.ui_url)
+        res = build_report(inp, args.name, args.out, command.strip(), log_run=not args.no_log)
+    except ConfigError as exc:
+        print(f"sdrl-bench-report: {exc}", file=sys.stderr)
+        return 2
+    print(f"report: {res.folder / 'report.md'} and {res.folder / 'report.html'} ({res.n_runs} runs, {res.seconds:.1f} s)"
+          + (f"; logged as run {res.report_run_id}" if res.report_run_id else "; not logged to MLflow"))
+    return 2 if res.n_runs == 0 else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,255 @@
+"""``sdrl-bench-search``: a thin Hydra entry point around ``search.run_study`` and ``refine``.
+
+    sdrl-bench-search                                   # TPE study, MountainCar (sdrl_bench/conf/search_app.yaml)
+    sdrl-bench-search search=grid                       # the paper's threshold x alpha grid
+    sdrl-bench-search search=pareto                     # error vs active terms (Pareto front)
+    sdrl-bench-search search=refine                     # residual-guided library refinement
+    sdrl-bench-search -m study.worker=0,1,2,3 hydra.launcher.n_jobs=4   # 4 workers, one study
+
+A trial's parameters become overrides of the ``sdrl-bench`` config (``search.space.PARAM_KEYS``),
+so every trial is a fit that ``sdrl-bench`` could run, and the best one is exported as such.
+"""
+
+from __future__ import annotations
+
+import copy
+import functools
+import json
+import sys
+from pathlib import Path
+from typing import Any
+from collections.abc import Mapping
+
+import hydra
+import yaml
+from hydra.core.hydra_config import HydraConfig
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
+
+from sdrl_bench import ConfigError, tracking
+from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job, compose
+from sdrl_bench.pipeline import FitJob
+from sdrl_bench.search.refine import run_refinement
+from sdrl_bench.search.study import BuildJob, StudySettings, run_study
+from sdrl_bench.search.summary import comparison_table, load_summaries, summarize
+from sdrl_bench.search.space import GROUP_PARAMS, PARAM_KEYS, parse_space
+from sdrl_bench.search.storage import open_storage, resolve_storage
+
+GROUPS = ("env", "collector", "library", "optimizer", "surrogate")
+_NOT_CONTEXT = ("search", "study", "tracking", "hydra", "seed", "n_transitions")
+
+
+@functools.lru_cache(maxsize=64)
+def load_group(group: str, name: str) -> DictConfig:
+    """One option of a config group, composed by Hydra from the app's search path (the
+    package's configs and any ``--config-dir``), unresolved (cached: a DictConfig assigned
+    into another config is copied, so the cached node never changes)."""
+    from hydra.errors import MissingConfigException
+
+    try:
+        return compose([f"{group}={name}"])[group]
+    except MissingConfigException as exc:
+        known = sorted(o for o in (exc.options or []))
+        raise ConfigError(f"search.space.{group}: unknown choice '{name}' (the {group} group has {known})") from None
+
+
+def make_build_job(cfg: DictConfig) -> BuildJob:
+    """params -> the ``FitJob`` that ``sdrl-bench`` with those overrides would run."""
+    base = _fit_config(cfg)
+
+    def build(params: Mapping[str, Any]) -> FitJob:
+        c = copy.deepcopy(base)
+        with open_dict(c):
+            for key, value in params.items():
+                if key in GROUP_PARAMS:
+                    c[key] = load_group(key, str(value))
+                else:
+                    OmegaConf.update(c, PARAM_KEYS[key], value, merge=False)
+        return build_fit_job(c)
+
+    return build
+
+
+def runtime_choices(cfg: DictConfig) -> dict[str, str]:
+    """The config-group choices of this run (env, collector, library, ...)."""
+    if "hydra" in cfg:
+        choices = cfg.hydra.runtime.choices
+    elif HydraConfig.initialized():
+        choices = HydraConfig.get().runtime.choices
+    else:
+        raise ConfigError("search: group choices unknown (compose with return_hydra_config=True)")
+    return {g: str(choices[g]) for g in GROUPS if g in choices}
+
+
+def _override_values(cfg: DictConfig, searched: set[str]) -> dict[str, Any]:
+    """Values set by command-line overrides that change the fit (so the export repeats them)."""
+    if "hydra" in cfg:
+        task = list(cfg.hydra.overrides.task)
+    else:
+        task = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+    out = {}
+    for item in task:
+        key = item.split("=", 1)[0].lstrip("+~")
+        root = key.split("/")[0].split(".")[0]
+        if "=" not in item or key in GROUPS or root in _NOT_CONTEXT or key in searched:
+            continue
+        value = OmegaConf.select(cfg, key)
+        out[key] = OmegaConf.to_container(value, resolve=True) if isinstance(value, (DictConfig, ListConfig)) else value
+    return out
+
+
+def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings:
+    """Typed settings from the composed config; the space and its choices validated."""
+    sc, st = cfg.search, cfg.study
+    space = parse_space(OmegaConf.to_container(sc.space, resolve=True))
+    for p in space:
+        if p.name in GROUP_PARAMS:
+            for choice in p.choices or ():
+                load_group(p.name, str(choice))
+    searched = {p.name for p in space}
+    searched_keys = {PARAM_KEYS[n] for n in searched}
+    context = {
+        "choices": {g: v for g, v in choices.items() if g not in searched},
+        "values": {"seed": int(cfg.seed), "n_transitions": int(cfg.n_transitions),
+                   "collector.epsilon": float(cfg.collector.epsilon), **_override_values(cfg, searched_keys)},
+    }
+    n_trials = sc.get("n_trials")
+    if n_trials is None:
+        from sdrl_bench.search.space import grid_values
+
+        n_trials = 1
+        for values in grid_values(space).values():
+            n_trials *= len(values)
+    name = st.name or f"{choices.get('env', 'env')}-{sc.name}-s{cfg.seed}"
+    return StudySettings(
+        name=str(name), space=space, storage=st.storage, objectives=tuple(sc.objectives),
+        sampler=str(sc.sampler), n_trials=int(n_trials), k_folds=int(sc.k_folds), pruner=str(sc.pruner),
+        seed=int(st.seed), worker=int(st.worker), heartbeat_interval=int(st.heartbeat_interval),
+        heartbeat_grace=int(st.heartbeat_grace), tracking_uri=cfg.tracking.uri,
+        experiment=str(cfg.tracking.experiment), context=context,
+    )
+
+
+def run_search(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet: bool = False):
+    """Run one worker of the configured study, then summarize it (best, test score, export)."""
+    choices = choices or runtime_choices(cfg)
+    settings = study_settings(cfg, choices)
+    build = make_build_job(cfg)
+
+    def progress(t) -> None:
+        if not quiet:
+            value = f"{t.values[0]:.3e}" if t.values else t.state.name.lower()
+            print(f"[{settings.name} w{settings.worker}] trial {t.number}: {value} {t.params}", flush=True)
+
+    result = run_study(settings, build, progress)
+    summary = summarize(result, build, bool(cfg.study.final_score), cfg.study.export_dir)
+    if not quiet:
+        _print_summary(summary, result, cfg.study.export_dir)
+    return result, summary
+
+
+def _print_summary(summary, result, export_dir: str | None) -> None:
+    print(f"study '{summary.name}' in {result.storage}: {summary.n_trials} trials "
+          f"({summary.n_complete} complete, {summary.n_pruned} pruned, {summary.n_failed} failed), "
+          f"{summary.fits_total} fits; this worker ran {len(result.trials)}")
+    if summary.best_number is None:
+        return
+    print(f"best trial {summary.best_number}: held-out error {summary.best_error:.4g}, "
+          f"{summary.best_n_terms} terms, after {summary.fits_to_best} fits; params {summary.best_params}")
+    if summary.test_error is not None:
+        print(f"fixed test set '{summary.test_name}': mse_norm/mean {summary.test_error:.4g}")
+    print(summary.best_equations.rstrip())
+    print("plain fit with the best config:\n  sdrl-bench " + " ".join(summary.overrides))
+    if export_dir is not None:
+        folder = Path(export_dir).resolve()
+        print(f"or: sdrl-bench 'hydra.searchpath=[file://{folder}]' experiment={summary.name}")
+
+
+def run_refine(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet: bool = False):
+    """Residual-guided refinement from ``search.base_library`` with ``search.families``."""
+    choices = choices or runtime_choices(cfg)
+    sc = cfg.search
+    build = make_build_job(cfg)
+    base_job = build({"library": str(sc.base_library)})
+    family_cfgs = {str(k): OmegaConf.create({"name": str(k), "parts": v}) for k, v in sc.families.items()}
+    families = {k: _parts(cfg, v) for k, v in family_cfgs.items()}
+    optimizers = [(f"threshold={t:g}", build({"threshold": float(t)}).optimizer) for t in sc.thresholds]
+    name = cfg.study.name or f"{choices.get('env', 'env')}-refine-s{cfg.seed}"
+    base_library = load_group("library", str(sc.base_library))
+    out, fit = run_refinement(
+        base_job, families, optimizers, margin=float(sc.margin), seed=int(cfg.seed), k_folds=int(sc.k_folds),
+        uri=tracking.resolve_uri(cfg.tracking.uri), experiment=str(cfg.tracking.experiment), name=name,
+        library_label=str(sc.base_library),
+        export_library=lambda chosen: _library_yaml(base_library, family_cfgs, chosen, name),
+    )
+    if not quiet:
+        final = out.final
+        for i, stage in enumerate(out.stages):
+            for c in stage:
+                score = "" if c.residual_score is None else f", residual score {c.residual_score:.3f}"
+                print(f"stage {i}: base+{'+'.join(c.families) or '-'}: error {c.error:.3e}, {c.n_terms} terms "
+                      f"({c.optimizer}{score}) {'accepted' if c.accepted else 'rejected'}")
+        print(f"final: base+{'+'.join(final.families) or '-'} ({final.optimizer}); fixed test set "
+              f"'{fit.test_name}' mse_norm/mean {fit.fidelity.metrics['mse_norm/mean']:.4g}; {out.n_fits} fits")
+    return out, fit
+
+
+def _fit_config(cfg: DictConfig) -> DictConfig:
+    """The config without the search's own nodes: what ``build_fit_job`` reads."""
+    c = copy.deepcopy(cfg)
+    with open_dict(c):
+        for key in ("search", "study", "hydra"):
+            c.pop(key, None)
+    return c
+
+
+def _parts(cfg: DictConfig, library_cfg: DictConfig) -> tuple:
+    c = _fit_config(cfg)
+    with open_dict(c):
+        c.library = library_cfg
+    return build_fit_job(c).library_parts
+
+
+def _library_yaml(base: DictConfig, families: Mapping[str, DictConfig], chosen, name: str) -> str:
+    parts = list(OmegaConf.to_container(base.parts)) + [p for f in chosen for p in OmegaConf.to_container(families[f].parts)]
+    body = {"name": name, "parts": parts}
+    return f"# Library found by residual-guided refinement '{name}' (copy into a library/ folder of your --config-dir).\n" + yaml.safe_dump(body, sort_keys=False)
+
+
+class SearchStorageCallback(Callback):
+    """In a ``-m`` sweep, create the Optuna storage and the MLflow store in the driver, before
+    workers start (processes racing to create SQLite tables crash)."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
+        open_storage(resolve_storage(config.study.storage))
+        tracking.ensure_experiment(tracking.resolve_uri(config.tracking.uri), config.tracking.experiment)
+
+
+@hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="search_app")
+def main(cfg: DictConfig) -> float | None:
+    """Entry point of ``sdrl-bench-search``: returns the best held-out error (for sweepers)."""
+    try:
+        mode = str(cfg.search.get("mode", "study"))
+        if mode == "refine":
+            out, _ = run_refine(cfg)
+            return float(out.final.error)
+        if mode == "compare":
+            print(comparison_table(load_summaries(cfg.study.storage, list(cfg.search.studies))))
+            return None
+        if mode != "study":
+            raise ConfigError(f"search.mode: 'study', 'refine' or 'compare', got {mode!r}")
+        result, summary = run_search(cfg)
+        if HydraConfig.get().mode.name == "MULTIRUN":
+            out_dir = Path(HydraConfig.get().runtime.output_dir)
+            (out_dir / "worker.json").write_text(json.dumps({"study": summary.name, "worker": result.settings.worker,
+                                                             "trials": result.trials}))
+        return summary.best_error
+    except ConfigError as exc:
+        print(f"sdrl-bench-search: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+
+
+if __name__ == "__main__":  # python -m: run the package's copy, so joblib workers can unpickle it
+    from sdrl_bench.cli.search import main as package_main
+
+    package_main()

@@ -1,0 +1,68 @@
+"""The ``task=train`` half of ``sdrl-bench``: one RL-transfer run per seed, inside one MLflow run.
+
+Builds the typed job (``cli.build``), hands ``rl.transfer.run_transfer`` a recorder that writes
+the MLflow run, and prints the accounting. ``cli.main`` dispatches here.
+"""
+
+from __future__ import annotations
+
+import tempfile
+
+from omegaconf import DictConfig, OmegaConf
+
+from sdrl_bench import tracking
+from sdrl_bench.cli.build import build_transfer_job, real_arm_key
+from sdrl_bench.rl.transfer import TransferJob, run_transfer
+from sdrl_bench.tracking.transfer import RunRecorder
+
+
+def run_train(cfg: DictConfig, fit_job, parent: str | None) -> dict[str, float]:
+    """Validate, then run the arms of one seed inside one MLflow run; returns its metrics."""
+    import torch
+
+    torch.set_num_threads(int(cfg.torch_threads))
+    job = build_transfer_job(cfg, fit_job)
+    checked = job.check()
+    uri = tracking.resolve_uri(cfg.tracking.uri)
+    tracking.check_writable(uri)
+    spec, names = job.fit.spec, job.fit.names
+    key = real_arm_key(cfg)
+    tags = {
+        "sdrl.kind": "transfer", "env": spec.name, "agent": job.agent.name, "surrogate": names["surrogate"],
+        "library": names["library"], "optimizer": names["optimizer"], "collector": names["collector"],
+        "seed": job.seed, "arms": ",".join(job.arms), "real_arm_key": key, "git_commit": tracking.git_commit(),
+        "solved_threshold": spec.solved_threshold,
+    }
+    run_name = f"train-{spec.name}-{job.agent.name}-{names['surrogate']}-s{job.seed}"
+    with tracking.start_run(uri, cfg.tracking.experiment, run_name, tags, parent) as run, \
+            tempfile.TemporaryDirectory() as tmp:
+        run.log_params(tracking.flatten(OmegaConf.to_container(cfg, resolve=True)))
+        recorder = RunRecorder(run, cfg.tracking.experiment, key, tmp)
+        outcome = run_transfer(job, checked, recorder, reuse_real_arm=bool(cfg.rl.reuse_real_arm))
+    _print(outcome.summary, uri, run.run_id, job, outcome.model_text)
+    return outcome.summary
+
+
+def _print(summary: dict[str, float], uri: str, run_id: str, job: TransferJob, model_text: str) -> None:
+    from rich.console import Console
+    from rich.table import Table
+
+    keys = ("real_transitions_model", "real_transitions_train", "surrogate_steps", "total_steps",
+            "final_return_mean", "final_return_std", "success_rate", "solved_real_steps", "solved_wall_seconds",
+            "train_wall_seconds")
+    table = Table(title=f"{job.fit.spec.name}: {job.agent.name}, seed {job.seed} (judged in the real env)")
+    table.add_column("metric")
+    for arm in job.arms:
+        table.add_column(f"{arm} arm", justify="right")
+    for k in keys:
+        table.add_row(k, *[f"{summary[f'{a}/{k}']:.6g}" if f"{a}/{k}" in summary else "-" for a in job.arms])
+    console = Console(width=120)
+    if model_text:
+        console.print(f"surrogate model ({job.fit.names['surrogate']}, {job.fit.n_transitions} real transitions):\n  "
+                      + "\n  ".join(model_text.strip().splitlines()), highlight=False, markup=False)
+    console.print(table)
+    if "policy_map_agreement" in summary:
+        console.print(f"policy-map agreement: {summary['policy_map_agreement']:.3f}")
+    console.print(f"MLflow run {run_id} in {uri}", highlight=False)
+    console.print("browse: mlflow ui --backend-store-uri " + tracking.display_uri(uri) + "  (then open http://127.0.0.1:5000)",
+                  highlight=False)

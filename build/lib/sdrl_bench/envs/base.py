@@ -1,0 +1,374 @@
+"""Environment specs: what the project knows about a real Gymnasium environment.
+
+A spec is plain data plus a few pure, batched functions. It names the state variables, says
+which of them a dynamics model regresses (``target_names``) and which it takes as given inputs
+(``exogenous_names``, e.g. LunarLander's boolean leg contacts), encodes actions as model
+inputs, and applies the known state bounds the way the real environment applies them.
+
+A new environment needs only a YAML file when this generic behaviour fits (box bounds that the
+env clips to, actions used as they are); subclasses add per-environment knowledge.
+
+Longer than the project's ~300-line habit on purpose: ``EnvSpec`` is the whole contract a user
+writes against (names, bounds, encodings, task, success, policy-map slices, test set), and it
+reads best as one class in one file.
+"""
+
+from __future__ import annotations
+
+from dataclasses import MISSING, dataclass, field, fields
+from functools import cached_property
+from typing import Any, ClassVar
+from collections.abc import Callable, Sequence
+
+import gymnasium as gym
+import numpy as np
+
+from sdrl_bench import ConfigError
+
+Policy = Callable[[np.ndarray], Any]
+StepOne = Callable[[list, Any], tuple[np.ndarray, list, float, bool, bool]]
+"""One surrogate step of one env in plain Python: (state, raw action) -> (observation,
+next state as floats, reward, terminated, diverged). See ``EnvSpec.make_step_one``."""
+
+
+def _readonly(values: list[int]) -> np.ndarray:
+    arr = np.array(values, dtype=int)
+    arr.setflags(write=False)
+    return arr
+
+
+@dataclass(frozen=True)
+class EnvSpec:
+    """Generic spec for an environment with a Box observation space."""
+
+    name: str
+    """Short name used in run names, tags and file names (e.g. ``mountain_car``)."""
+    gym_id: str
+    """Gymnasium id passed to ``gymnasium.make``."""
+    state_names: tuple[str, ...]
+    """Names of the observation variables, in observation order."""
+    action_names: tuple[str, ...] = ("u",)
+    """Names of the encoded action features the model sees (one-hot names for discrete)."""
+    gym_kwargs: dict = field(default_factory=dict)
+    """Extra keyword arguments for ``gymnasium.make``."""
+    exogenous_names: tuple[str, ...] = ()
+    """State variables the model takes as inputs but does not regress."""
+    state_low: tuple[float, ...] | None = None
+    """Lower bounds the real env clips the state to (None: no clipping)."""
+    state_high: tuple[float, ...] | None = None
+    """Upper bounds the real env clips the state to."""
+    max_episode_steps: int = 1000
+    """Steps after which the real env truncates an episode."""
+    solved_threshold: float | None = None
+    """Mean return at which the task counts as solved."""
+    obs_dtype: str = "float32"
+    """dtype of the real env's observations."""
+    n_discrete_actions: int = 0
+    """0 for a continuous (Box) action space; else the number of discrete actions, one-hot
+    encoded as model inputs named by ``action_names``."""
+    action_labels: tuple[str, ...] = ()
+    """Readable names of the discrete actions, for figures (default: ``action_names``)."""
+    policy_map_slices: tuple = ()
+    """2-D slices of the state space the policy maps show: ``(x name, (low, high), y name,
+    (low, high))`` each. Empty: the first two regressed states over their bounds (or +-1)."""
+    policy_map_hold: dict = field(default_factory=dict)
+    """Values of the states off a slice's axes in the policy maps (others are 0)."""
+
+    has_task: ClassVar[bool] = False
+    """Whether the spec defines the env's reward and termination (a surrogate needs them):
+    a class that implements ``reward`` (and ``terminated``) sets it to True."""
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "state_names", tuple(self.state_names))
+        object.__setattr__(self, "action_names", tuple(self.action_names))
+        object.__setattr__(self, "exogenous_names", tuple(self.exogenous_names))
+        if len(set(self.state_names)) != len(self.state_names):
+            raise ConfigError(f"env.spec.state_names: duplicate names in {self.state_names}")
+        unknown = set(self.exogenous_names) - set(self.state_names)
+        if unknown:
+            raise ConfigError(f"env.spec.exogenous_names: {sorted(unknown)} are not state names")
+        for key in ("state_low", "state_high"):
+            bound = getattr(self, key)
+            if bound is not None:
+                bound = tuple(float(b) for b in bound)
+                object.__setattr__(self, key, bound)
+                if len(bound) != len(self.state_names):
+                    raise ConfigError(
+                        f"env.spec.{key}: {len(bound)} values for {len(self.state_names)} states"
+                    )
+        if self.state_low is not None and self.state_high is not None:
+            if any(lo >= hi for lo, hi in zip(self.state_low, self.state_high, strict=True)):
+                raise ConfigError("env.spec.state_low must be below env.spec.state_high everywhere")
+        if self.n_discrete_actions and len(self.action_names) != self.n_discrete_actions:
+            raise ConfigError(
+                f"env.spec.action_names: {len(self.action_names)} names for "
+                f"{self.n_discrete_actions} one-hot encoded discrete actions"
+            )
+        if self.max_episode_steps <= 0:
+            raise ConfigError("env.spec.max_episode_steps must be positive")
+        object.__setattr__(self, "action_labels", tuple(self.action_labels))
+        if self.action_labels and len(self.action_labels) != len(self.action_names):
+            raise ConfigError(f"env.spec.action_labels: {len(self.action_labels)} labels for {len(self.action_names)} actions")
+        slices = tuple(_parse_slice(sl, i, self.state_names) for i, sl in enumerate(self.policy_map_slices))
+        object.__setattr__(self, "policy_map_slices", slices)
+        unknown = set(self.policy_map_hold) - set(self.state_names)
+        if unknown:
+            raise ConfigError(f"env.spec.policy_map_hold: {sorted(unknown)} are not state names")
+
+    # ------------------------------------------------------------------ names and indices
+    # Derived from frozen fields, so computed once (cached_property writes the instance dict,
+    # which a frozen dataclass allows); the index arrays are read-only.
+    @cached_property
+    def target_names(self) -> tuple[str, ...]:
+        """State variables the dynamics model regresses."""
+        return tuple(n for n in self.state_names if n not in self.exogenous_names)
+
+    @cached_property
+    def target_index(self) -> np.ndarray:
+        return _readonly([self.state_names.index(n) for n in self.target_names])
+
+    @cached_property
+    def exogenous_index(self) -> np.ndarray:
+        return _readonly([self.state_names.index(n) for n in self.exogenous_names])
+
+    @cached_property
+    def control_names(self) -> tuple[str, ...]:
+        """Model inputs besides the regressed states: exogenous states, then action features."""
+        return self.exogenous_names + self.action_names
+
+    @cached_property
+    def input_names(self) -> tuple[str, ...]:
+        return self.target_names + self.control_names
+
+    # ------------------------------------------------------------------ the real env
+    def make_env(self, **kwargs: Any) -> gym.Env:
+        return gym.make(self.gym_id, **{**self.gym_kwargs, **kwargs})
+
+    @property
+    def raw_action_width(self) -> int:
+        """Columns of a raw action in a dataset (1 for a discrete action index)."""
+        return 1 if self.n_discrete_actions else len(self.action_names)
+
+    def encode_actions(self, actions: np.ndarray) -> np.ndarray:
+        """Raw actions (N, raw width) -> model action features (N, len(action_names))."""
+        actions = np.asarray(actions, dtype=float).reshape(-1, self.raw_action_width)
+        if not self.n_discrete_actions:
+            return actions
+        return np.eye(self.n_discrete_actions)[actions[:, 0].astype(int)]
+
+    def random_action(self, rng: np.random.Generator, env: gym.Env) -> Any:
+        space = env.action_space
+        if isinstance(space, gym.spaces.Discrete):
+            return int(rng.integers(space.n))
+        return rng.uniform(space.low, space.high).astype(space.dtype)
+
+    def heuristic_policy(self, env: gym.Env) -> Policy:
+        raise ConfigError(f"collector: env '{self.name}' has no heuristic policy; use collector=random")
+
+    # ------------------------------------------------------------------ model <-> state
+    def model_inputs(self, states: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(regressed states, controls) for a dynamics model from full states and raw actions."""
+        states = np.asarray(states, dtype=float)
+        controls = [states[:, self.exogenous_index], self.encode_actions(actions)]
+        return states[:, self.target_index], np.concatenate(controls, axis=1)
+
+    def at_bound(self, next_states: np.ndarray) -> np.ndarray:
+        """Rows whose next state lies on a known bound (a non-smooth event no library fits)."""
+        next_states = np.asarray(next_states, dtype=float)
+        mask = np.zeros(len(next_states), dtype=bool)
+        if self.state_low is not None:
+            mask |= np.any(next_states <= np.asarray(self.state_low), axis=1)
+        if self.state_high is not None:
+            mask |= np.any(next_states >= np.asarray(self.state_high), axis=1)
+        return mask
+
+    def apply_bounds(self, states: np.ndarray, predicted_targets: np.ndarray) -> np.ndarray:
+        """Predicted regressed states -> regressed states as the real env would bound them.
+
+        Generic behaviour: clip each regressed variable to its box bounds, then round to the
+        real env's observation dtype.
+        """
+        out = np.asarray(predicted_targets, dtype=float).copy()
+        idx = self.target_index
+        if self.state_low is not None or self.state_high is not None:
+            low = -np.inf if self.state_low is None else np.asarray(self.state_low)[idx]
+            high = np.inf if self.state_high is None else np.asarray(self.state_high)[idx]
+            out = np.clip(out, low, high)
+        return self.round_obs(out)
+
+    def round_obs(self, values: np.ndarray) -> np.ndarray:
+        """Round to the real env's observation dtype (as float64 values)."""
+        return np.asarray(values).astype(self.obs_dtype).astype(float)
+
+    def divergence_limit(self) -> np.ndarray:
+        """Per regressed variable: a magnitude beyond which a predicted state counts as diverged."""
+        if self.state_low is not None and self.state_high is not None:
+            span = np.asarray(self.state_high) - np.asarray(self.state_low)
+            return (np.maximum(np.abs(self.state_low), np.abs(self.state_high)) + 10 * span)[
+                self.target_index
+            ]
+        return np.full(len(self.target_names), 1e3)
+
+    # ------------------------------------------------------------------ the task (surrogate envs)
+    # Reward, termination, exogenous variables and resets as pure functions, so that a surrogate
+    # env (sdrl_bench.surrogate.env) can be built from any dynamics model. Batched: states and next
+    # states (N, n_state) in ``state_names`` order, raw actions (N, raw width).
+    @property
+    def defines_task(self) -> bool:
+        """Whether this spec knows the env's reward and termination (needed by a surrogate)."""
+        return self.has_task
+
+    def is_success(self, episode_return: float, terminated: bool) -> bool:
+        """Whether a finished episode counts as a success. Default: its return reaches
+        ``solved_threshold`` (specs whose task has a goal state override this)."""
+        return self.solved_threshold is not None and episode_return >= self.solved_threshold
+
+    def map_slices(self) -> tuple[tuple[str, tuple[float, float], str, tuple[float, float]], ...]:
+        """The policy maps' slices: ``policy_map_slices``, else the first two regressed states
+        over their bounds (+-1 where unbounded); one state alone gives no 2-D map."""
+        if self.policy_map_slices:
+            return self.policy_map_slices
+        names = self.target_names[:2]
+        if len(names) < 2:
+            raise ConfigError(f"env.spec.policy_map_slices: '{self.name}' has fewer than two regressed states; name the slices")
+        lows = self.state_low or (-1.0,) * len(self.state_names)
+        highs = self.state_high or (1.0,) * len(self.state_names)
+        ranges = [(lows[self.state_names.index(n)], highs[self.state_names.index(n)]) for n in names]
+        return ((names[0], ranges[0], names[1], ranges[1]),)
+
+    def discrete_action_labels(self) -> tuple[str, ...]:
+        return self.action_labels or self.action_names
+
+    def termination_causes(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> dict[str, np.ndarray]:
+        """Why the surrogate's rules end each transition, per named cause (N,) bool; empty
+        when the spec does not tell causes apart."""
+        return {}
+
+    def observed_termination_causes(self, rewards: np.ndarray, terminated: np.ndarray) -> dict[str, np.ndarray]:
+        """Why the real env ended each transition, per cause named in ``termination_causes``."""
+        return {}
+
+    def reward(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+        """Reward of each transition (N,)."""
+        raise ConfigError(
+            f"env.spec: '{self.name}' ({type(self).__name__}) defines no reward function; a "
+            "surrogate env needs an EnvSpec subclass with reward() and terminated()"
+        )
+
+    def terminated(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+        """Whether each transition ends the episode (N,) bool. Default: never."""
+        return np.zeros(len(states), dtype=bool)
+
+    def reward_terminated(
+        self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``reward`` and ``terminated`` together (specs override it when they share work)."""
+        return self.reward(states, actions, next_states), self.terminated(states, actions, next_states)
+
+    def exogenous(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+        """Values of the exogenous (not regressed) state variables after each transition,
+        (N, len(exogenous_names)); ``next_states`` holds the regressed values already."""
+        if self.exogenous_names:
+            raise ConfigError(
+                f"env.spec.exogenous_names: '{self.name}' does not say how to derive "
+                f"{list(self.exogenous_names)} in a surrogate"
+            )
+        return np.zeros((len(states), 0))
+
+    def initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        """n states from the real env's initial-state distribution (N, n_state).
+
+        Default: drawn uniformly from states observed after resets of the real env
+        (``observed_initial_states``). Specs that know the distribution override this.
+        """
+        pool = observed_initial_states(self)
+        return pool[rng.integers(len(pool), size=n)]
+
+    def make_step_one(
+        self, predictor: Callable[..., Callable[[Sequence[float]], list]], obs_low=None, obs_high=None
+    ) -> StepOne | None:
+        """A fast plain-Python step of one env (or None: the surrogate then calls the batched
+        functions with N = 1). ``predictor(fixed=None)`` returns the model's one-state evaluator
+        (``sdrl_bench.models.fast.scalar_predictor``: inputs in ``input_names`` order, less
+        those held ``fixed`` at given values). The step follows
+        ``sdrl_bench.surrogate.env.Surrogate.transition`` (divergence check, bounds, exogenous variables,
+        clipping to the observation space ``[obs_low, obs_high]``, reward, termination) in the
+        same order. Must agree with the batched functions; the tests check it."""
+        return None
+
+    def make_step_batch(self, limit, obs_low, obs_high) -> Callable | None:
+        """A fused batched step after the model's prediction (or None: the surrogate composes
+        ``apply_bounds``, ``exogenous``, clipping and ``reward_terminated`` with numpy).
+        ``step(states (N, n_state), raw actions (N, w), predictions (n_target, N))`` returns
+        (next states (N, n_state), rewards, terminated, diverged), following
+        ``sdrl_bench.surrogate.env.Surrogate.transition`` with divergence ``limit`` and observation
+        bounds ``[obs_low, obs_high]``. Must agree with the composed functions; the tests check it."""
+        return None
+
+    # ------------------------------------------------------------------ held-out test set
+    def test_set_recipe(self) -> TestSetRecipe:
+        """The fixed, named held-out test set every model of this env is scored on."""
+        return TestSetRecipe(name=f"{self.name}-heldout-v1", seed=10_000, episodes=(("random", 1.0),) * 6)
+
+
+def _parse_slice(value: Any, i: int, state_names: tuple[str, ...]) -> tuple:
+    key = f"env.spec.policy_map_slices[{i}]"
+    try:
+        xn, (x0, x1), yn, (y0, y1) = value
+        out = (str(xn), (float(x0), float(x1)), str(yn), (float(y0), float(y1)))
+    except (TypeError, ValueError):
+        raise ConfigError(f"{key}: expected [x name, [low, high], y name, [low, high]], got {value!r}") from None
+    for n in (out[0], out[2]):
+        if n not in state_names:
+            raise ConfigError(f"{key}: '{n}' is not a state name ({list(state_names)})")
+    return out
+
+
+def find_spec(name: str) -> EnvSpec:
+    """The spec class whose ``name`` defaults to ``name`` (the built-in specs, or any user
+    subclass already imported), built with its defaults: the class is the one source of an
+    env's name, so no registry has to be kept beside the configs."""
+    found: dict[str, type[EnvSpec]] = {}
+    todo = list(EnvSpec.__subclasses__())
+    while todo:
+        cls = todo.pop()
+        todo.extend(cls.__subclasses__())
+        default = next((f.default for f in fields(cls) if f.name == "name"), MISSING)
+        if isinstance(default, str):
+            found.setdefault(default, cls)
+    if name not in found:
+        raise ConfigError(f"spec: unknown env {name!r} (one of {sorted(found)}, or an EnvSpec)")
+    return found[name]()
+
+
+@dataclass(frozen=True)
+class TestSetRecipe:
+    """A deterministic recipe for a held-out test set.
+
+    Episode ``i`` is played with policy ``episodes[i][0]`` ("heuristic" or "random") under
+    eps-greedy exploration ``episodes[i][1]``, reset with seed ``seed + i`` (never a seed the
+    training collectors use by default), for at most ``max_steps`` steps.
+    """
+
+    name: str
+    seed: int
+    episodes: tuple[tuple[str, float], ...]
+    max_steps: int | None = None
+
+
+_INITIAL_POOLS: dict[tuple, np.ndarray] = {}
+
+
+def observed_initial_states(spec: EnvSpec, n: int = 200, seed: int = 1_000_000) -> np.ndarray:
+    """Observations right after ``n`` resets of the real env (seeds ``seed`` .. ``seed + n - 1``,
+    disjoint from the collectors' and test sets' seeds), cached per env and process."""
+    key = (spec.gym_id, repr(sorted(spec.gym_kwargs.items())), n, seed)
+    if key not in _INITIAL_POOLS:
+        env = spec.make_env()
+        try:
+            pool = np.array([env.reset(seed=seed + i)[0] for i in range(n)], dtype=float)
+        finally:
+            env.close()
+        pool.setflags(write=False)
+        _INITIAL_POOLS[key] = pool
+    return _INITIAL_POOLS[key]

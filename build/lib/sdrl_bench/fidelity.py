@@ -1,0 +1,164 @@
+"""Fidelity of a dynamics model on held-out real transitions, stepped as the surrogate steps it.
+
+A step is: model inputs from (state, action) -> model prediction -> the spec's bounds. One-step
+errors compare that with the real next state; k-step open-loop rollouts feed predictions back
+for k steps with the real actions (and, for exogenous variables such as LunarLander's leg
+contacts, the real recorded values: the rollout measures the regressed dynamics alone).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from sdrl_bench.data import Transitions
+from sdrl_bench.envs.base import EnvSpec
+from sdrl_bench.metrics import mse, pearson, r2, spearman
+
+
+class DynamicsModel(Protocol):
+    def predict(self, x: np.ndarray, u: np.ndarray) -> np.ndarray: ...
+
+
+def step(model: DynamicsModel, spec: EnvSpec, states: np.ndarray, actions: np.ndarray) -> np.ndarray:
+    """Next regressed states for full states (N, n_state) and raw actions, bounds applied."""
+    x, u = spec.model_inputs(states, actions)
+    with np.errstate(all="ignore"):
+        return spec.apply_bounds(states, model.predict(x, u))
+
+
+@dataclass
+class FidelityReport:
+    """Metrics keyed ``<name>/<state>`` plus the arrays behind them, for figures."""
+
+    metrics: dict[str, float] = field(default_factory=dict)
+    true_next: np.ndarray | None = None
+    pred_next: np.ndarray | None = None
+    rollout: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    pred_std: np.ndarray | None = None
+    """Per test transition and regressed state: the model's own uncertainty (an ensemble's member
+    spread), for models that have one."""
+
+
+def evaluate(
+    model: DynamicsModel,
+    spec: EnvSpec,
+    test: Transitions,
+    norm_std: dict[str, float] | None = None,
+    horizons: tuple[int, ...] = (10, 50),
+    stride: int = 5,
+) -> FidelityReport:
+    """One-step MSE (raw units, and in units of ``norm_std``), correlation, R^2 per regressed
+    state; one-step MSE on the smooth transitions alone (``mse_smooth``, see ``smooth_mask``);
+    and k-step open-loop rollout MSE with the fraction of diverged rollouts."""
+    names = spec.target_names
+    true = test.next_states[:, spec.target_index]
+    pred = step(model, spec, test.states, test.actions)
+    finite = np.all(np.isfinite(pred), axis=1)
+    rep = FidelityReport(true_next=true, pred_next=pred)
+    m = rep.metrics
+    m["one_step/nonfinite_fraction"] = float(1 - finite.mean())
+    err, cor, det = mse(true[finite], pred[finite]), pearson(true[finite], pred[finite]), r2(true[finite], pred[finite])
+    for i, n in enumerate(names):
+        m[f"mse/{n}"] = float(err[i])
+        if norm_std is not None:
+            m[f"mse_norm/{n}"] = float(err[i] / norm_std[n] ** 2)
+        m[f"corr/{n}"] = float(cor[i])
+        m[f"r2/{n}"] = float(det[i])
+    m["mse/mean"] = float(np.mean(err))
+    smooth = smooth_mask(spec, test) & finite
+    m["one_step/smooth_fraction"] = float(smooth.mean())
+    if smooth.any():
+        err_s = mse(true[smooth], pred[smooth])
+        for i, n in enumerate(names):
+            m[f"mse_smooth/{n}"] = float(err_s[i])
+    if norm_std is not None:
+        m["mse_norm/mean"] = float(np.mean([m[f"mse_norm/{n}"] for n in names]))
+    if _has_uncertainty(model):
+        rep.pred_std = std = np.asarray(model.predict_std(*spec.model_inputs(test.states, test.actions)), dtype=float)
+        m.update(uncertainty_metrics(names, np.abs(pred - true)[finite], std[finite]))
+    for k in horizons:
+        final_true, final_pred, diverged = rollouts(model, spec, test, k, stride)
+        m[f"rollout{k}/n"] = float(len(diverged))
+        m[f"rollout{k}/diverged_fraction"] = float(diverged.mean()) if len(diverged) else float("nan")
+        ok = ~diverged
+        e = mse(final_true[ok], final_pred[ok]) if ok.any() else np.full(len(names), np.nan)
+        for i, n in enumerate(names):
+            m[f"rollout{k}_mse/{n}"] = float(e[i])
+        rep.rollout[k] = (final_true, final_pred)
+    return rep
+
+
+def _has_uncertainty(model) -> bool:
+    return callable(getattr(model, "predict_std", None)) and getattr(model, "ensemble_size", 1) > 1
+
+
+def uncertainty_metrics(names, abs_err: np.ndarray, std: np.ndarray) -> dict[str, float]:
+    """Is the model's uncertainty informative? Per regressed state: the mean predicted std, the
+    Spearman rank correlation of std with the absolute one-step error (does the spread rank the
+    transitions by error?), and the share of errors within 2 std (0.95 for calibrated Gaussian
+    errors; ensembles of few members are usually overconfident)."""
+    m: dict[str, float] = {}
+    rank = spearman(std, abs_err)
+    for i, n in enumerate(names):
+        m[f"uncertainty/mean_std/{n}"] = float(np.mean(std[:, i]))
+        m[f"uncertainty/spearman/{n}"] = float(rank[i])
+        m[f"uncertainty/within_2std/{n}"] = float(np.mean(abs_err[:, i] <= 2 * std[:, i]))
+    return m
+
+
+def smooth_mask(spec: EnvSpec, test: Transitions) -> np.ndarray:
+    """Transitions with no non-smooth event: the next state is not on a known bound, the
+    episode does not end there, and every exogenous variable (LunarLander's leg contacts) is
+    zero before and after. Errors on the rest are contact and boundary physics."""
+    mask = ~spec.at_bound(test.next_states) & ~test.terminated
+    exo = spec.exogenous_index
+    if len(exo):
+        mask &= ~np.any(test.states[:, exo] != 0, axis=1) & ~np.any(test.next_states[:, exo] != 0, axis=1)
+    return mask
+
+
+def rollouts(
+    model: DynamicsModel, spec: EnvSpec, test: Transitions, k: int, stride: int = 5
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Open-loop k-step rollouts from every ``stride``-th step of each test episode that has k
+    more transitions. Returns the true and predicted regressed state after k steps, and a
+    diverged flag (non-finite, or beyond the spec's divergence limit at any step)."""
+    starts = []
+    for ep in np.unique(test.episode):
+        idx = np.flatnonzero(test.episode == ep)
+        starts += [idx[j] for j in range(0, len(idx) - k + 1, stride)]
+    starts = np.asarray(starts, dtype=int)
+    tgt = spec.target_index
+    if len(starts) == 0:
+        empty = np.zeros((0, len(tgt)))
+        return empty, empty, np.zeros(0, dtype=bool)
+    state = test.states[starts].copy()
+    diverged = np.zeros(len(starts), dtype=bool)
+    limit = spec.divergence_limit()
+    for j in range(k):
+        nxt = step(model, spec, state, test.actions[starts + j])
+        bad = ~np.all(np.isfinite(nxt), axis=1) | np.any(np.abs(nxt) > limit, axis=1)
+        diverged |= bad
+        nxt[diverged] = 0.0  # frozen; excluded from the error
+        state = test.next_states[starts + j].copy()  # exogenous variables: the real values
+        state[:, tgt] = nxt
+    return test.next_states[starts + k - 1][:, tgt], state[:, tgt], diverged
+
+
+def open_loop_episode(
+    model: DynamicsModel, spec: EnvSpec, test: Transitions, episode: int, max_steps: int = 300
+) -> tuple[np.ndarray, np.ndarray]:
+    """(true, predicted) regressed-state trajectories of one test episode, open loop from its
+    first state with its recorded actions (exogenous variables from the record)."""
+    idx = np.flatnonzero(test.episode == episode)[:max_steps]
+    state = test.states[idx[:1]].copy()
+    pred = []
+    for i in idx:
+        nxt = step(model, spec, state, test.actions[i : i + 1])
+        state = test.next_states[i : i + 1].copy()
+        state[:, spec.target_index] = nxt
+        pred.append(nxt[0])
+    return test.next_states[idx][:, spec.target_index], np.asarray(pred)

@@ -1,0 +1,76 @@
+"""Snapping the coefficients of an exact law to the short decimals the data cannot tell apart.
+
+A deterministic environment seen through float32 observations (MountainCar) gives data in
+which a sparse law holds to the observations' precision. Least squares then returns that law
+with coefficients a few float32 ulps off (0.0014999988 for 0.0015): harmless for one-step
+error, but enough to change the rounding of a float32 step now and then, so a surrogate
+drifts a few ulps away from the real env over an episode. Occam's answer: of the coefficient
+vectors the data cannot reject, take the one with the fewest significant digits.
+
+``snap_equation`` does that for one equation, in two gates:
+
+1. **Exact regime.** The equation's residual RMS must be within ``rtol`` of its target's RMS
+   (float32 resolves about 6e-8 relative; the default 1e-6 leaves room for a few roundings).
+   A noisy equation (LunarLander: 1e-2 and worse) is never touched: there rounding would
+   bias a coefficient known only to its standard error.
+2. **Not rejected.** For d = 1, 2, ... significant digits, the rounded vector is tested against
+   the fitted one by a Wald test with a heteroscedasticity-robust (HC3) covariance, at level
+   ``alpha``. Robust, because float32 rounding noise scales with each target's magnitude: an
+   ordinary F-test rejected the true MountainCar law in 5 of 80 equations at the 1% level,
+   the HC3 test in 0 of 80 (seeds 0-39, both equations). The first d not rejected wins.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import stats
+
+MAX_DIGITS = 15
+
+
+def round_significant(values: np.ndarray, digits: int) -> np.ndarray:
+    """Each value rounded to ``digits`` significant decimal digits (then to the nearest double)."""
+    return np.array([float(f"{float(v):.{digits - 1}e}") for v in np.ravel(values)])
+
+
+def snap_equation(theta: np.ndarray, y: np.ndarray, coef: np.ndarray, alpha: float = 0.01,
+                  rtol: float = 1e-6) -> tuple[np.ndarray, int]:
+    """(coefficients, digits) for ``y ~ theta @ coef`` over the active terms (columns of theta).
+
+    Returns the rounded coefficients and their number of significant digits, or ``coef``
+    unchanged and 0 when the equation is not in the exact regime, the design is degenerate,
+    or no rounding up to ``MAX_DIGITS`` digits passes the test.
+    """
+    theta, y, coef = (np.asarray(a, dtype=float) for a in (theta, y, coef))
+    n, p = theta.shape
+    if p == 0 or n <= p:
+        return coef, 0
+    resid = y - theta @ coef
+    if float(resid @ resid) > rtol**2 * float(y @ y):
+        return coef, 0
+    try:
+        xtx_inv = np.linalg.inv(theta.T @ theta)
+    except np.linalg.LinAlgError:
+        return coef, 0
+    leverage = np.einsum("ij,jk,ik->i", theta, xtx_inv, theta)
+    if not np.all(np.isfinite(leverage)) or np.any(leverage >= 1.0 - 1e-12):
+        return coef, 0
+    meat = theta.T @ (theta * (resid**2 / (1.0 - leverage) ** 2)[:, None])
+    cov = xtx_inv @ meat @ xtx_inv
+    critical = float(stats.chi2.ppf(1.0 - alpha, p))
+    previous = None
+    for digits in range(1, MAX_DIGITS + 1):
+        rounded = round_significant(coef, digits)
+        if previous is not None and np.array_equal(rounded, previous):
+            continue
+        previous = rounded
+        if np.array_equal(rounded, coef):
+            return coef, 0  # nothing shorter than the fit itself
+        step = rounded - coef
+        try:
+            wald = float(step @ np.linalg.solve(cov, step))
+        except np.linalg.LinAlgError:
+            return coef, 0
+        if np.isfinite(wald) and wald <= critical:
+            return rounded, digits
+    return coef, 0

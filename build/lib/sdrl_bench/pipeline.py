@@ -1,0 +1,162 @@
+"""collect -> fit -> fidelity, as one plain function over typed arguments (no Hydra, no MLflow).
+
+``check`` validates a job cheaply (no env steps, no fit); ``fit_dynamics`` does the work and
+returns a ``FitResult`` that ``tracking.log_fit`` records.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+from collections.abc import Callable
+
+import numpy as np
+
+from sdrl_bench import ConfigError
+from sdrl_bench.data import PolicyFactory, Transitions, collect, held_out_test_set, load_csv, random_policy
+from sdrl_bench.envs.base import EnvSpec
+from sdrl_bench.fidelity import FidelityReport, evaluate, open_loop_episode
+from sdrl_bench.models.libraries import LibraryPart, build_library, count_features
+from sdrl_bench.models.base import DynamicsModel
+from sdrl_bench.models.sindy import SindyModel
+
+
+@dataclass(frozen=True)
+class FitJob:
+    """Everything one fit needs."""
+
+    spec: EnvSpec
+    """The environment."""
+    library_parts: tuple[LibraryPart, ...]
+    """Feature library parts (pysindy libraries and the inputs they act on)."""
+    optimizer: Any
+    """A pysindy optimizer (cloned for the fit)."""
+    n_transitions: int = 75
+    """Transitions to collect from the real env."""
+    policy: PolicyFactory | None = None
+    """Collector policy factory (None: uniform random)."""
+    epsilon: float = 0.2
+    """Probability of a uniform random action instead of the policy's."""
+    max_steps_per_episode: int | None = None
+    """Cut each collected episode after this many steps and start the next one (None: play
+    each episode to its end or the env's limit)."""
+    seed: int = 0
+    """Seed of the collection (episode resets, exploration) and the fit."""
+    dataset_path: str | None = None
+    """A dataset CSV to fit instead of collecting."""
+    exclude_bound_transitions: bool = True
+    """Drop rows whose next state lies on a known bound from the fit (the surrogate applies
+    the bounds itself)."""
+    names: dict = field(default_factory=dict)
+    """Human names of the choices (env, library, optimizer, collector) for tags."""
+    surrogate: str = "sindy"
+    """Kind of dynamics model: "sindy" (uses the library and optimizer) or another kind."""
+    wrap_env: Callable | None = None
+    """Wraps every real env the collection steps (the RL accounting counts steps with it)."""
+    model_factory: Callable[..., DynamicsModel] | None = None
+    """Builds the unfitted model: called as ``factory(library=, optimizer=, seed=)`` for SINDy
+    and ``factory(seed=)`` otherwise. None: ``SindyModel``."""
+
+
+@dataclass
+class FitResult:
+    job: FitJob
+    data: Transitions
+    dataset_hash: str
+    n_fit_rows: int
+    test_name: str
+    test: Transitions
+    test_hash: str
+    model: DynamicsModel
+    fidelity: FidelityReport
+    episode_true: np.ndarray
+    episode_pred: np.ndarray
+    seconds: dict[str, float]
+
+
+def check(job: FitJob) -> tuple[Any, Transitions | None]:
+    """Cheap validation before any env step or fit. Returns (library, loaded dataset or None)."""
+    spec = job.spec
+    threshold = getattr(job.optimizer, "threshold", getattr(getattr(job.optimizer, "opt", None), "threshold", 0.0))
+    if threshold is not None and threshold < 0:
+        raise ConfigError(f"optimizer.threshold must be >= 0, got {threshold}")
+    library = build_library(job.library_parts, spec.target_names, spec.control_names)
+    n_terms = count_features(library, len(spec.input_names)) if job.surrogate == "sindy" else 0
+    build_model(job, library)  # model hyperparameters are validated in its __init__
+    data = load_csv(spec, job.dataset_path) if job.dataset_path else None
+    n_rows = len(data) if data is not None else job.n_transitions
+    if data is None and job.n_transitions <= 0:
+        raise ConfigError(f"n_transitions must be positive, got {job.n_transitions}")
+    if n_rows < n_terms:
+        what = f"dataset.path has {n_rows} rows" if data is not None else f"n_transitions={n_rows}"
+        raise ConfigError(
+            f"{what}: fewer transitions than the {n_terms} terms of library "
+            f"'{job.names.get('library', 'library')}' for env '{spec.name}'"
+        )
+    if not 0.0 <= job.epsilon <= 1.0:
+        raise ConfigError(f"collector.epsilon must be in [0, 1], got {job.epsilon}")
+    if data is None and hasattr(job.policy, "validate"):
+        job.policy.validate(spec)  # e.g. an expert: checked now, trained only when collecting
+    elif data is None and job.policy is not None:
+        env = spec.make_env()
+        try:
+            job.policy(spec, env)  # a collector the env cannot serve fails here, not mid-run
+        finally:
+            env.close()
+    return library, data
+
+
+def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = None) -> FitResult:
+    """Collect (or load) transitions, fit SINDy, score it on the env's held-out test set.
+
+    ``checked`` is what ``check(job)`` returned, when the caller validated the job already.
+    """
+    library, data = checked if checked is not None else check(job)
+    spec = job.spec
+    seconds: dict[str, float] = {}
+    t0, c0 = time.perf_counter(), time.process_time()
+    if data is None:
+        data = collect(spec, job.policy or random_policy, job.n_transitions, job.epsilon, job.seed,
+                       max_steps_per_episode=job.max_steps_per_episode, wrap_env=job.wrap_env)
+    seconds["collect_wall"] = time.perf_counter() - t0
+    seconds["collect_cpu"] = time.process_time() - c0
+
+    x, u = spec.model_inputs(data.states, data.actions)
+    x_next = data.next_states[:, spec.target_index]
+    keep = ~spec.at_bound(data.next_states) if job.exclude_bound_transitions else np.ones(len(data), bool)
+    if keep.sum() == 0:
+        raise ConfigError("dataset: every transition lies on a state bound; nothing to fit")
+    model = build_model(job, library).fit(
+        x[keep], u[keep], x_next[keep], state_names=spec.target_names, control_names=spec.control_names
+    )
+    seconds["fit_wall"] = model.fit_wall_seconds_
+    seconds["fit_cpu"] = model.fit_cpu_seconds_
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    test_name, test = held_out_test_set(spec)
+    norm = {n: s["std"] for n, s in data.normalization(spec).items()}
+    report = evaluate(model, spec, test, norm_std=norm)
+    if spec.defines_task:  # reward, termination and derived-flag fidelity of the surrogate built on it
+        from sdrl_bench.surrogate.fidelity import surrogate_fidelity  # noqa: PLC0415
+
+        report.metrics.update(surrogate_fidelity(model, spec, test))
+    ep_true, ep_pred = open_loop_episode(model, spec, test, int(test.episode[0]))
+    seconds["evaluate_wall"] = time.perf_counter() - t0
+    seconds["evaluate_cpu"] = time.process_time() - c0
+    return FitResult(
+        job=job, data=data, dataset_hash=data.content_hash(), n_fit_rows=int(keep.sum()),
+        test_name=test_name, test=test, test_hash=test.content_hash(), model=model,
+        fidelity=report, episode_true=ep_true, episode_pred=ep_pred, seconds=seconds,
+    )
+
+
+def build_model(job: FitJob, library: Any) -> DynamicsModel:
+    """The unfitted dynamics model a job asks for."""
+    if job.surrogate == "sindy":
+        factory = job.model_factory or SindyModel
+        return factory(library=library, optimizer=job.optimizer, seed=job.seed)
+    if job.model_factory is None:
+        raise ConfigError(f"surrogate.model: no model factory for surrogate kind {job.surrogate!r}")
+    return job.model_factory(seed=job.seed)
+

@@ -1,0 +1,1 @@
+"""The report: tracking store -> tables, figures, Markdown and HTML (reads runs; never trains)."""

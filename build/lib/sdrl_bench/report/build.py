@@ -1,0 +1,206 @@
+"""Tracking store -> reports/<name>/report.md and a self-contained report.html, our numbers
+beside the paper's, also logged to MLflow as the artifacts of a "report" run.
+
+Reads the store only through ``tracking``; the tables come from ``report.tables`` (pure
+functions over run dicts); the figures are the runs' own artifacts plus learning curves
+pooled across seeds. What the store does not hold prints as "not run"; bad input (an empty
+store, an unknown experiment or parent run) gives a message and a report saying what is missing.
+
+    sdrl-bench-report --name reproduction [--uri URI] [--experiment E] [--parent-run ID]
+                      [--tag k=v ...] [--out reports] [--ui-url http://127.0.0.1:5000]
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+
+import pandas as pd
+
+from sdrl_bench import tracking
+from sdrl_bench.report import tables as rt
+from sdrl_bench.report.figures import figure_blocks
+from sdrl_bench.report.render import MISSING, NOT_RUN, Block, Cell, Heading, Para, Table, fmt, render_html, render_markdown
+
+
+@dataclass
+class ReportInput:
+    """What the report reads: the store, a selection, and how to link runs."""
+
+    uri: str
+    experiment: str = "sdrl-bench"
+    parent_run: str | None = None
+    tags: dict[str, str] = field(default_factory=dict)
+    ui_url: str | None = None
+
+
+@dataclass
+class ReportResult:
+    folder: Path
+    n_runs: int
+    problems: list[str]
+    report_run_id: str | None
+    seconds: float
+
+
+def select_runs(inp: ReportInput) -> tuple[list[dict[str, Any]], list[str]]:
+    """The runs the report covers, and the problems met (unknown experiment or parent run,
+    empty selection). Never raises for bad input: problems are returned as messages."""
+    names = tracking.list_experiments(inp.uri)
+    if inp.experiment not in names:
+        known = ", ".join(repr(n) for n in names) or "none: the store is empty"
+        return [], [f"no experiment {inp.experiment!r} in {tracking.display_uri(inp.uri)} (experiments: {known})"]
+    filters = [f"tags.`{k}` = '{v}'" for k, v in inp.tags.items()]
+    runs = tracking.find_runs(inp.uri, inp.experiment, " and ".join(filters), missing_ok=False, key="--experiment")
+    runs = [r for r in runs if r["tags"].get("sdrl.kind") != "report"]
+    if inp.parent_run:
+        if not tracking.run_exists(inp.uri, inp.parent_run):
+            return [], [f"no run {inp.parent_run!r} (--parent-run) in {tracking.display_uri(inp.uri)}"]
+        keep = {inp.parent_run}
+        for _ in range(3):  # children, grandchildren (a study's trials under a sweep), ...
+            keep |= {r["run_id"] for r in runs if r["tags"].get(tracking.PARENT_TAG) in keep}
+        runs = [r for r in runs if r["run_id"] in keep]
+    if not runs:
+        return [], [f"no runs match (experiment {inp.experiment!r}, parent run {inp.parent_run or 'any'}, tags {inp.tags or 'any'})"]
+    return runs, []
+
+
+class Linker:
+    """Run ids as links into the MLflow UI (when a server URL is given) and short labels."""
+
+    def __init__(self, runs: Sequence[Mapping[str, Any]], ui_url: str | None):
+        self.exp = {r["run_id"]: r.get("experiment_id", "0") for r in runs}
+        self.ui = ui_url.rstrip("/") if ui_url else None
+
+    def url(self, run_id: str) -> str | None:
+        return f"{self.ui}/#/experiments/{self.exp.get(run_id, '0')}/runs/{run_id}" if self.ui else None
+
+    def cell(self, text: str, run_ids: Sequence[str]) -> Cell:
+        """A number linked to its (first) run; "not run"/"missing" text carries no link."""
+        if text in (NOT_RUN, MISSING) or not run_ids:
+            return Cell(text)
+        return Cell(text, self.url(run_ids[0]))
+
+    def ids(self, run_ids: Sequence[str], limit: int = 5) -> Cell:
+        if not run_ids:
+            return Cell(NOT_RUN)
+        shown = ", ".join(r[:8] for r in run_ids[:limit]) + (f" +{len(run_ids) - limit}" if len(run_ids) > limit else "")
+        return Cell(shown, self.url(run_ids[0]))
+
+
+def _df_table(df: pd.DataFrame, spec: Sequence[tuple[str, str, str]], link: Linker, caption: str) -> Table:
+    """Rows of ``df`` as a Table: spec is (column, header, format); numbers link to the row's
+    runs; NaN prints "not run" when the row has no runs, else "missing"."""
+    rows = []
+    for _, r in df.iterrows():
+        ids = list(r["runs"])
+        cells = []
+        for col, _, kind in spec:
+            v = r[col]
+            kind, _, count_col = kind.partition("|")  # "g|n_nn": "not run" when n_nn is 0
+            empty = NOT_RUN if not ids or (count_col and not r[count_col]) else MISSING
+            if kind == "text":
+                cells.append(Cell("-" if v is None or (isinstance(v, float) and math.isnan(v)) else str(v)))
+            elif kind.startswith("paper"):
+                cells.append(Cell(fmt(v, kind[6:] or "g", empty="-")))
+            else:
+                cells.append(link.cell(fmt(v, kind, empty), ids))
+        cells.append(link.ids(ids))
+        rows.append(cells)
+    return Table([h for _, h, _ in spec] + ["runs"], rows, caption)
+
+
+def _ci_text(r: Mapping[str, Any]) -> str:
+    if math.isnan(r["return"]):
+        return NOT_RUN
+    if math.isnan(r["ci_low"]):
+        return f"{r['return']:.1f} ({r['statistic']}, 1 seed: no CI)"
+    return f"{r['return']:.1f} [{r['ci_low']:.1f}, {r['ci_high']:.1f}] ({r['statistic']})"
+
+
+def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
+    """Sections 1-4: fidelity, library ablation, SINDy vs NN, RL transfer."""
+    out: list[Block] = [Heading(2, "1. One-step fidelity (paper Table 1, top)")]
+    fid = rt.fidelity_table(runs)
+    out.append(_df_table(fid, [("env", "env", "text"), ("state", "state", "text"), ("library", "library", "text"),
+                               ("test_set", "test set", "text"), ("n_fits", "fits", "int"), ("mse", "MSE (raw units)", "e"),
+                               ("mse_norm", "MSE (normalized)", "e"), ("corr", "corr", "f3"),
+                               ("paper_mse", "paper MSE", "paper:e"), ("paper_corr", "paper corr", "paper:f3")], link,
+                         "Ours: mean over the env's fits (the fits inside RL transfer runs when there are any, "
+                         "else fit runs; the paper pack's library when present), scored on the named held-out "
+                         "test set. The paper states neither its units nor its test set."))
+    out.append(Heading(2, "2. Library ablation (paper Table 1, bottom)"))
+    out.append(_df_table(rt.ablation_table(runs), [("env", "env", "text"), ("library", "library", "text"),
+                                                   ("test_set", "test set", "text"), ("n_fits", "fits", "int"),
+                                                   ("mse_mean", "MSE, mean over states (raw)", "e"),
+                                                   ("mse_norm_mean", "MSE (normalized)", "e"),
+                                                   ("paper_mse", "paper MSE", "paper:e")], link,
+                         "SINDy fit runs per library (poly_trig = polynomial with trigonometric terms); the paper "
+                         "gives one MSE per env without saying how states are combined."))
+    out.append(Heading(2, "3. SINDy vs NN surrogate"))
+    out.append(_df_table(rt.sindy_vs_nn_table(runs), [("env", "env", "text"), ("quantity", "quantity", "text"),
+                                                      ("sindy", "SINDy", "g|n_sindy"), ("nn", "NN", "g|n_nn"),
+                                                      ("sindy_over_nn", "SINDy / NN", "g|n_nn"), ("n_sindy", "SINDy fits", "int"),
+                                                      ("n_nn", "NN fits", "int")], link,
+                         "Fit runs, means over seeds. n_parameters: SINDy's active terms vs the NN's weights. "
+                         "Paper (Mountain Car velocity): SINDy MSE 3.11e-06 vs NN 4.45e-06, ~95% less compute."))
+    out.append(Heading(2, "4. RL transfer (real-environment evaluation)"))
+    tr = rt.transfer_table(runs)
+    rows = []
+    for _, r in tr.iterrows():
+        ids = list(r["runs"])
+        e = MISSING if ids else NOT_RUN
+        solved = NOT_RUN if not ids else ("not reached" if r["n_solved"] == 0 else
+                                         f"{fmt(r['solved_real_steps'], 'int')} ({r['n_solved']}/{r['n_seeds']} seeds)")
+        vals = [fmt(r["real_transitions"], "int", e), fmt(r["surrogate_steps"], "int", e), fmt(r["total_steps"], "int", e),
+                fmt(r["paper_total_steps"], "int", "-"), _ci_text(r), fmt(r["success_rate"], "pct", e),
+                fmt(r["train_wall_seconds"], "f1", e), solved]
+        rows.append([Cell(r["env"]), Cell(r["surrogate"]), Cell(r["arm"]), Cell(str(r["n_seeds"]))]
+                    + [link.cell(v, ids) for v in vals] + [link.ids(ids)])
+    out.append(Table(["env", "surrogate", "arm", "seeds", "real transitions", "surrogate steps", "total steps",
+                      "paper total steps", "final real return [95% CI]", "success", "train wall s",
+                      "real steps to solved", "runs"], rows,
+                     "Finished transfer runs only (one per seed). Total steps as the paper counts them: surrogate "
+                     "steps + real transitions. Return: mean over seeds (IQM when >= 5 seeds) with a 95% "
+                     "percentile bootstrap CI over seeds (scipy.stats.bootstrap, 2000 resamples, seed 0)."))
+    return out
+
+
+def overview_blocks(inp: ReportInput, runs: Sequence[Mapping[str, Any]], problems: Sequence[str], command: str) -> list[Block]:
+    out: list[Block] = [Heading(1, "sdrl-bench report: SINDy surrogates in RL, ours beside the paper's"),
+                        Para(f"Made by `{command}` from store `{tracking.display_uri(inp.uri)}`, experiment "
+                             f"`{inp.experiment}`" + (f", parent run `{inp.parent_run}`" if inp.parent_run else "")
+                             + (f", tags `{inp.tags}`" if inp.tags else "") + f", {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.")]
+    for p in problems:
+        out.append(Para(f"Missing: {p}"))
+    if runs:
+        counts = pd.Series([f"{r['tags'].get('sdrl.kind', '?')} ({r['status']})" for r in runs]).value_counts().sort_index()
+        out.append(Para("Runs read: " + ", ".join(f"{k}: {v}" for k, v in counts.items())
+                        + ". Only FINISHED runs count; RUNNING, FAILED and KILLED runs are listed here but not used."))
+    return out
+
+
+def build_report(inp: ReportInput, name: str, out_dir: Path, command: str = "sdrl-bench-report",
+                 log_run: bool = True, echo: Callable[[str], None] = print) -> ReportResult:
+    """Write ``out_dir/name/report.md`` and ``report.html`` and, when the experiment exists and
+    ``log_run``, log both (with the figures) as artifacts of a "report" run."""
+    start = time.perf_counter()
+    folder = out_dir / name
+    folder.mkdir(parents=True, exist_ok=True)
+    runs, problems = select_runs(inp)
+    for p in problems:
+        echo(f"sdrl-bench-report: {p}")
+    problems += rt.missing_metrics(runs)
+    link = Linker(runs, inp.ui_url)
+    blocks = overview_blocks(inp, runs, problems, command) + table_blocks(runs, link)
+    blocks += figure_blocks(inp.uri, runs, folder, link.url)
+    (folder / "report.md").write_text(render_markdown(blocks, folder))
+    (folder / "report.html").write_text(render_html(blocks, f"sdrl-bench report {name}"))
+    run_id = None
+    if log_run and inp.experiment in tracking.list_experiments(inp.uri):
+        run_id = tracking.log_report(inp.uri, inp.experiment, name, folder, {"report.n_runs": len(runs)})
+    return ReportResult(folder, len(runs), problems, run_id, time.perf_counter() - start)

@@ -1,0 +1,165 @@
+"""The report's figures: learning curves pooled across seeds (drawn here), and the runs' own
+figure artifacts (policy maps, predicted vs true, Optuna history and Pareto front) and
+equations, fetched through ``tracking`` into the report folder."""
+
+from __future__ import annotations
+
+import io
+from pathlib import Path
+from typing import Any
+from collections.abc import Callable, Mapping, Sequence
+
+import pandas as pd
+
+from sdrl_bench.report import tables as rt
+from sdrl_bench import tracking
+from sdrl_bench.report.render import Block, Equations, Heading, Image, Para
+
+UrlFn = Callable[[str], "str | None"]
+
+
+def _ref(run_id: str, url: UrlFn) -> str:
+    u = url(run_id)
+    return f"[{run_id[:8]}]({u})" if u else f"`{run_id}`"
+
+
+def _fetch(uri: str, run_id: str, artifact: str, dest: Path) -> Path | None:
+    """One run artifact copied to ``dest`` (a file path in the report folder); None if absent."""
+    got = tracking.download_artifact(uri, run_id, artifact, dest.parent / f".dl-{run_id}")
+    if got is None or not got.is_file():
+        return None
+    dest.parent.mkdir(parents=True, exist_ok=True)
+    got.replace(dest)
+    return dest
+
+
+def _curves(uri: str, runs: Sequence[Mapping[str, Any]], arm: str, tmp: Path) -> list[pd.DataFrame]:
+    out = []
+    for r in runs:
+        path = tracking.download_artifact(uri, r["run_id"], f"curves/{arm}.csv", tmp / r["run_id"])
+        if path is not None and path.is_file():
+            out.append(pd.read_csv(path))
+    return out
+
+
+def learning_curve_figure(bands: Mapping[str, pd.DataFrame], title: str, solved: float | None) -> bytes:
+    """Real return vs training steps per arm: the mean across seeds, shaded min..max."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.4, 3.6))
+    ax = fig.subplots()
+    for arm, band in bands.items():
+        if len(band):
+            line, = ax.plot(band["train_steps"], band["mean"], label=f"{arm} (n={int(band['n'].max())} seeds)")
+            ax.fill_between(band["train_steps"], band["low"], band["high"], alpha=0.25, color=line.get_color())
+    if solved is not None:
+        ax.axhline(solved, ls="--", color="gray", lw=1, label=f"solved ({solved:g})")
+    ax.set_xlabel("training steps (in the arm's environment)")
+    ax.set_ylabel("real return")
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    return buf.getvalue()
+
+
+def _solved_threshold(runs: Sequence[Mapping[str, Any]]) -> float | None:
+    """The env's solved threshold as its transfer runs recorded it (tag ``solved_threshold``)."""
+    values = {r["tags"].get("solved_threshold") for r in runs} - {None, "", "None"}
+    return float(min(values, key=float)) if values else None
+
+
+def figure_blocks(uri: str, runs: Sequence[Mapping[str, Any]], folder: Path, url: UrlFn) -> list[Block]:
+    """Section 5: learning curves, policy maps, predicted vs true, Optuna, equations."""
+    figs = folder / "figures"
+    figs.mkdir(parents=True, exist_ok=True)
+    out: list[Block] = [Heading(2, "5. Figures")]
+    out += _transfer_blocks(uri, runs, folder, url)
+    out += _fit_blocks(uri, runs, folder, url)
+    out += _study_blocks(uri, runs, folder, url)
+    _cleanup(folder / ".dl")
+    for d in folder.glob("figures/.dl-*"):
+        _cleanup(d)
+    return out
+
+
+def _transfer_blocks(uri: str, runs: Sequence[Mapping[str, Any]], folder: Path, url: UrlFn) -> list[Block]:
+    """Learning curves pooled across seeds and one run's policy maps, per (env, surrogate kind)."""
+    figs = folder / "figures"
+    out: list[Block] = [Heading(3, "Learning curves and policy maps")]
+    done = rt.finished(runs, "transfer")
+    groups = sorted({(r["tags"].get("env", "?"), r["tags"].get("surrogate", "sindy")) for r in done})
+    if not groups:
+        out.append(Para("RL transfer: not run (no finished transfer runs)."))
+    for env, kind in groups:
+        members = [r for r in done if r["tags"].get("env") == env and r["tags"].get("surrogate", "sindy") == kind]
+        bands = {arm: rt.curve_band(_curves(uri, members, arm, folder / ".dl")) for arm in rt.ARMS}
+        if any(len(b) for b in bands.values()):
+            path = figs / f"curves_{env}_{kind}.png"
+            path.write_bytes(learning_curve_figure(bands, f"{env}, {kind} surrogate vs real", _solved_threshold(members)))
+            out.append(Image(path, f"{env} ({kind}): real return vs training steps, mean across seeds, shaded min..max"))
+        else:
+            out.append(Para(f"{env} ({kind}): learning curves missing from runs {', '.join(r['run_id'][:8] for r in members)}."))
+        first = members[0]["run_id"]
+        got = _fetch(uri, first, "figures/policy_maps.png", figs / f"policy_maps_{env}_{kind}.png")
+        if got:
+            out.append(Image(got, f"{env} ({kind}): policy maps, real-trained vs surrogate-trained agent (run {first[:8]})"))
+            out.append(Para(f"Policy maps from run {_ref(first, url)}."))
+        else:
+            out.append(Para(f"{env} ({kind}): policy maps missing from run {_ref(first, url)}."))
+    return out
+
+
+def _fit_blocks(uri: str, runs: Sequence[Mapping[str, Any]], folder: Path, url: UrlFn) -> list[Block]:
+    """Predicted vs true of each env's main fit per model kind, and the SINDy equations."""
+    figs = folder / "figures"
+    out: list[Block] = [Heading(3, "Predicted vs true, and the discovered equations")]
+    records = rt.fit_records(runs)
+    any_fit = False
+    for env in rt.envs_of(records):
+        for kind in ("sindy", "nn"):
+            fits = rt.main_fits(records, env, kind)
+            if not fits:
+                continue
+            any_fit = True
+            rid = fits[0]["run_id"]
+            got = _fetch(uri, rid, "figures/predicted_vs_true.png", figs / f"pred_{env}_{kind}.png")
+            if got:
+                out.append(Image(got, f"{env} ({kind}, {fits[0]['library'] if kind == 'sindy' else 'nn'}): predicted vs true "
+                                      f"on {fits[0]['test_set']} (run {rid[:8]})"))
+            if kind == "sindy":
+                eq = tracking.download_artifact(uri, rid, "model/equations.txt", folder / ".dl" / rid)
+                if eq is not None and eq.is_file():
+                    lines = [line for line in eq.read_text().splitlines() if line.strip()]
+                    out.append(Equations(f"{env}: SINDy equations ({fits[0]['library']}), run {rid}", lines))
+                else:
+                    out.append(Para(f"{env}: equations missing from run {_ref(rid, url)}."))
+    if not any_fit:
+        out.append(Para("Fits: not run (no finished fit runs)."))
+    return out
+
+
+def _study_blocks(uri: str, runs: Sequence[Mapping[str, Any]], folder: Path, url: UrlFn) -> list[Block]:
+    """Each Optuna study's history and Pareto figures, with its best error."""
+    figs = folder / "figures"
+    out: list[Block] = [Heading(3, "Hyperparameter search (Optuna)")]
+    studies = [r for r in runs if r["tags"].get("sdrl.kind") == "study"]
+    if not studies:
+        out.append(Para("Optuna search: not run (no study runs in this selection)."))
+    for s in studies:
+        name = s["tags"].get("sdrl.study", s["run_id"][:8])
+        for art, label in (("figures/optimization_history.png", "optimization history"), ("figures/pareto_front.png", "Pareto front")):
+            got = _fetch(uri, s["run_id"], art, figs / f"study_{name}_{Path(art).stem}.png")
+            if got:
+                out.append(Image(got, f"study {name}: {label} (run {s['run_id'][:8]}, {s['status']})"))
+        best = s["metrics"].get("best_error")
+        out.append(Para(f"Study `{name}` (run {_ref(s['run_id'], url)}, {s['status']}): best error "
+                        f"{'not run' if best is None else f'{best:.3e}'}, {int(s['metrics'].get('n_trials', 0))} trials."))
+    return out
+
+
+def _cleanup(path: Path) -> None:
+    import shutil
+
+    shutil.rmtree(path, ignore_errors=True)

@@ -1,0 +1,247 @@
+"""The report's tables, built from plain run dicts (``tracking.find_runs``): pure functions.
+
+Every table is a ``pandas.DataFrame`` with numeric values (NaN where the store holds nothing:
+the renderer prints "not run") and a ``runs`` column listing the run ids behind the row, so
+each number can link to its run. The paper's numbers (Table 1, the step counts, the NN
+comparison) are constants here and sit in their own columns beside ours.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import Counter
+from typing import Any
+from collections.abc import Iterable, Mapping, Sequence
+
+import numpy as np
+import pandas as pd
+from scipy import stats
+
+Run = Mapping[str, Any]
+
+#: Paper Table 1 top: (MSE, correlation) per env and state (units and test set not stated).
+PAPER_FIDELITY: dict[str, dict[str, tuple[float, float]]] = {
+    "mountain_car": {"x": (7.21e-4, 0.999), "v": (3.11e-6, 0.997)},
+    "lunar_lander": {"x": (1.42e-6, 1.000), "y": (9.64e-6, 1.000), "vx": (1.58e-5, 1.000),
+                     "vy": (3.38e-5, 0.999), "angle": (1.03e-5, 0.999), "angvel": (1.24e-4, 0.989)},
+}
+#: Paper Table 1 bottom: MSE per library (one number per env; the paper does not say how
+#: states are combined; we report the mean over states, ``mse/mean``).
+PAPER_ABLATION: dict[str, dict[str, float]] = {
+    "mountain_car": {"polynomial": 5.32e-3, "poly_trig": 3.11e-6, "rational": 4.15e-4},
+    "lunar_lander": {"polynomial": 1.58e-4, "poly_trig": 1.62e-4, "rational": 1.87e-4},
+}
+ABLATION_LIBRARIES = ("polynomial", "poly_trig", "rational")
+#: Paper: total steps, surrogate arm vs real arm.
+PAPER_TOTAL_STEPS: dict[str, dict[str, float]] = {
+    "mountain_car": {"surrogate": 65_075, "real": 100_000},
+    "lunar_lander": {"surrogate": 801_000, "real": 1_000_000},
+}
+ARMS = ("surrogate", "real")
+#: The library each paper pack uses (conf/experiment/paper_*.yaml): preferred for Table 1 top.
+PAPER_LIBRARY = {"mountain_car": "poly_trig", "lunar_lander": "polynomial"}
+
+
+# ---------------------------------------------------------------------- run selection
+def finished(runs: Iterable[Run], kind: str | None = None) -> list[Run]:
+    """FINISHED runs (RUNNING, FAILED and KILLED runs are not results), of one ``sdrl.kind``."""
+    return [r for r in runs if r.get("status") == "FINISHED" and (kind is None or r["tags"].get("sdrl.kind") == kind)]
+
+
+def fit_records(runs: Iterable[Run]) -> list[dict[str, Any]]:
+    """Every finished fit as one record: fit runs, and the fit inside each transfer run
+    (its ``fit/`` metrics). Keys: run_id, source ("fit"/"transfer"), env, library, surrogate,
+    collector, seed, test_set, metrics (unprefixed)."""
+    out = []
+    for r in finished(runs):
+        kind, tags = r["tags"].get("sdrl.kind"), r["tags"]
+        if kind == "fit":
+            metrics = dict(r["metrics"])
+        elif kind == "transfer":
+            metrics = {k[4:]: v for k, v in r["metrics"].items() if k.startswith("fit/")}
+        else:
+            continue
+        out.append({"run_id": r["run_id"], "source": kind, "env": tags.get("env"), "library": tags.get("library"),
+                    "surrogate": tags.get("surrogate", "sindy"), "collector": tags.get("collector"),
+                    "seed": tags.get("seed"), "test_set": tags.get("test_set", "?"), "metrics": metrics})
+    return out
+
+
+def states_of(records: Sequence[Mapping[str, Any]], env: str) -> list[str]:
+    """State names of an env: the paper's order, then any others the records' metrics name."""
+    found = {k[4:] for r in records if r["env"] == env for k in r["metrics"] if k.startswith("mse/") and k != "mse/mean"}
+    known = list(PAPER_FIDELITY.get(env, {}))
+    return [s for s in known if s in found or not found] + sorted(found - set(known))
+
+
+def envs_of(records: Iterable[Mapping[str, Any]]) -> list[str]:
+    """The paper's envs first, then any others present."""
+    found = {r["env"] for r in records if r.get("env")}
+    return [e for e in PAPER_FIDELITY] + sorted(found - set(PAPER_FIDELITY))
+
+
+def main_fits(records: Sequence[Mapping[str, Any]], env: str, surrogate: str = "sindy") -> list[Mapping[str, Any]]:
+    """The fits that stand for an env's surrogate: those made inside transfer runs (the
+    paper's pipeline) if any, else fit runs; of the paper pack's library when present (SINDy),
+    and of the most frequent (library, test set)."""
+    mine = [r for r in records if r["env"] == env and r["surrogate"] == surrogate]
+    mine = [r for r in mine if r["source"] == "transfer"] or mine
+    if surrogate == "sindy":
+        mine = [r for r in mine if r["library"] == PAPER_LIBRARY.get(env)] or mine
+    if not mine:
+        return []
+    key = Counter((r["library"], r["test_set"]) for r in mine).most_common(1)[0][0]
+    return [r for r in mine if (r["library"], r["test_set"]) == key]
+
+
+def _mean(values: Iterable[float | None]) -> float:
+    vals = [float(v) for v in values if v is not None and not math.isnan(float(v))]
+    return float(np.mean(vals)) if vals else float("nan")
+
+
+# ---------------------------------------------------------------------- tables 1-3
+def fidelity_table(runs: Iterable[Run]) -> pd.DataFrame:
+    """Paper Table 1 top: per env and state, one-step MSE (raw units and normalized) and
+    correlation, the mean over the env's main fits (``main_fits``), beside the paper's."""
+    records = fit_records(runs)
+    rows = []
+    for env in envs_of(records):
+        fits = main_fits(records, env)
+        for state in states_of(records, env):
+            paper = PAPER_FIDELITY.get(env, {}).get(state, (math.nan, math.nan))
+            rows.append({
+                "env": env, "state": state,
+                "library": fits[0]["library"] if fits else None,
+                "test_set": fits[0]["test_set"] if fits else None,
+                "n_fits": len(fits),
+                "mse": _mean(f["metrics"].get(f"mse/{state}") for f in fits),
+                "mse_norm": _mean(f["metrics"].get(f"mse_norm/{state}") for f in fits),
+                "corr": _mean(f["metrics"].get(f"corr/{state}") for f in fits),
+                "paper_mse": paper[0], "paper_corr": paper[1],
+                "runs": [f["run_id"] for f in fits],
+            })
+    return pd.DataFrame(rows, columns=["env", "state", "library", "test_set", "n_fits", "mse", "mse_norm", "corr",
+                                       "paper_mse", "paper_corr", "runs"])
+
+
+def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
+    """Paper Table 1 bottom: per env and library, the mean one-step MSE over states
+    (``mse/mean``, raw units) of the SINDy fit runs, averaged over runs, beside the paper's."""
+    records = [r for r in fit_records(runs) if r["surrogate"] == "sindy" and r["source"] == "fit"]
+    rows = []
+    for env in envs_of(records):
+        libraries = list(ABLATION_LIBRARIES) + sorted({r["library"] for r in records if r["env"] == env} - set(ABLATION_LIBRARIES))
+        for lib in libraries:
+            fits = [r for r in records if r["env"] == env and r["library"] == lib]
+            rows.append({"env": env, "library": lib, "n_fits": len(fits),
+                         "test_set": fits[0]["test_set"] if fits else None,
+                         "mse_mean": _mean(f["metrics"].get("mse/mean") for f in fits),
+                         "mse_norm_mean": _mean(f["metrics"].get("mse_norm/mean") for f in fits),
+                         "paper_mse": PAPER_ABLATION.get(env, {}).get(lib, math.nan),
+                         "runs": [f["run_id"] for f in fits]})
+    return pd.DataFrame(rows, columns=["env", "library", "n_fits", "test_set", "mse_mean", "mse_norm_mean", "paper_mse", "runs"])
+
+
+def _ratio(a: float, b: float) -> float:
+    return a / b if b and not (math.isnan(a) or math.isnan(b)) else math.nan
+
+
+def sindy_vs_nn_table(runs: Iterable[Run]) -> pd.DataFrame:
+    """SINDy vs NN per env: per-state one-step MSE, fit wall and CPU seconds, parameters
+    (SINDy: active terms) and the SINDy/NN ratios, each the mean over the kind's fit runs."""
+    records = [r for r in fit_records(runs) if r["source"] == "fit"]
+    rows = []
+    for env in envs_of(records):
+        sindy, nn = main_fits(records, env, "sindy"), main_fits(records, env, "nn")
+        ids = [f["run_id"] for f in sindy + nn]
+        quantities = [f"mse/{s}" for s in states_of(records, env)] + ["fit_wall_seconds", "fit_cpu_seconds", "n_parameters"]
+        for q in quantities:
+            s_val = _mean(f["metrics"].get(q) for f in sindy)
+            n_val = _mean(f["metrics"].get(q) for f in nn)
+            rows.append({"env": env, "quantity": q, "sindy": s_val, "nn": n_val, "sindy_over_nn": _ratio(s_val, n_val),
+                         "n_sindy": len(sindy), "n_nn": len(nn), "runs": ids})
+    return pd.DataFrame(rows, columns=["env", "quantity", "sindy", "nn", "sindy_over_nn", "n_sindy", "n_nn", "runs"])
+
+
+# ---------------------------------------------------------------------- RL transfer
+def iqm(x: np.ndarray, axis: int = -1) -> np.ndarray:
+    """Interquartile mean: the mean of the middle 50% (25% trimmed from each end)."""
+    return stats.trim_mean(x, 0.25, axis=axis)
+
+
+def bootstrap_ci(values: Sequence[float], confidence: float = 0.95, n_resamples: int = 2000,
+                 seed: int = 0) -> tuple[float, float, float, str]:
+    """(point, low, high, statistic name) over seeds: the IQM when there are >= 5 values, else
+    the mean; a percentile bootstrap interval (``scipy.stats.bootstrap``, fixed seed). Fewer
+    than two values: no interval (NaN bounds)."""
+    x = np.asarray([v for v in values if v is not None and not math.isnan(v)], dtype=float)
+    if len(x) == 0:
+        return math.nan, math.nan, math.nan, "mean"
+    name, fn = ("IQM", iqm) if len(x) >= 5 else ("mean", np.mean)
+    point = float(fn(x))
+    if len(x) < 2:
+        return point, math.nan, math.nan, name
+    if np.all(x == x[0]):
+        return point, point, point, name
+    res = stats.bootstrap((x,), fn, confidence_level=confidence, n_resamples=n_resamples, method="percentile",
+                          vectorized=True, axis=-1, rng=np.random.default_rng(seed))
+    return point, float(res.confidence_interval.low), float(res.confidence_interval.high), name
+
+
+TRANSFER_METRICS = ("real_transitions_model", "real_transitions_train", "surrogate_steps", "total_steps",
+                    "success_rate", "train_wall_seconds", "solved_real_steps", "solved_wall_seconds")
+
+
+def transfer_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
+    """RL transfer per env, surrogate kind and arm (seeds pooled): real transitions used
+    (model + training), surrogate steps, total steps as the paper counts them, final real
+    return (IQM or mean) with a 95% bootstrap CI over seeds, success rate, training wall
+    seconds, real steps (and wall seconds) to first reach the solved threshold (mean over the
+    seeds that reached it; ``n_solved`` says how many did)."""
+    done = finished(runs, "transfer")
+    rows = []
+    for env in envs_of({"env": r["tags"].get("env")} for r in done):
+        for kind in ("sindy", "nn"):
+            group = [r for r in done if r["tags"].get("env") == env and r["tags"].get("surrogate", "sindy") == kind]
+            for arm in ARMS:
+                have = [r for r in group if f"{arm}/final_return_mean" in r["metrics"]]
+                returns = [r["metrics"][f"{arm}/final_return_mean"] for r in have]
+                point, lo, hi, stat = bootstrap_ci(returns, seed=seed)
+                row: dict[str, Any] = {"env": env, "surrogate": kind, "arm": arm, "n_seeds": len(have),
+                                       "return": point, "ci_low": lo, "ci_high": hi, "statistic": stat}
+                for m in TRANSFER_METRICS:
+                    row[m] = _mean(r["metrics"].get(f"{arm}/{m}") for r in have)
+                row["real_transitions"] = row["real_transitions_model"] + row["real_transitions_train"]
+                row["n_solved"] = sum(f"{arm}/solved_real_steps" in r["metrics"] for r in have)
+                row["paper_total_steps"] = PAPER_TOTAL_STEPS.get(env, {}).get(arm, math.nan)
+                row["runs"] = [r["run_id"] for r in have]
+                rows.append(row)
+    cols = ["env", "surrogate", "arm", "n_seeds", "real_transitions", "surrogate_steps", "total_steps", "paper_total_steps",
+            "return", "ci_low", "ci_high", "statistic", "success_rate", "train_wall_seconds", "solved_real_steps",
+            "solved_wall_seconds", "n_solved", "real_transitions_model", "real_transitions_train", "runs"]
+    return pd.DataFrame(rows, columns=cols)
+
+
+def curve_band(curves: Sequence[pd.DataFrame]) -> pd.DataFrame:
+    """Learning curves of several seeds (columns train_steps, return_mean) on their common
+    steps: mean, min and max across seeds per step, and how many seeds have the step."""
+    frames = [c[["train_steps", "return_mean"]].dropna() for c in curves if len(c)]
+    if not frames:
+        return pd.DataFrame(columns=["train_steps", "mean", "low", "high", "n"])
+    joined = pd.concat(frames).groupby("train_steps")["return_mean"]
+    out = pd.DataFrame({"mean": joined.mean(), "low": joined.min(), "high": joined.max(), "n": joined.count()})
+    return out.reset_index()
+
+
+def missing_metrics(runs: Iterable[Run]) -> list[str]:
+    """Finished runs whose kind's key metrics are absent, as messages for the report."""
+    needed = {"fit": ("mse/mean", "fit_wall_seconds"), "transfer": tuple(f"{a}/final_return_mean" for a in ARMS)}
+    out = []
+    for r in finished(runs):
+        keys = needed.get(r["tags"].get("sdrl.kind", ""), ())
+        if r["tags"].get("arms"):  # a transfer run that ran some arms only: ask for those
+            keys = tuple(f"{a}/final_return_mean" for a in r["tags"]["arms"].split(","))
+        lacking = [k for k in keys if k not in r["metrics"]]
+        if lacking:
+            out.append(f"run {r['run_id']} ({r['tags'].get('mlflow.runName', '?')}) lacks {', '.join(lacking)}")
+    return out

@@ -1,0 +1,221 @@
+"""Train and evaluate stable-baselines3 agents; real-env step and time accounting.
+
+Nothing here logs: functions return curves and counts; ``tracking`` records them.
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from typing import Any
+from collections.abc import Callable
+
+import gymnasium as gym
+import numpy as np
+from stable_baselines3.common.base_class import BaseAlgorithm
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.monitor import Monitor
+from stable_baselines3.common.vec_env import DummyVecEnv, VecEnv
+
+from sdrl_bench import ConfigError
+from sdrl_bench.envs.base import EnvSpec
+
+
+@dataclass(frozen=True)
+class AgentConfig:
+    """An SB3 algorithm with its hyperparameters, built around an env at run time."""
+
+    name: str
+    """Short name (sac, ppo, td3, dqn)."""
+    algo: Callable[..., BaseAlgorithm]
+    """The SB3 class with its hyperparameters bound (``_partial_``); called with ``env=``, ``seed=``."""
+    n_envs: int = 1
+    """Parallel env copies the algorithm trains on."""
+    action_space: str = "any"
+    """"continuous", "discrete" or "any": what the algorithm can act in."""
+
+    def check(self, spec: EnvSpec) -> None:
+        """Fail at config time when the algorithm cannot act in the env."""
+        if self.n_envs <= 0:
+            raise ConfigError(f"agent.n_envs must be positive, got {self.n_envs}")
+        discrete = spec.n_discrete_actions > 0
+        kind = "discrete" if discrete else "continuous (Box)"
+        if (self.action_space == "continuous" and discrete) or (self.action_space == "discrete" and not discrete):
+            other = "agent=ppo or agent=dqn" if discrete else "agent=sac, agent=td3 or agent=ppo"
+            raise ConfigError(
+                f"agent={self.name}: {self.name.upper()} needs {self.action_space} actions but env "
+                f"'{spec.name}' has {kind} actions; use {other}"
+            )
+
+
+def ou_noise(sigma: float, n_actions: int):
+    """Ornstein-Uhlenbeck action noise (TD3's zoo exploration on MountainCar)."""
+    from stable_baselines3.common.noise import OrnsteinUhlenbeckActionNoise
+
+    return OrnsteinUhlenbeckActionNoise(mean=np.zeros(n_actions), sigma=sigma * np.ones(n_actions))
+
+
+def check_budget(key: str, steps: int) -> None:
+    if int(steps) <= 0:
+        raise ConfigError(f"{key} must be positive, got {steps}")
+
+
+class StepCounter(gym.Wrapper):
+    """Counts real-env steps into ``counts[phase]``: the accounting's ground truth."""
+
+    def __init__(self, env: gym.Env, counts: Counter, phase: str):
+        super().__init__(env)
+        self.counts, self.phase = counts, phase
+
+    def step(self, action):
+        self.counts[self.phase] += 1
+        return self.env.step(action)
+
+
+def real_vec_env(spec: EnvSpec, n_envs: int, seed: int, counts: Counter, phase: str = "train") -> VecEnv:
+    """n copies of the real env, each counted and monitored, seeded ``seed + i``."""
+
+    def make(i: int):
+        return lambda: Monitor(StepCounter(spec.make_env(), counts, phase))
+
+    venv = DummyVecEnv([make(i) for i in range(n_envs)])
+    venv.seed(seed)
+    return venv
+
+
+@dataclass
+class EvalResult:
+    returns: np.ndarray
+    lengths: np.ndarray
+    successes: np.ndarray
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean(self.returns))
+
+    @property
+    def std(self) -> float:
+        return float(np.std(self.returns))
+
+    @property
+    def success_rate(self) -> float:
+        return float(np.mean(self.successes))
+
+    @property
+    def steps(self) -> int:
+        return int(np.sum(self.lengths))
+
+
+def evaluate_real(
+    policy: Any, spec: EnvSpec, n_episodes: int, seed: int, counts: Counter | None = None,
+    phase: str = "evaluate", deterministic: bool = True,
+) -> EvalResult:
+    """Play ``n_episodes`` in the real env (reset seeds ``seed + i``) with ``policy.predict``."""
+    counts = counts if counts is not None else Counter()
+    env = StepCounter(spec.make_env(), counts, phase)
+    rets, lens, succ = [], [], []
+    try:
+        for i in range(n_episodes):
+            obs, _ = env.reset(seed=seed + i)
+            total, steps, done, term = 0.0, 0, False, False
+            while not done:
+                action, _ = policy.predict(obs, deterministic=deterministic)
+                obs, r, term, trunc, _ = env.step(action)
+                total += float(r)
+                steps += 1
+                done = term or trunc
+            rets.append(total)
+            lens.append(steps)
+            succ.append(spec.is_success(total, term))
+    finally:
+        env.close()
+    return EvalResult(np.asarray(rets), np.asarray(lens), np.asarray(succ, dtype=bool))
+
+
+@dataclass
+class Curve:
+    """Real-env evaluations during training."""
+
+    steps: list[int] = field(default_factory=list)
+    """Training steps (in the env the agent trains in) at each evaluation."""
+    means: list[float] = field(default_factory=list)
+    stds: list[float] = field(default_factory=list)
+    wall: list[float] = field(default_factory=list)
+    """Training wall seconds (evaluation time excluded) at each evaluation."""
+    first_solved_step: int | None = None
+    first_solved_wall: float | None = None
+
+
+class RealEvalCallback(BaseCallback):
+    """Every ``every`` training steps, evaluate the current policy in the real env."""
+
+    def __init__(self, spec: EnvSpec, every: int, episodes: int, seed: int, counts: Counter,
+                 on_point: Callable[[int, float, float], None] | None = None):
+        super().__init__()
+        self.spec, self.every, self.episodes, self.seed = spec, every, episodes, seed
+        self.counts, self.on_point = counts, on_point
+        self.curve = Curve()
+        self._next = every
+        self.eval_wall_seconds = 0.0
+        self.eval_cpu_seconds = 0.0
+        self._t0 = 0.0
+
+    def _on_training_start(self) -> None:
+        self._t0 = time.perf_counter()
+        self._point()
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self._next:
+            self._next += self.every
+            self._point()
+        return True
+
+    def _on_training_end(self) -> None:
+        if not self.curve.steps or self.curve.steps[-1] != self.num_timesteps:
+            self._point()
+
+    def _point(self) -> None:
+        t, c = time.perf_counter(), time.process_time()
+        res = evaluate_real(self.model, self.spec, self.episodes, self.seed, self.counts, "evaluate")
+        self.eval_wall_seconds += time.perf_counter() - t
+        self.eval_cpu_seconds += time.process_time() - c
+        wall = time.perf_counter() - self._t0 - self.eval_wall_seconds
+        c = self.curve
+        c.steps.append(int(self.num_timesteps))
+        c.means.append(res.mean)
+        c.stds.append(res.std)
+        c.wall.append(wall)
+        solved = self.spec.solved_threshold
+        if c.first_solved_step is None and solved is not None and res.mean >= solved:
+            c.first_solved_step, c.first_solved_wall = int(self.num_timesteps), wall
+        if self.on_point is not None:
+            self.on_point(int(self.num_timesteps), res.mean, res.std)
+
+
+@dataclass
+class TrainResult:
+    model: BaseAlgorithm
+    curve: Curve
+    wall_seconds: float
+    """Training wall seconds, the learning-curve evaluations excluded."""
+    cpu_seconds: float
+    """Training CPU seconds of this process, the learning-curve evaluations excluded."""
+    eval_wall_seconds: float
+
+
+def train(
+    agent: AgentConfig, env: VecEnv, steps: int, seed: int, callback: RealEvalCallback | None = None,
+    logger: Any = None, progress_bar: bool = False,
+) -> TrainResult:
+    """Build the agent around ``env`` and train it for ``steps`` env steps."""
+    model = agent.algo(env=env, seed=seed, verbose=0)
+    if logger is not None:
+        model.set_logger(logger)
+    t0, c0 = time.perf_counter(), time.process_time()
+    model.learn(total_timesteps=int(steps), callback=callback, progress_bar=progress_bar)
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    eval_wall = callback.eval_wall_seconds if callback is not None else 0.0
+    eval_cpu = callback.eval_cpu_seconds if callback is not None else 0.0
+    curve = callback.curve if callback is not None else Curve()
+    return TrainResult(model, curve, wall - eval_wall, cpu - eval_cpu, eval_wall)

@@ -1,0 +1,86 @@
+"""Expert collectors: the paper's pre-trained agents, trained here on first use and cached.
+
+Hub downloads are impossible here, so an expert is trained with its zoo settings the first time
+it is asked for, with a progress bar and a log line, and cached as an SB3 zip under
+``cache_dir`` keyed by (env, algorithm, seed, budget). A missing expert is trained, never
+replaced by a random policy.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from sdrl_bench import ConfigError
+from sdrl_bench.envs.base import EnvSpec, Policy
+from sdrl_bench.rl.agents import AgentConfig, check_budget, real_vec_env, train
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ExpertPolicy:
+    """A policy factory for ``data.collect``: ``ExpertPolicy(...)(spec, env) -> policy``.
+
+    ``agent`` is the algorithm with its zoo hyperparameters; ``budget`` its training steps.
+    """
+
+    agent: AgentConfig
+    budget: int
+    seed: int = 0
+    cache_dir: str = "mlruns/experts"
+    progress_bar: bool = True
+    _model: Any = field(default=None, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        check_budget("collector.expert.budget", self.budget)
+
+    def validate(self, spec: EnvSpec) -> None:
+        """Config-time check (no training): the expert's algorithm can act in the env."""
+        self.agent.check(spec)
+
+    def path(self, spec: EnvSpec) -> Path:
+        return Path(self.cache_dir) / f"{spec.name}-{self.agent.name}-s{self.seed}-n{int(self.budget)}.zip"
+
+    def load_or_train(self, spec: EnvSpec) -> tuple[Any, bool]:
+        """(the SB3 model, whether it came from the cache)."""
+        self.agent.check(spec)
+        path = self.path(spec)
+        algo_cls = self.agent.algo.func if hasattr(self.agent.algo, "func") else self.agent.algo
+        if path.is_file():
+            log.info("expert: using cached %s", path)
+            try:
+                return algo_cls.load(path, device="cpu"), True
+            except Exception as exc:
+                raise ConfigError(f"collector: cached expert {path} cannot be loaded ({exc}); delete it to retrain") from exc
+        log.warning(
+            "expert: no cached %s expert for %s (seed %d, %d steps): training it now with its zoo settings",
+            self.agent.name, spec.name, self.seed, self.budget,
+        )
+        t0 = time.perf_counter()
+        venv = real_vec_env(spec, self.agent.n_envs, self.seed, Counter(), "expert")
+        result = train(self.agent, venv, self.budget, self.seed, progress_bar=self.progress_bar)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp.zip")
+        result.model.save(tmp)
+        tmp.replace(path)  # atomic: a concurrent run never reads half a file
+        log.warning("expert: trained in %.0f s, cached at %s", time.perf_counter() - t0, path)
+        return result.model, False
+
+    def __call__(self, spec: EnvSpec, env: gym.Env) -> Policy:
+        if self._model is None:
+            self._model, _ = self.load_or_train(spec)
+        model = self._model
+
+        def policy(obs: np.ndarray):
+            action, _ = model.predict(obs, deterministic=True)
+            return action.item() if spec.n_discrete_actions else action
+
+        return policy

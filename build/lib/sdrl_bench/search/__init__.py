@@ -1,0 +1,1 @@
+"""Optuna search of the SINDy hyperparameters: space, study, storage, refinement, summary."""

@@ -1,0 +1,212 @@
+"""The search space over SINDy hyperparameters: parsing, validation, sampling, export.
+
+A space is a mapping from a *known parameter* to its distribution, as written in
+``conf/search/*.yaml``::
+
+    threshold:   {type: float, low: 1.0e-6, high: 0.1, log: true}
+    library:     {type: categorical, choices: [polynomial, poly_trig, rational]}
+    poly_degree: {type: int, low: 1, high: 3}
+
+Each known parameter maps onto one key of the ``sdrl-bench`` config (``PARAM_KEYS``), so the
+best trial exports as plain command-line overrides or as an experiment pack that a fit run
+uses directly. Everything here is pure: no storage, no tracking, no fitting.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+from collections.abc import Mapping, Sequence
+
+import yaml
+
+from sdrl_bench import ConfigError
+
+PARAM_KEYS: dict[str, str] = {
+    "threshold": "env.sindy.threshold",
+    "alpha": "env.sindy.alpha",
+    "normalize_columns": "env.sindy.normalize_columns",
+    "poly_degree": "env.poly_degree",
+    "library": "library",
+    "optimizer": "optimizer",
+}
+"""Known parameter -> the ``sdrl-bench`` config key it sets (``library`` and ``optimizer`` are
+config-group choices, the rest are values)."""
+GROUP_PARAMS = ("library", "optimizer")
+KINDS = ("float", "int", "categorical")
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One searched parameter."""
+
+    name: str
+    """A key of ``PARAM_KEYS``."""
+    kind: str
+    """``float``, ``int`` or ``categorical``."""
+    low: float | None = None
+    """Lower bound (float, int)."""
+    high: float | None = None
+    """Upper bound, inclusive (float, int); must exceed ``low``."""
+    log: bool = False
+    """Sample on a log scale (bounds must be positive)."""
+    choices: tuple[Any, ...] | None = None
+    """The values of a categorical parameter."""
+    grid: tuple[Any, ...] | None = None
+    """The values the grid sampler visits (within the bounds); categorical: ``choices``."""
+
+    def describe(self) -> dict[str, Any]:
+        """The distribution as plain data (what a study stores and compares; no grid)."""
+        if self.kind == "categorical":
+            return {"type": "categorical", "choices": list(self.choices or ())}
+        return {"type": self.kind, "low": self.low, "high": self.high, "log": self.log}
+
+
+SearchSpace = tuple[ParamSpec, ...]
+
+
+def parse_space(raw: Mapping[str, Any] | None, key: str = "search.space") -> SearchSpace:
+    """Validate a space written as plain data; every problem is a one-line ``ConfigError``."""
+    if not raw:
+        raise ConfigError(f"{key}: the search space is empty")
+    return tuple(_parse_param(str(name), spec, f"{key}.{name}") for name, spec in raw.items())
+
+
+def _parse_param(name: str, spec: Any, key: str) -> ParamSpec:
+    if name not in PARAM_KEYS:
+        raise ConfigError(f"{key}: unknown parameter '{name}'; known parameters: {', '.join(PARAM_KEYS)}")
+    if not isinstance(spec, Mapping):
+        raise ConfigError(f"{key}: expected a mapping with 'type' and bounds or choices, got {spec!r}")
+    unknown = set(spec) - {"type", "low", "high", "log", "choices", "grid"}
+    if unknown:
+        raise ConfigError(f"{key}: unknown fields {sorted(unknown)}")
+    kind = spec.get("type")
+    if kind not in KINDS:
+        raise ConfigError(f"{key}.type: must be one of {list(KINDS)}, got {kind!r}")
+    if kind == "categorical":
+        return _parse_categorical(name, spec, key)
+    return _parse_numeric(name, kind, spec, key)
+
+
+def _parse_categorical(name: str, spec: Mapping, key: str) -> ParamSpec:
+    choices = spec.get("choices")
+    if not isinstance(choices, Sequence) or isinstance(choices, str) or len(choices) == 0:
+        raise ConfigError(f"{key}.choices: a categorical parameter needs a non-empty list of choices")
+    if len(set(map(repr, choices))) != len(choices):
+        raise ConfigError(f"{key}.choices: duplicate choices in {list(choices)}")
+    if name in GROUP_PARAMS and not all(isinstance(c, str) for c in choices):
+        raise ConfigError(f"{key}.choices: {name} choices are config names (strings)")
+    return ParamSpec(name, "categorical", choices=tuple(choices), grid=tuple(choices))
+
+
+def _parse_numeric(name: str, kind: str, spec: Mapping, key: str) -> ParamSpec:
+    low, high, log = spec.get("low"), spec.get("high"), bool(spec.get("log", False))
+    for bound, value in (("low", low), ("high", high)):
+        if not _is_number(value) or not math.isfinite(float(value)):
+            raise ConfigError(f"{key}.{bound}: a finite number is required, got {value!r}")
+        if kind == "int" and float(value) != int(value):
+            raise ConfigError(f"{key}.{bound}: an integer is required for type int, got {value!r}")
+    low, high = (float(low), float(high)) if kind == "float" else (int(low), int(high))
+    if low >= high:
+        raise ConfigError(f"{key}: low ({low:g}) must be below high ({high:g})")
+    if log and low <= 0:
+        raise ConfigError(f"{key}: a log scale needs positive bounds, got low={low:g}")
+    grid = spec.get("grid")
+    if grid is not None:
+        if not isinstance(grid, Sequence) or isinstance(grid, str) or not grid:
+            raise ConfigError(f"{key}.grid: a non-empty list of values is required")
+        bad = [g for g in grid if not _is_number(g) or not low <= float(g) <= high]
+        if bad:
+            raise ConfigError(f"{key}.grid: values {bad} are not numbers within [{low:g}, {high:g}]")
+        grid = tuple(float(g) if kind == "float" else int(g) for g in grid)
+    return ParamSpec(name, kind, low=low, high=high, log=log, grid=grid)
+
+
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def suggest(trial: Any, space: SearchSpace) -> dict[str, Any]:
+    """Sample every parameter of ``space`` from an Optuna trial (pure sampler function)."""
+    params: dict[str, Any] = {}
+    for p in space:
+        if p.kind == "categorical":
+            params[p.name] = trial.suggest_categorical(p.name, list(p.choices or ()))
+        elif p.kind == "int":
+            params[p.name] = trial.suggest_int(p.name, int(p.low), int(p.high), log=p.log)
+        else:
+            params[p.name] = trial.suggest_float(p.name, float(p.low), float(p.high), log=p.log)
+    return params
+
+
+def grid_values(space: SearchSpace, key: str = "search.space") -> dict[str, list[Any]]:
+    """The grid for Optuna's GridSampler: every parameter needs grid values (categorical: its
+    choices; int: every integer in range when no grid is given)."""
+    out: dict[str, list[Any]] = {}
+    for p in space:
+        if p.grid is not None:
+            out[p.name] = list(p.grid)
+        elif p.kind == "int":
+            out[p.name] = list(range(int(p.low), int(p.high) + 1))
+        else:
+            raise ConfigError(f"{key}.{p.name}.grid: the grid sampler needs grid values for every parameter")
+    return out
+
+
+def describe_space(space: SearchSpace) -> dict[str, dict[str, Any]]:
+    """The space as plain data, keyed by parameter (stored with a study, compared on resume)."""
+    return {p.name: p.describe() for p in space}
+
+
+def space_differences(stored: Mapping[str, Any], requested: Mapping[str, Any]) -> list[str]:
+    """Human-readable differences between two described spaces (empty when equal)."""
+    diffs = []
+    for name in sorted(set(stored) | set(requested)):
+        if name not in stored:
+            diffs.append(f"{name} added")
+        elif name not in requested:
+            diffs.append(f"{name} removed")
+        else:
+            for field in sorted(set(stored[name]) | set(requested[name])):
+                a, b = stored[name].get(field), requested[name].get(field)
+                if a != b:
+                    diffs.append(f"{name}.{field} {a!r} -> {b!r}")
+    return diffs
+
+
+# ---------------------------------------------------------------------- export
+def _format(value: Any) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return repr(value) if isinstance(value, float) else str(value)
+
+
+def to_overrides(params: Mapping[str, Any], choices: Mapping[str, str] | None = None) -> list[str]:
+    """``sdrl-bench`` command-line overrides that reproduce ``params`` (plus group ``choices``
+    such as env and collector, which come first)."""
+    out = [f"{group}={name}" for group, name in (choices or {}).items() if group not in params]
+    out += [f"{PARAM_KEYS[k]}={_format(v)}" for k, v in params.items()]
+    return out
+
+
+def experiment_pack(
+    params: Mapping[str, Any],
+    choices: Mapping[str, str],
+    values: Mapping[str, Any] | None = None,
+    header: str = "",
+) -> str:
+    """An ``# @package _global_`` experiment config (``+experiment=<name>``) that sets the group
+    ``choices`` (env, collector, library, optimizer), the searched ``params`` and other plain
+    ``values`` (dotted keys such as ``seed`` or ``n_transitions``)."""
+    groups = {**choices, **{k: v for k, v in params.items() if k in GROUP_PARAMS}}
+    body: dict[str, Any] = {"defaults": [{f"override /{g}": str(n)} for g, n in groups.items()]}
+    dotted = {**(values or {}), **{PARAM_KEYS[k]: v for k, v in params.items() if k not in GROUP_PARAMS}}
+    for key, value in dotted.items():
+        node = body
+        *path, leaf = key.split(".")
+        for part in path:
+            node = node.setdefault(part, {})
+        node[leaf] = value
+    lines = [f"# {line}" for line in header.strip().splitlines()]
+    return "# @package _global_\n" + "\n".join(lines + [yaml.safe_dump(body, sort_keys=False)])

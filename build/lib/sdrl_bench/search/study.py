@@ -1,0 +1,325 @@
+"""Optuna search over SINDy hyperparameters, every trial tracked.
+
+The data are collected once per study (same seed, same data for every trial and every worker;
+its hash is part of the study). A trial samples parameters from the search space, builds the
+fit they describe (``build_job(params)``: the ``sdrl-bench`` config with those overrides) and
+scores it by k-fold validation on the collected data (``validation``); the env's fixed test
+set is only used to score the best trial at the end (``search.summary.summarize``).
+
+``run_study`` is one worker: any number of them, in one process, several processes or several
+machines, can share a study through its storage. ``n_trials`` is the study's budget (finished
+trials over all workers and reruns), so a rerun after a crash completes the study.
+
+About 320 lines: the settings, the data, the objective and the worker loop (with heartbeats and
+stale-trial repair) are one unit that a reader follows top to bottom.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+from collections.abc import Callable, Mapping
+
+import numpy as np
+import optuna
+
+from sdrl_bench import ConfigError, tracking
+from sdrl_bench.data import Transitions, collect, random_policy
+from sdrl_bench.envs.base import EnvSpec
+from sdrl_bench.models.libraries import build_library
+from sdrl_bench.pipeline import FitJob, build_model, check
+from sdrl_bench.search.space import SearchSpace, describe_space, grid_values, suggest
+from sdrl_bench.search.storage import open_storage, open_study, redact, resolve_storage, study_parent_run
+from sdrl_bench.search.validation import Fold, aggregate, cross_validate, fit_model, make_folds, resolution_floor
+
+warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
+optuna.logging.set_verbosity(optuna.logging.WARNING)
+
+OBJECTIVES = ("error", "n_terms")
+SAMPLERS = ("tpe", "random", "grid", "nsga2")
+OBJECTIVE_VERSION = "geomean over folds of (mean normalized one-step MSE + float floor), v1"
+TRIAL_ERRORS: tuple[type[BaseException], ...] = (ConfigError, ValueError, ArithmeticError, np.linalg.LinAlgError)
+"""Errors that fail one trial (a candidate that cannot be fitted) without stopping the study."""
+
+BuildJob = Callable[[Mapping[str, Any]], FitJob]
+
+
+@dataclass(frozen=True)
+class StudySettings:
+    """What a study searches and how; validated by ``check_settings`` before any work."""
+
+    name: str
+    """Study name: rerunning with the same name (and storage) resumes the study."""
+    space: SearchSpace
+    """Parameters and distributions (``search.space.parse_space``)."""
+    storage: str | None = None
+    """Optuna storage URL; None: ``sqlite:///mlruns/optuna.db``; ``journal:<file>`` for a journal."""
+    objectives: tuple[str, ...] = ("error",)
+    """``("error",)`` or ``("error", "n_terms")`` (multi-objective: the Pareto front)."""
+    sampler: str = "tpe"
+    """``tpe``, ``random``, ``grid`` (every grid point once) or ``nsga2``."""
+    n_trials: int = 100
+    """Budget of the study: finished trials over every worker and rerun (grid: its size)."""
+    k_folds: int = 5
+    """Validation folds over episodes (or time blocks of a single episode)."""
+    pruner: str = "median"
+    """``median`` (stop a trial whose running fold error is worse than the median) or ``none``."""
+    seed: int = 0
+    """Sampler seed; each worker adds its worker id."""
+    worker: int = 0
+    """Worker id (a label on its trials, and a sampler-seed offset)."""
+    heartbeat_interval: int = 1
+    """Seconds between heartbeats of a running trial (RDB storages)."""
+    heartbeat_grace: int = 10
+    """Seconds without a heartbeat after which a running trial counts as dead (FAIL)."""
+    tracking_uri: str | None = None
+    """MLflow tracking URI (None: ``tracking.resolve_uri`` default)."""
+    experiment: str = "sdrl-bench-search"
+    """MLflow experiment of the parent and trial runs."""
+    context: Mapping[str, Any] = field(default_factory=dict)
+    """Fixed settings the objective depends on (group choices, config values): recorded with
+    the study and compared on resume, and written into the exported best config."""
+
+
+@dataclass(frozen=True)
+class StudyData:
+    """The data every trial of a study is validated on."""
+
+    spec: EnvSpec
+    data: Transitions
+    folds: list[Fold]
+    floor: float
+    exclude_bound: bool
+    sha256: str
+
+
+@dataclass(frozen=True)
+class TrialOutcome:
+    """What evaluating one parameter set gave."""
+
+    error: float
+    fold_errors: list[float]
+    pruned: bool = False
+    n_terms: int | None = None
+    n_fits: int = 0
+    equations: str = ""
+
+
+@dataclass
+class WorkerResult:
+    """What one ``run_study`` call did."""
+
+    study: optuna.Study
+    settings: StudySettings
+    data: StudyData
+    parent_run_id: str
+    tracking_uri: str
+    storage: str
+    trials: list[int] = field(default_factory=list)
+    """Numbers of the trials this worker ran (any final state)."""
+
+
+def check_settings(s: StudySettings) -> None:
+    """One-line ``ConfigError``s for settings that cannot work."""
+    if not s.objectives or s.objectives[0] != "error" or len(set(s.objectives)) != len(s.objectives) \
+            or any(o not in OBJECTIVES for o in s.objectives):
+        raise ConfigError(f"search.objectives: use [error] or [error, n_terms], got {list(s.objectives)}")
+    if s.sampler not in SAMPLERS:
+        raise ConfigError(f"search.sampler: one of {list(SAMPLERS)}, got {s.sampler!r}")
+    if s.sampler == "grid":
+        grid_values(s.space)
+    if s.pruner not in ("median", "none"):
+        raise ConfigError(f"search.pruner: 'median' or 'none', got {s.pruner!r}")
+    if s.pruner != "none" and len(s.objectives) > 1:
+        raise ConfigError("search.pruner: pruning needs a single objective; set search.pruner=none")
+    if s.n_trials < 0:
+        raise ConfigError(f"search.n_trials must be >= 0, got {s.n_trials}")
+    if s.k_folds < 2:
+        raise ConfigError(f"search.k_folds must be >= 2, got {s.k_folds}")
+    if s.heartbeat_interval < 1 or s.heartbeat_grace < 1:
+        raise ConfigError("study.heartbeat_interval and study.heartbeat_grace must be >= 1 second")
+
+
+def study_data(job: FitJob, k_folds: int) -> StudyData:
+    """Collect (or load) the study's data once, as ``pipeline.fit_dynamics`` would."""
+    _, loaded = check(job)
+    data = loaded if loaded is not None else collect(
+        job.spec, job.policy or random_policy, job.n_transitions, job.epsilon, job.seed,
+        max_steps_per_episode=job.max_steps_per_episode,
+    )
+    return StudyData(
+        spec=job.spec, data=data, folds=make_folds(data, k_folds), floor=resolution_floor(job.spec, data),
+        exclude_bound=job.exclude_bound_transitions, sha256=data.content_hash(),
+    )
+
+
+def evaluate_params(
+    params: Mapping[str, Any],
+    build_job: BuildJob,
+    sd: StudyData,
+    report: Callable[[int, float], bool] | None = None,
+) -> TrialOutcome:
+    """k-fold error of the fit ``build_job(params)`` describes, then a fit on all the data for
+    its number of active terms. ``report(fold, running error)`` returning True stops early."""
+    with warnings.catch_warnings():
+        # pysindy warns when a threshold removes every term: that candidate simply scores badly
+        warnings.simplefilter("ignore", UserWarning)
+        return _evaluate(build_job(params), sd, report)
+
+
+def _evaluate(job: FitJob, sd: StudyData, report: Callable[[int, float], bool] | None) -> TrialOutcome:
+    spec = sd.spec
+    library = build_library(job.library_parts, spec.target_names, spec.control_names)
+
+    def make():
+        return build_model(job, library)
+
+    errors: list[float] = []
+    for i, err in enumerate(cross_validate(make, spec, sd.data, sd.folds, sd.exclude_bound)):
+        errors.append(err)
+        if report is not None and report(i, aggregate(errors, sd.floor)):
+            return TrialOutcome(aggregate(errors, sd.floor), errors, pruned=True, n_fits=len(errors))
+    model = fit_model(make, spec, sd.data, sd.exclude_bound)
+    n_terms = int(model.summary_metrics().get("n_active_terms", 0))
+    return TrialOutcome(aggregate(errors, sd.floor), errors, False, n_terms, len(errors) + 1, model.describe())
+
+
+def make_sampler(s: StudySettings) -> optuna.samplers.BaseSampler:
+    seed = s.seed + s.worker
+    if s.sampler == "grid":
+        return optuna.samplers.GridSampler(grid_values(s.space), seed=seed)
+    if s.sampler == "random":
+        return optuna.samplers.RandomSampler(seed=seed)
+    if s.sampler == "nsga2":
+        return optuna.samplers.NSGAIISampler(seed=seed)
+    # multivariate + group: one model over the joint space (the library choice and the
+    # thresholds interact); constant_liar keeps parallel workers from sampling the same point
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        return optuna.samplers.TPESampler(seed=seed, multivariate=True, group=True, constant_liar=True)
+
+
+def make_pruner(s: StudySettings) -> optuna.pruners.BasePruner:
+    if s.pruner == "median":
+        return optuna.pruners.MedianPruner(n_startup_trials=10, n_warmup_steps=1)
+    return optuna.pruners.NopPruner()
+
+
+def counted(trial: optuna.trial.FrozenTrial) -> bool:
+    """A trial that uses up budget: complete, pruned, or failed by its own candidate (a trial
+    failed because its process died is not counted: a rerun replaces it)."""
+    S = optuna.trial.TrialState
+    return trial.state in (S.COMPLETE, S.PRUNED) or (trial.state == S.FAIL and "error" in trial.user_attrs)
+
+
+def n_counted(study: optuna.Study) -> int:
+    return sum(counted(t) for t in study.get_trials(deepcopy=False))
+
+
+def fingerprint(s: StudySettings, sd: StudyData) -> dict[str, Any]:
+    """What a study's trials are comparable under: checked when the study is resumed."""
+    return {
+        "space": describe_space(s.space),
+        "objectives": list(s.objectives),
+        "objective": OBJECTIVE_VERSION,
+        "k_folds": s.k_folds,
+        "data": {"env": sd.spec.name, "n_transitions": len(sd.data), "sha256": sd.sha256},
+        "context": {k: v for k, v in s.context.items()},
+    }
+
+
+def run_study(
+    settings: StudySettings,
+    build_job: BuildJob,
+    progress: Callable[[optuna.trial.FrozenTrial], None] | None = None,
+) -> WorkerResult:
+    """Run one worker of a study until the study holds ``n_trials`` counted trials.
+
+    Everything is checked (settings, storage, tracking store, data, stored study setup) before
+    the first trial starts. Each trial is an MLflow child run of the study's parent run.
+    """
+    check_settings(settings)
+    storage_url = resolve_storage(settings.storage)
+    uri = tracking.resolve_uri(settings.tracking_uri)
+
+    def on_stale(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
+        run_id = trial.user_attrs.get("mlflow_run_id")
+        if run_id:
+            tracking.Run(uri, run_id).set_tags({"optuna.state": "FAIL", "error": "worker process died"})
+            tracking.end_run(uri, run_id, "KILLED")
+
+    heartbeat = settings.heartbeat_interval if not storage_url.startswith("journal:") else None
+    storage = open_storage(storage_url, heartbeat, settings.heartbeat_grace if heartbeat else None, on_stale)
+    tracking.ensure_experiment(uri, settings.experiment)
+    sd = study_data(build_job({}), settings.k_folds)
+    directions = ["minimize"] * len(settings.objectives)
+    where = f" in {redact(storage_url)}"
+    study = open_study(storage, settings.name, directions, fingerprint(settings, sd),
+                       make_sampler(settings), make_pruner(settings), where)
+    parent = study_parent_run(
+        uri, settings.experiment, settings.name, redact(storage_url),
+        {"env": sd.spec.name, "sampler": settings.sampler, "objectives": ",".join(settings.objectives),
+         "git_commit": tracking.git_commit()},
+    )
+    result = WorkerResult(study, settings, sd, parent, uri, storage_url)
+    remaining = settings.n_trials - n_counted(study)
+    if remaining <= 0:
+        return result
+
+    def budget(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
+        result.trials.append(trial.number)
+        if progress is not None:
+            progress(trial)
+        if n_counted(study) >= settings.n_trials:
+            study.stop()
+
+    objective = _objective(settings, build_job, sd, uri, parent)
+    try:
+        study.optimize(objective, n_trials=remaining, callbacks=[budget], catch=TRIAL_ERRORS, gc_after_trial=False)
+    except BaseException as exc:  # the parent shows it; a later summarize (resume) finishes it
+        tracking.end_run(uri, parent, "KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED")
+        raise
+    return result
+
+
+def _objective(s: StudySettings, build_job: BuildJob, sd: StudyData, uri: str, parent: str):
+    prune = s.pruner != "none" and len(s.objectives) == 1
+
+    def objective(trial: optuna.Trial) -> float | tuple[float, float]:
+        params = suggest(trial, s.space)
+        trial.set_user_attr("worker", s.worker)
+        tags = {"sdrl.kind": "trial", "sdrl.study": s.name, "optuna.trial": trial.number,
+                "sdrl.worker": s.worker, "env": sd.spec.name}
+
+        def report(step: int, value: float) -> bool:
+            trial.report(value, step)
+            return trial.should_prune()
+
+        with tracking.start_run(uri, s.experiment, f"{s.name}-trial-{trial.number}", tags, parent) as run:
+            trial.set_user_attr("mlflow_run_id", run.run_id)
+            run.log_params({**{k: v for k, v in s.context.items()}, **params})
+            try:
+                out = evaluate_params(params, build_job, sd, report if prune else None)
+            except TRIAL_ERRORS as exc:
+                msg = f"{type(exc).__name__}: {str(exc).strip()}".splitlines()[0][:500]
+                trial.set_user_attr("error", msg)
+                run.set_tags({"optuna.state": "FAIL", "error": msg})
+                raise
+            run.log_metrics({"error": out.error, "n_fits": out.n_fits,
+                             **{f"fold_error/{i}": e for i, e in enumerate(out.fold_errors)},
+                             **({"n_terms": out.n_terms} if out.n_terms is not None else {})})
+            run.set_tags({"optuna.state": "PRUNED" if out.pruned else "COMPLETE"})
+            if out.equations:
+                run.log_text(out.equations, "model/equations.txt")
+        trial.set_user_attr("fold_errors", out.fold_errors)
+        trial.set_user_attr("n_fits", out.n_fits)
+        if out.pruned:
+            raise optuna.TrialPruned()
+        trial.set_user_attr("n_terms", out.n_terms)
+        trial.set_user_attr("equations", out.equations)
+        if len(s.objectives) == 1:
+            return out.error
+        return out.error, float(out.n_terms or 0)
+
+    return objective

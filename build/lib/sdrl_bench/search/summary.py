@@ -1,0 +1,246 @@
+"""The end of a study: the best trial, its score on the fixed test set, the figures, the
+exported config, and comparisons between studies (grid vs TPE).
+
+``summarize`` is idempotent: every worker calls it when it stops, and the last one to finish
+leaves the final picture in the parent run (and in the study's ``sdrl.summary`` attribute).
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+from collections.abc import Mapping
+
+import optuna
+
+from sdrl_bench import tracking
+from sdrl_bench.pipeline import fit_dynamics
+from sdrl_bench.search.study import BuildJob, WorkerResult, counted
+from sdrl_bench.search.plots import history_figure, importance_figure, pareto_figure
+from sdrl_bench.search.space import describe_space, experiment_pack, to_overrides
+from sdrl_bench.search.storage import open_storage, resolve_storage
+
+SUMMARY_ATTR = "sdrl.summary"
+S = optuna.trial.TrialState
+
+
+@dataclass
+class StudySummary:
+    """The state of a study, as recorded in its parent run and its ``sdrl.summary`` attribute."""
+
+    name: str
+    sampler: str
+    n_trials: int
+    n_complete: int
+    n_pruned: int
+    n_failed: int
+    fits_total: int
+    best_number: int | None = None
+    best_params: dict[str, Any] = field(default_factory=dict)
+    best_error: float | None = None
+    best_n_terms: int | None = None
+    fits_to_best: int | None = None
+    best_equations: str = ""
+    pareto: list[tuple[int, float, int]] = field(default_factory=list)
+    """(trial number, error, active terms) of the non-dominated completed trials."""
+    test_name: str | None = None
+    test_error: float | None = None
+    """``mse_norm/mean`` of the best params refitted on all the data, on the fixed test set."""
+    test_metrics: dict[str, float] = field(default_factory=dict)
+    overrides: list[str] = field(default_factory=list)
+    experiment_yaml: str = ""
+
+
+def pareto_front(points: list[tuple[int, float, int]]) -> list[tuple[int, float, int]]:
+    """Non-dominated (number, error, terms) points: no other point is at least as good in both
+    and better in one. Sorted by terms."""
+    front = [p for p in points if not any(
+        (q[1] <= p[1] and q[2] <= p[2]) and (q[1] < p[1] or q[2] < p[2]) for q in points)]
+    return sorted(front, key=lambda p: (p[2], p[1], p[0]))
+
+
+def pick_best(study: optuna.Study) -> optuna.trial.FrozenTrial | None:
+    """Single objective: Optuna's best trial. Several: the Pareto trial with the lowest error
+    (fewest terms on ties)."""
+    complete = study.get_trials(deepcopy=False, states=(S.COMPLETE,))
+    if not complete:
+        return None
+    if len(study.directions) == 1:
+        return study.best_trial
+    return min(study.best_trials, key=lambda t: (t.values[0], t.values[1], t.number))
+
+
+def summarize(
+    result: WorkerResult,
+    build_job: BuildJob,
+    final_score: bool = True,
+    export_dir: str | Path | None = None,
+) -> StudySummary:
+    """Record the study's current state: best trial (refitted and scored on the fixed test set
+    when ``final_score``), counts and fits, figures, and the best config (as ``sdrl-bench``
+    overrides and an experiment pack, also written under ``export_dir/experiment/``)."""
+    s, study, uri, parent = result.settings, result.study, result.tracking_uri, result.parent_run_id
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        optuna.storages.fail_stale_trials(study)
+    trials = study.get_trials(deepcopy=False)
+    _close_orphan_runs(uri, s.experiment, parent, {t.number: t.state for t in trials})
+    done = [t for t in trials if counted(t)]
+    complete = [t for t in trials if t.state == S.COMPLETE]
+    summary = StudySummary(
+        name=s.name, sampler=s.sampler, n_trials=len(done), n_complete=len(complete),
+        n_pruned=sum(t.state == S.PRUNED for t in trials), n_failed=sum(t.state == S.FAIL for t in done),
+        fits_total=sum(int(t.user_attrs.get("n_fits", 0)) for t in done),
+    )
+    points = [(t.number, float(t.values[0]), int(t.user_attrs["n_terms"])) for t in complete if "n_terms" in t.user_attrs]
+    summary.pareto = pareto_front(points)
+    best = pick_best(study)
+    parent_run = tracking.Run(uri, parent)
+    if best is not None:
+        _describe_best(summary, best, done, s.context)
+        previous = study.user_attrs.get(SUMMARY_ATTR) or {}
+        if final_score:
+            _final_score(summary, result, build_job, best)
+        elif previous.get("best_number") == best.number:  # same best trial: its test score stands
+            summary.test_name, summary.test_error = previous.get("test_name"), previous.get("test_error")
+            summary.test_metrics = dict(previous.get("test_metrics") or {})
+        _log_figures(parent_run, study, complete, points, summary)
+    _log_parent(parent_run, result, summary)
+    if export_dir is not None and summary.experiment_yaml:
+        path = Path(export_dir) / "experiment" / f"{s.name}.yaml"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(summary.experiment_yaml)
+    study.set_user_attr(SUMMARY_ATTR, json.loads(json.dumps(asdict(summary), default=str)))
+    parent_run.end("FINISHED")  # also after an earlier worker left it FAILED or KILLED
+    return summary
+
+
+def _close_orphan_runs(uri: str, experiment: str, parent: str, states: Mapping[int, Any]) -> None:
+    """Trial runs left RUNNING by a worker that died before its trial was linked to the run:
+    once Optuna no longer considers the trial running, the run ends KILLED."""
+    filt = f"tags.`{tracking.PARENT_TAG}` = '{parent}' and attributes.status = 'RUNNING'"
+    for r in tracking.find_runs(uri, experiment, filt):
+        number = r["tags"].get("optuna.trial")
+        if number is not None and states.get(int(number), S.FAIL) != S.RUNNING:
+            tracking.Run(uri, r["run_id"]).set_tags({"optuna.state": "FAIL", "error": "worker process died"})
+            tracking.end_run(uri, r["run_id"], "KILLED")
+
+
+def _describe_best(summary: StudySummary, best, done, context: Mapping[str, Any]) -> None:
+    summary.best_number = best.number
+    summary.best_params = dict(best.params)
+    summary.best_error = float(best.values[0])
+    summary.best_n_terms = best.user_attrs.get("n_terms")
+    summary.best_equations = best.user_attrs.get("equations", "")
+    summary.fits_to_best = sum(int(t.user_attrs.get("n_fits", 0)) for t in done if t.number <= best.number)
+    choices = {k: str(v) for k, v in context.get("choices", {}).items()}
+    values = dict(context.get("values", {}))
+    summary.overrides = to_overrides(best.params, choices) + [f"{k}={v}" for k, v in values.items()]
+    header = (f"Best trial {best.number} of study '{summary.name}' ({summary.sampler}): held-out "
+              f"error {summary.best_error:.4g}, {summary.best_n_terms} active terms.\n"
+              f"Use: sdrl-bench 'hydra.searchpath=[file://<the folder holding experiment/>]' "
+              f"experiment={summary.name}\n(or copy it into <your --config-dir>/experiment/ and run: sdrl-bench experiment={summary.name})")
+    summary.experiment_yaml = experiment_pack(best.params, choices, values, header)
+
+
+def _final_score(summary: StudySummary, result: WorkerResult, build_job: BuildJob, best) -> None:
+    s = result.settings
+    fit = fit_dynamics(build_job(best.params))
+    tags = {"sdrl.kind": "fit", "sdrl.study": s.name, "optuna.trial": best.number, "sdrl.role": "best-refit",
+            "env": fit.job.spec.name}
+    with tracking.start_run(result.tracking_uri, s.experiment, f"{s.name}-best-refit", tags, result.parent_run_id) as run:
+        tracking.log_fit(run, fit, {**_flat(s.context), **best.params})
+    summary.test_name = fit.test_name
+    summary.test_metrics = {k: float(v) for k, v in fit.fidelity.metrics.items()}
+    summary.test_error = summary.test_metrics.get("mse_norm/mean")
+
+
+def _flat(context: Mapping[str, Any]) -> dict[str, Any]:
+    return tracking.flatten({k: v for k, v in context.items()})
+
+
+def _log_figures(run: tracking.Run, study, complete, points, summary: StudySummary) -> None:
+    title = f"{summary.name} ({summary.sampler}, {summary.n_trials} trials)"
+    run.log_figure(history_figure([t.number for t in complete], [t.values[0] for t in complete], title),
+                   "figures/optimization_history.png")
+    if points:
+        front = {p[0] for p in summary.pareto}
+        run.log_figure(pareto_figure([p[1] for p in points], [p[2] for p in points], [p[0] in front for p in points],
+                                     title), "figures/pareto_front.png")
+    searched = [k for k in summary.best_params if len({repr(t.params.get(k)) for t in complete}) > 1]
+    if len(complete) >= 2 and searched:
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)  # PED-ANOVA's note on the target's sign
+                imp = optuna.importance.get_param_importances(study, params=searched, target=lambda t: t.values[0])
+        except (ValueError, RuntimeError, ZeroDivisionError) as exc:
+            run.set_tags({"importance.error": str(exc).splitlines()[0][:500]})
+        else:
+            run.log_figure(importance_figure(imp, title), "figures/param_importances.png")
+
+
+def _log_parent(run: tracking.Run, result: WorkerResult, summary: StudySummary) -> None:
+    s = result.settings
+    run.log_params({"env": result.data.spec.name, "k_folds": s.k_folds, "objectives": ",".join(s.objectives),
+                    "space": json.dumps(describe_space(s.space)), "dataset_sha256": result.data.sha256,
+                    "n_transitions": len(result.data.data)})
+    metrics = {"n_trials": summary.n_trials, "n_complete": summary.n_complete, "n_pruned": summary.n_pruned,
+               "n_failed": summary.n_failed, "fits_total": summary.fits_total, "pareto_size": len(summary.pareto)}
+    if summary.best_number is not None:
+        metrics.update({"best_error": summary.best_error, "best_trial": summary.best_number,
+                        "fits_to_best": summary.fits_to_best})
+        if summary.best_n_terms is not None:
+            metrics["best_n_terms"] = summary.best_n_terms
+        metrics.update({f"test/{k}": v for k, v in summary.test_metrics.items()})
+        run.set_tags({**{f"best.{k}": v for k, v in summary.best_params.items()},
+                      "best.overrides": " ".join(summary.overrides), "sampler": s.sampler})
+        run.log_text(summary.experiment_yaml, f"best/{s.name}.yaml")
+        run.log_text(" ".join(summary.overrides) + "\n", "best/overrides.txt")
+        run.log_text(summary.best_equations or "\n", "best/equations.txt")
+    run.log_metrics(metrics, step=summary.n_trials)
+    run.log_dict(json.loads(json.dumps(asdict(summary), default=str)), "best/summary.json")
+
+
+def load_summaries(storage: str | None, names: list[str]) -> list[dict[str, Any]]:
+    """The recorded summaries of finished studies (``summarize`` output), by name."""
+    st = open_storage(resolve_storage(storage))
+    out = []
+    for name in names:
+        try:
+            study = optuna.load_study(study_name=name, storage=st)
+        except KeyError:
+            from sdrl_bench import ConfigError
+
+            raise ConfigError(f"compare.studies: no study named '{name}' in the storage") from None
+        out.append(study.user_attrs.get(SUMMARY_ATTR) or {"name": name})
+    return out
+
+
+def comparison_table(rows: list[Mapping[str, Any]]) -> str:
+    """A plain-text table of studies (validation error, test error, trials, fits) and which
+    found the better model (lower test error; equal within 10% counts as a tie)."""
+    head = f"{'study':<28} {'sampler':<7} {'cv error':>10} {'test err':>10} {'terms':>5} {'trials':>6} {'fits->best':>10} {'fits':>6}"
+    lines = [head, "-" * len(head)]
+    for r in rows:
+        lines.append(
+            f"{r['name']:<28} {r.get('sampler', '?'):<7} {_g(r.get('best_error')):>10} {_g(r.get('test_error')):>10} "
+            f"{r.get('best_n_terms') or '-':>5} {r.get('n_trials', 0):>6} {r.get('fits_to_best') or '-':>10} {r.get('fits_total', 0):>6}"
+        )
+    scored = [r for r in rows if r.get("test_error") is not None]
+    if len(scored) >= 2:
+        a, b = sorted(scored, key=lambda r: r["test_error"])[:2]
+        if a["test_error"] >= 0.9 * b["test_error"]:
+            fewer = min(scored, key=lambda r: r.get("fits_to_best") or 0)
+            lines.append(f"verdict: equal test error within 10%; '{fewer['name']}' got there with fewer fits "
+                         f"({fewer.get('fits_to_best')})")
+        else:
+            lines.append(f"verdict: '{a['name']}' finds the better model (test error {_g(a['test_error'])} vs "
+                         f"{_g(b['test_error'])}) after {a.get('fits_to_best')} fits ({a.get('fits_total')} in all)")
+    return "\n".join(lines)
+
+
+def _g(v: Any) -> str:
+    return "-" if v is None else f"{float(v):.3e}"

@@ -1,0 +1,69 @@
+"""The read side: runs of an experiment as plain dicts, statuses, artifacts (the report's and
+the search's view of the store)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from sdrl_bench import ConfigError
+from sdrl_bench.tracking.client import PARENT_TAG, display_uri, mlflow_client
+
+
+def find_runs(uri: str, experiment: str, filter_string: str = "", *, missing_ok: bool = True,
+              key: str = "tracking.experiment") -> list[dict[str, Any]]:
+    """Active runs of ``experiment`` matching an MLflow filter, oldest first (ties by run id):
+    dicts with ``run_id``, ``experiment_id``, ``status``, ``start_time``, ``tags``, ``params``,
+    ``metrics``. An unknown experiment gives [] (``missing_ok``) or a ConfigError naming ``key``."""
+    client = mlflow_client(uri)
+    exp = client.get_experiment_by_name(experiment)
+    if exp is None:
+        if missing_ok:
+            return []
+        raise ConfigError(f"{key}: no experiment {experiment!r} in {display_uri(uri)}")
+    runs = client.search_runs([exp.experiment_id], filter_string=filter_string, max_results=50_000)
+    out = [{"run_id": r.info.run_id, "experiment_id": r.info.experiment_id, "status": r.info.status,
+            "start_time": r.info.start_time, "tags": dict(r.data.tags), "params": dict(r.data.params),
+            "metrics": dict(r.data.metrics)} for r in runs]
+    return sorted(out, key=lambda r: (r["start_time"] or 0, r["run_id"]))
+
+
+def child_statuses(uri: str, experiment: str, parent_run_id: str) -> list[str]:
+    exp = mlflow_client(uri).get_experiment_by_name(experiment)
+    runs = mlflow_client(uri).search_runs([exp.experiment_id], filter_string=f"tags.{PARENT_TAG} = '{parent_run_id}'")
+    return [r.info.status for r in runs]
+
+
+def list_experiments(uri: str) -> list[str]:
+    """Names of the store's active experiments (an empty or missing store: [])."""
+    client = mlflow_client(uri)  # a damaged store raises a ConfigError naming it
+    try:
+        return sorted(e.name for e in client.search_experiments())
+    except Exception:  # a server that is not there holds nothing to report
+        return []
+
+
+def run_exists(uri: str, run_id: str) -> bool:
+    """Whether the store holds a run with this id."""
+    try:
+        mlflow_client(uri).get_run(run_id)
+        return True
+    except Exception:
+        return False
+
+
+def list_artifacts(uri: str, run_id: str, folder: str | None = None) -> list[str]:
+    """Artifact paths directly under ``folder`` of a run ([] when there are none)."""
+    try:
+        return [a.path for a in mlflow_client(uri).list_artifacts(run_id, folder)]
+    except Exception:
+        return []
+
+
+def download_artifact(uri: str, run_id: str, path: str, dst: str | Path) -> Path | None:
+    """Fetch one artifact of a run into ``dst``; None when the run has no such artifact."""
+    Path(dst).mkdir(parents=True, exist_ok=True)
+    try:
+        return Path(mlflow_client(uri).download_artifacts(run_id, path, str(dst)))
+    except Exception:
+        return None
