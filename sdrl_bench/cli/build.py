@@ -157,3 +157,12 @@ def real_arm_key(cfg: DictConfig) -> str:
         "seed": cfg.seed,
     }
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def config_key(cfg: DictConfig) -> str:
+    """What a job computes: its resolved config, less what does not change the result
+    (progress bars, the resume switch, Hydra's own settings)."""
+    body = OmegaConf.to_container(cfg, resolve=True)
+    for key in ("hydra", "progress_bar", "resume"):
+        body.pop(key, None)
+    return hashlib.sha256(json.dumps(body, sort_keys=True, default=str).encode()).hexdigest()[:16]

@@ -1,14 +1,29 @@
 """Hydra callback: one MLflow parent run per multirun sweep, created in the driver.
 
-The driver creates the tracking store and the parent run before any worker starts (workers
-racing to create SQLite tables crash) and writes the parent's id into the sweep folder, where
-each job finds it. The parent ends FINISHED when the sweep ends, or FAILED if the driver exits
-first (a job raised) or any child failed.
+The driver creates the tracking store and the parent run before any worker starts and writes
+the parent's id and the sweep's key into the sweep folder, where each job finds them.
+
+* **Resume.** The sweep key is a hash of the sweep's overrides and experiment: a rerun of the
+  same sweep on the same store has the same key. The driver first ends the stale RUNNING runs
+  of an earlier, dead sweep with that key (their owning processes are gone: ``sdrl.pid`` and
+  ``sdrl.host`` tags); each job then looks for a FINISHED run of its own config under that key
+  and, when there is one, adopts it under the new parent instead of running again
+  (``cli.main``; ``resume=false`` reruns every job).
+* **Stop signals.** SIGTERM or SIGINT to the driver stops the workers (terminate, then kill
+  after a grace period), ends the runs they left RUNNING and the parent KILLED, and exits with
+  128 + the signal's number.
+* The parent ends FINISHED when the sweep ends, or FAILED if the driver exits first (a job
+  raised) or any child failed.
 """
 
 from __future__ import annotations
 
 import atexit
+import hashlib
+import json
+import os
+import signal
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +33,16 @@ from omegaconf import DictConfig
 from sdrl_bench import tracking
 
 PARENT_FILE = "mlflow_parent_run_id"
+KEY_FILE = "mlflow_sweep_key"
+SWEEP_KEY_TAG = "sdrl.sweep_key"
+CONFIG_KEY_TAG = "sdrl.config_key"
+WORKER_GRACE_SECONDS = 5.0
+
+
+def sweep_key(overrides: list[str], experiment: str) -> str:
+    """Same sweep (the same overrides, in any order) on the same experiment: same key."""
+    body = json.dumps({"overrides": sorted(overrides), "experiment": experiment})
+    return hashlib.sha256(body.encode()).hexdigest()[:16]
 
 
 class MlflowSweepCallback(Callback):
@@ -28,16 +53,26 @@ class MlflowSweepCallback(Callback):
         uri = tracking.resolve_uri(config.tracking.uri)
         sweep_dir = Path(config.hydra.sweep.dir)
         experiment = config.tracking.experiment
+        overrides = list(config.hydra.overrides.task)
+        key = sweep_key(overrides, experiment)
+        tracking.ensure_experiment(uri, experiment)
+        stale = tracking.end_stale_runs(uri, experiment, f"tags.`{SWEEP_KEY_TAG}` = '{key}'")
+        if stale:
+            print(f"sdrl-bench: ended {len(stale)} stale RUNNING run(s) of an earlier run of this sweep "
+                  f"(their processes are gone)", file=sys.stderr)
         run_id = tracking.create_parent_run(
             uri, experiment, f"sweep-{sweep_dir.name}",
             {"sdrl.kind": "sweep", "sdrl.sweep_dir": str(sweep_dir.resolve()),
-             "sdrl.overrides": " ".join(config.hydra.overrides.task),
+             "sdrl.overrides": " ".join(overrides), SWEEP_KEY_TAG: key,
              "git_commit": tracking.git_commit()},
         )
         sweep_dir.mkdir(parents=True, exist_ok=True)
         (sweep_dir / PARENT_FILE).write_text(run_id)
+        (sweep_dir / KEY_FILE).write_text(key)
         self._parent = (uri, run_id, experiment)
         atexit.register(self._finish, "FAILED")
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, self._on_stop_signal)
 
     def on_multirun_end(self, config: DictConfig, **kwargs: Any) -> None:
         if self._parent is not None:
@@ -51,7 +86,49 @@ class MlflowSweepCallback(Callback):
             self._parent = None
             tracking.end_run(uri, run_id, status)
 
+    def _on_stop_signal(self, signum: int, frame: Any) -> None:
+        """Stop the workers, end what they left RUNNING and the parent KILLED, exit."""
+        for sig in (signal.SIGTERM, signal.SIGINT):
+            signal.signal(sig, signal.SIG_IGN)  # one cleanup, however many signals arrive
+        n_workers = stop_children(WORKER_GRACE_SECONDS)
+        n_runs = 0
+        if self._parent is not None:
+            uri, run_id, experiment = self._parent
+            filt = f"tags.`{tracking.PARENT_TAG}` = '{run_id}' and attributes.status = 'RUNNING'"
+            for r in tracking.find_runs(uri, experiment, filt):
+                tracking.end_run(uri, r["run_id"], "KILLED")
+                n_runs += 1
+            self._finish("KILLED")
+        name = signal.Signals(signum).name
+        print(f"sdrl-bench: stopped by {name}: {n_workers} worker process(es) stopped, {n_runs} run(s) "
+              "and the sweep's parent run ended KILLED; rerun the same command to resume", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+        os._exit(128 + signum)  # joblib would otherwise wait for (or restart) its workers
 
-def parent_run_id(sweep_dir: str | Path) -> str | None:
-    path = Path(sweep_dir) / PARENT_FILE
-    return path.read_text().strip() if path.is_file() else None
+
+def stop_children(grace: float) -> int:
+    """Terminate this process's descendants (joblib's workers), kill those still alive after
+    ``grace`` seconds; returns how many there were."""
+    import psutil
+
+    children = psutil.Process().children(recursive=True)
+    for c in children:
+        try:
+            c.terminate()
+        except psutil.NoSuchProcess:
+            pass
+    _, alive = psutil.wait_procs(children, timeout=grace)
+    for c in alive:
+        try:
+            c.kill()
+        except psutil.NoSuchProcess:
+            pass
+    return len(children)
+
+
+def sweep_context(sweep_dir: str | Path) -> tuple[str | None, str | None]:
+    """(parent run id, sweep key) a job finds in its sweep folder (None, None outside a sweep)."""
+    folder = Path(sweep_dir)
+    parent, key = folder / PARENT_FILE, folder / KEY_FILE
+    return (parent.read_text().strip() if parent.is_file() else None,
+            key.read_text().strip() if key.is_file() else None)

@@ -12,27 +12,46 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import signal
 import sys
-from typing import Any
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from sdrl_bench import ConfigError, tracking
-from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job
-from sdrl_bench.cli.callbacks import parent_run_id
+from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, tracking
+from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job, config_key
+from sdrl_bench.cli.callbacks import CONFIG_KEY_TAG, SWEEP_KEY_TAG, sweep_context
 from sdrl_bench.pipeline import FitResult, check, fit_dynamics
 
 
-def _sweep_parent() -> str | None:
+def _sweep() -> tuple[str | None, str | None]:
+    """(parent run id, sweep key) inside a ``-m`` sweep, else (None, None)."""
     if not HydraConfig.initialized():
-        return None
+        return None, None
     hc = HydraConfig.get()
-    return parent_run_id(hc.sweep.dir) if hc.mode == RunMode.MULTIRUN else None
+    return sweep_context(hc.sweep.dir) if hc.mode == RunMode.MULTIRUN else (None, None)
 
 
-def run_fit(cfg: DictConfig, parent: str | None = None) -> FitResult:
+def adopt_finished_job(cfg: DictConfig, parent: str, tags: dict[str, str]) -> float | None:
+    """A FINISHED run of this very job (same config key) from an earlier run of the same sweep
+    (same sweep key): moved under the new parent and its result returned, instead of a rerun."""
+    uri = tracking.resolve_uri(cfg.tracking.uri)
+    filt = (f"tags.`{SWEEP_KEY_TAG}` = '{tags[SWEEP_KEY_TAG]}' and tags.`{CONFIG_KEY_TAG}` = '{tags[CONFIG_KEY_TAG]}' "
+            "and attributes.status = 'FINISHED'")
+    done = tracking.find_runs(uri, cfg.tracking.experiment, filt)
+    if not done:
+        return None
+    run = done[-1]  # the newest
+    if run["tags"].get(tracking.PARENT_TAG) != parent:
+        tracking.Run(uri, run["run_id"]).set_tags({tracking.PARENT_TAG: parent, "sdrl.adopted_by": parent})
+    print(f"sdrl-bench: this job FINISHED in run {run['run_id']} of an earlier run of this sweep: adopted, not "
+          "rerun (resume=false reruns it)", file=sys.stderr)
+    m = run["metrics"]
+    value = m.get("mse_norm/mean", m.get("surrogate/final_return_mean", m.get("real/final_return_mean", 0.0)))
+    return float(value)
+
+
+def run_fit(cfg: DictConfig, parent: str | None = None, extra_tags: dict[str, str] | None = None) -> FitResult:
     """Validate, then fit inside one MLflow run (FAILED if anything raises)."""
     job = build_fit_job(cfg)
     checked = check(job)
@@ -42,7 +61,7 @@ def run_fit(cfg: DictConfig, parent: str | None = None) -> FitResult:
     tags = {
         "sdrl.kind": "fit", "env": names["env"], "library": names["library"],
         "optimizer": names["optimizer"], "collector": names["collector"],
-        "surrogate": names["surrogate"], "seed": job.seed, "git_commit": tracking.git_commit(),
+        "surrogate": names["surrogate"], "seed": job.seed, "git_commit": tracking.git_commit(), **(extra_tags or {}),
     }
     model_name = f"{names['library']}-{names['optimizer']}" if names["surrogate"] == "sindy" else names["surrogate"]
     run_name = f"fit-{names['env']}-{model_name}-s{job.seed}"
@@ -80,32 +99,40 @@ def _print_summary(result: FitResult, uri: str, run_id: str) -> None:
                   highlight=False)
 
 
-def _terminate(signum: int, frame: Any) -> None:
-    raise SystemExit(128 + signum)
-
-
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")
 def main(cfg: DictConfig) -> float:
     """Entry point of ``sdrl-bench``. ``task=fit`` returns the mean normalized one-step MSE,
     ``task=train`` the surrogate arm's final real return (values for sweepers)."""
-    # SIGTERM (a cluster scheduler, kill) unwinds like an exception: the open MLflow run ends
-    # FAILED instead of staying RUNNING
-    signal.signal(signal.SIGTERM, _terminate)
+    # SIGTERM (a cluster scheduler, kill) and SIGINT unwind like an exception: the open MLflow
+    # run ends KILLED instead of staying RUNNING. A sweep driver running jobs in-process keeps
+    # its own handler (cli.callbacks), which also ends the parent run.
+    if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
+        raise_on_stop_signals()
     try:
-        parent = _sweep_parent()
+        parent, key = _sweep()
+        tags: dict[str, str] = {}
         if parent is not None:  # no progress bars inside multiruns
             OmegaConf.update(cfg, "progress_bar", False)
+            tags = {SWEEP_KEY_TAG: key or "", CONFIG_KEY_TAG: config_key(cfg)}
+        if cfg.task not in ("fit", "train"):
+            raise ConfigError(f"task: {cfg.task!r} is not one of 'fit', 'train'")
+        fit_job = build_fit_job(cfg)  # validates the config before anything else
+        if parent is not None and key and cfg.get("resume", True):
+            done = adopt_finished_job(cfg, parent, tags)
+            if done is not None:
+                return done
         if cfg.task == "fit":
-            return float(run_fit(cfg, parent=parent).fidelity.metrics["mse_norm/mean"])
-        if cfg.task == "train":
-            from sdrl_bench.cli.train import run_train
+            return float(run_fit(cfg, parent=parent, extra_tags=tags).fidelity.metrics["mse_norm/mean"])
+        from sdrl_bench.cli.train import run_train
 
-            summary = run_train(cfg, build_fit_job(cfg), parent)
-            return float(summary.get("surrogate/final_return_mean", summary.get("real/final_return_mean", 0.0)))
-        raise ConfigError(f"task: {cfg.task!r} is not one of 'fit', 'train'")
+        summary = run_train(cfg, fit_job, parent, extra_tags=tags)
+        return float(summary.get("surrogate/final_return_mean", summary.get("real/final_return_mean", 0.0)))
     except ConfigError as exc:
         print(f"sdrl-bench: error: {exc}", file=sys.stderr)
         sys.exit(2)
+    except Terminated as exc:
+        print(f"sdrl-bench: stopped by {signal.Signals(exc.signum).name}; the run ended KILLED", file=sys.stderr)
+        sys.exit(exc.exit_code)
 
 
 if __name__ == "__main__":

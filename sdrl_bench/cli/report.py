@@ -43,11 +43,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         inp = ReportInput(tracking.resolve_uri(args.uri), args.experiment, args.parent_run, _parse_tags(args.tag), args.ui_url)
         res = build_report(inp, args.name, args.out, command.strip(), log_run=not args.no_log)
     except ConfigError as exc:
-        print(f"sdrl-bench-report: {exc}", file=sys.stderr)
+        print(f"sdrl-bench-report: error: {exc}", file=sys.stderr)
         return 2
     print(f"report: {res.folder / 'report.md'} and {res.folder / 'report.html'} ({res.n_runs} runs, {res.seconds:.1f} s)"
           + (f"; logged as run {res.report_run_id}" if res.report_run_id else "; not logged to MLflow"))
-    return 2 if res.n_runs == 0 else 0
+    return 0
 
 
 if __name__ == "__main__":

@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import functools
 import json
+import signal
 import sys
 from pathlib import Path
 from typing import Any
@@ -26,7 +27,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from sdrl_bench import ConfigError, tracking
+from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, tracking
 from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job, compose
 from sdrl_bench.pipeline import FitJob
 from sdrl_bench.search.refine import run_refinement
@@ -228,6 +229,10 @@ class SearchStorageCallback(Callback):
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="search_app")
 def main(cfg: DictConfig) -> float | None:
     """Entry point of ``sdrl-bench-search``: returns the best held-out error (for sweepers)."""
+    # SIGTERM and SIGINT unwind: the running trial fails in Optuna, its run and the study's
+    # parent run end KILLED (a rerun resumes the study)
+    if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
+        raise_on_stop_signals()
     try:
         mode = str(cfg.search.get("mode", "study"))
         if mode == "refine":
@@ -247,6 +252,10 @@ def main(cfg: DictConfig) -> float | None:
     except ConfigError as exc:
         print(f"sdrl-bench-search: error: {exc}", file=sys.stderr)
         sys.exit(2)
+    except Terminated as exc:
+        print(f"sdrl-bench-search: stopped by {signal.Signals(exc.signum).name}; the trial and study runs ended "
+              "KILLED; rerun the same command to resume the study", file=sys.stderr)
+        sys.exit(exc.exit_code)
 
 
 if __name__ == "__main__":  # python -m: run the package's copy, so joblib workers can unpickle it

@@ -16,7 +16,7 @@ from sdrl_bench.rl.transfer import TransferJob, run_transfer
 from sdrl_bench.tracking.transfer import RunRecorder
 
 
-def run_train(cfg: DictConfig, fit_job, parent: str | None) -> dict[str, float]:
+def run_train(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict[str, str] | None = None) -> dict[str, float]:
     """Validate, then run the arms of one seed inside one MLflow run; returns its metrics."""
     import torch
 
@@ -31,7 +31,7 @@ def run_train(cfg: DictConfig, fit_job, parent: str | None) -> dict[str, float]:
         "sdrl.kind": "transfer", "env": spec.name, "agent": job.agent.name, "surrogate": names["surrogate"],
         "library": names["library"], "optimizer": names["optimizer"], "collector": names["collector"],
         "seed": job.seed, "arms": ",".join(job.arms), "real_arm_key": key, "git_commit": tracking.git_commit(),
-        "solved_threshold": spec.solved_threshold,
+        "solved_threshold": spec.solved_threshold, **(extra_tags or {}),
     }
     run_name = f"train-{spec.name}-{job.agent.name}-{names['surrogate']}-s{job.seed}"
     with tracking.start_run(uri, cfg.tracking.experiment, run_name, tags, parent) as run, \

@@ -3,11 +3,10 @@ beside the paper's, also logged to MLflow as the artifacts of a "report" run.
 
 Reads the store only through ``tracking``; the tables come from ``report.tables`` (pure
 functions over run dicts); the figures are the runs' own artifacts plus learning curves
-pooled across seeds. What the store does not hold prints as "not run"; bad input (an empty
-store, an unknown experiment or parent run) gives a message and a report saying what is missing.
-
-    sdrl-bench-report --name reproduction [--uri URI] [--experiment E] [--parent-run ID]
-                      [--tag k=v ...] [--out reports] [--ui-url http://127.0.0.1:5000]
+pooled across seeds. What the store does not hold prints as "not run". Bad input (an empty
+store, an unknown experiment or parent run, a selection without runs) is a ConfigError: one
+line, and nothing written or logged. Inside sweeps each job's config has a key
+(``sdrl.config_key``): the newest FINISHED run per key is used, so a config is never counted twice.
 """
 
 from __future__ import annotations
@@ -17,11 +16,11 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 import pandas as pd
 
-from sdrl_bench import tracking
+from sdrl_bench import ConfigError, tracking
 from sdrl_bench.report import tables as rt
 from sdrl_bench.report.figures import figure_blocks
 from sdrl_bench.report.render import MISSING, NOT_RUN, Block, Cell, Heading, Para, Table, fmt, render_html, render_markdown
@@ -67,6 +66,21 @@ def select_runs(inp: ReportInput) -> tuple[list[dict[str, Any]], list[str]]:
     if not runs:
         return [], [f"no runs match (experiment {inp.experiment!r}, parent run {inp.parent_run or 'any'}, tags {inp.tags or 'any'})"]
     return runs, []
+
+
+def latest_per_config(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """One FINISHED run per job config (tag ``sdrl.config_key``, set inside sweeps): the newest.
+    A sweep run twice with ``resume=false`` is then not counted twice; runs without the tag
+    (single runs) are all kept."""
+    newest: dict[tuple[str, str], dict[str, Any]] = {}
+    for r in runs:
+        key = r["tags"].get("sdrl.config_key")
+        if key and r["status"] == "FINISHED":
+            k = (r["tags"].get("sdrl.kind", "?"), key)
+            if k not in newest or (r["start_time"] or 0) >= (newest[k]["start_time"] or 0):
+                newest[k] = r
+    keep = {id(r) for r in newest.values()}
+    return [r for r in runs if not (r["tags"].get("sdrl.config_key") and r["status"] == "FINISHED") or id(r) in keep]
 
 
 class Linker:
@@ -185,16 +199,17 @@ def overview_blocks(inp: ReportInput, runs: Sequence[Mapping[str, Any]], problem
 
 
 def build_report(inp: ReportInput, name: str, out_dir: Path, command: str = "sdrl-bench-report",
-                 log_run: bool = True, echo: Callable[[str], None] = print) -> ReportResult:
+                 log_run: bool = True) -> ReportResult:
     """Write ``out_dir/name/report.md`` and ``report.html`` and, when the experiment exists and
     ``log_run``, log both (with the figures) as artifacts of a "report" run."""
     start = time.perf_counter()
     folder = out_dir / name
-    folder.mkdir(parents=True, exist_ok=True)
     runs, problems = select_runs(inp)
-    for p in problems:
-        echo(f"sdrl-bench-report: {p}")
+    if problems:  # nothing to report: say so, write nothing, log nothing
+        raise ConfigError(problems[0])
+    runs = latest_per_config(runs)
     problems += rt.missing_metrics(runs)
+    folder.mkdir(parents=True, exist_ok=True)
     link = Linker(runs, inp.ui_url)
     blocks = overview_blocks(inp, runs, problems, command) + table_blocks(runs, link)
     blocks += figure_blocks(inp.uri, runs, folder, link.url)

@@ -12,6 +12,7 @@ from sdrl_bench.tracking.client import (
     PARENT_TAG,
     RUN_NAME_TAG,
     Run,
+    check_integrity,
     check_writable,
     create_parent_run,
     delete_run,
@@ -22,6 +23,7 @@ from sdrl_bench.tracking.client import (
     git_commit,
     log_report,
     mlflow_client,
+    process_tags,
     resolve_uri,
     sqlite_path,
     start_run,
@@ -31,17 +33,19 @@ from sdrl_bench.tracking.fit import fit_metrics, log_fit, uncertainty_table
 from sdrl_bench.tracking.read import (
     child_statuses,
     download_artifact,
+    end_stale_runs,
     find_runs,
     list_artifacts,
     list_experiments,
+    owner_alive,
     run_exists,
 )
 from sdrl_bench.tracking.sb3 import sb3_logger
 from sdrl_bench.tracking.transfer import find_real_arm, log_arm, log_curve_point, reuse_real_arm
 
 __all__ = [
-    "DEFAULT_DB", "PARENT_TAG", "RUN_NAME_TAG", "Run", "check_writable", "child_statuses", "create_parent_run",
-    "delete_run", "display_uri", "download_artifact", "end_run", "ensure_experiment", "find_real_arm", "find_runs",
+    "DEFAULT_DB", "PARENT_TAG", "RUN_NAME_TAG", "Run", "check_integrity", "check_writable", "child_statuses", "create_parent_run",
+    "delete_run", "display_uri", "download_artifact", "end_run", "end_stale_runs", "owner_alive", "process_tags", "ensure_experiment", "find_real_arm", "find_runs",
     "fit_metrics", "flatten", "git_commit", "list_artifacts", "list_experiments", "log_arm", "log_curve_point",
     "log_fit", "log_report", "mlflow_client", "resolve_uri", "reuse_real_arm", "run_exists", "sb3_logger", "sqlite_path",
     "start_run", "uncertainty_table", "use_wal",

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import socket
 import subprocess
 import tempfile
 from pathlib import Path
@@ -78,18 +79,19 @@ def mlflow_client(uri: str):
     """
     from mlflow.tracking import MlflowClient
 
-    client = MlflowClient(tracking_uri=uri)
     local = sqlite_path(uri)
-    if local is not None and uri not in _READY:
-        with store_lock(local):
-            check_integrity(local)
-            try:
-                client.search_experiments(max_results=1)  # creates or migrates the tables
-            except Exception as exc:
-                detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
-                raise ConfigError(f"tracking.uri: cannot open the tracking store {local} ({detail[:200]})") from None
-            use_wal(local)
-        _READY.add(uri)
+    if local is None or uri in _READY:
+        return MlflowClient(tracking_uri=uri)
+    with store_lock(local):
+        check_integrity(local)
+        try:
+            client = MlflowClient(tracking_uri=uri)
+            client.search_experiments(max_results=1)  # creates or migrates the tables
+        except Exception as exc:
+            detail = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+            raise ConfigError(f"tracking.uri: cannot open the tracking store {local} ({detail[:200]})") from None
+        use_wal(local)
+    _READY.add(uri)
     return client
 
 
@@ -233,6 +235,12 @@ class Run:
         self._client.set_terminated(self.run_id, status)
 
 
+def process_tags() -> dict[str, str]:
+    """Which process owns a run (``sdrl.host``, ``sdrl.pid``): a later process can tell a run
+    whose owner died (still RUNNING) from one still at work (``read.end_stale_runs``)."""
+    return {"sdrl.host": socket.gethostname(), "sdrl.pid": str(os.getpid())}
+
+
 @contextlib.contextmanager
 def start_run(
     uri: str,
@@ -243,7 +251,7 @@ def start_run(
 ) -> Iterator[Run]:
     """Create a run; it ends FINISHED, or FAILED (KILLED on Ctrl-C) if the body raises."""
     exp_id = ensure_experiment(uri, experiment)
-    all_tags = {RUN_NAME_TAG: run_name, **(tags or {})}
+    all_tags = {RUN_NAME_TAG: run_name, **process_tags(), **(tags or {})}
     if parent_run_id:
         all_tags[PARENT_TAG] = parent_run_id
     run_info = mlflow_client(uri).create_run(exp_id, tags={k: str(v) for k, v in all_tags.items()}, run_name=run_name)
@@ -262,7 +270,8 @@ def start_run(
 def create_parent_run(uri: str, experiment: str, run_name: str, tags: Mapping[str, Any]) -> str:
     """Create a sweep's parent run (left RUNNING; end it with ``end_run``)."""
     exp_id = ensure_experiment(uri, experiment)
-    info = mlflow_client(uri).create_run(exp_id, tags={RUN_NAME_TAG: run_name, **{k: str(v) for k, v in tags.items()}}, run_name=run_name)
+    all_tags = {RUN_NAME_TAG: run_name, **process_tags(), **tags}
+    info = mlflow_client(uri).create_run(exp_id, tags={k: str(v) for k, v in all_tags.items()}, run_name=run_name)
     return info.info.run_id
 
 

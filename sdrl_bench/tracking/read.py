@@ -67,3 +67,33 @@ def download_artifact(uri: str, run_id: str, path: str, dst: str | Path) -> Path
         return Path(mlflow_client(uri).download_artifacts(run_id, path, str(dst)))
     except Exception:
         return None
+
+
+def owner_alive(tags: dict[str, str]) -> bool | None:
+    """Whether the process that owns a run (``sdrl.host``/``sdrl.pid`` tags) is alive: None
+    when that cannot be told here (no tags, or another host)."""
+    import os
+    import socket
+
+    host, pid = tags.get("sdrl.host"), tags.get("sdrl.pid")
+    if host != socket.gethostname() or not (pid or "").isdigit():
+        return None
+    try:
+        os.kill(int(pid), 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def end_stale_runs(uri: str, experiment: str, filter_string: str, status: str = "KILLED") -> list[str]:
+    """End the RUNNING runs matching ``filter_string`` whose owning process is dead (same host);
+    returns their ids. Runs of live processes, or of other hosts, are left alone."""
+    stale = [r for r in find_runs(uri, experiment, filter_string)
+             if r["status"] == "RUNNING" and owner_alive(r["tags"]) is False]
+    client = mlflow_client(uri)
+    for r in stale:
+        client.set_tag(r["run_id"], "sdrl.ended_by", "a later process: its owner had died")
+        client.set_terminated(r["run_id"], status)
+    return [r["run_id"] for r in stale]

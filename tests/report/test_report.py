@@ -124,7 +124,7 @@ def test_transfer_table_and_report_from_a_sweep(store: str, tmp_path) -> None:
     assert sur["n_solved"] == 0 and tr.loc[("mountain_car", "sindy", "real"), "solved_real_steps"] == 25_000
     assert tr.loc[("lunar_lander", "sindy", "surrogate"), "n_seeds"] == 0
 
-    res = build_report(ReportInput(store, EXP, parent_run=parent, ui_url="http://ui:5000"), "t", tmp_path, echo=lambda _: None)
+    res = build_report(ReportInput(store, EXP, parent_run=parent, ui_url="http://ui:5000"), "t", tmp_path)
     md = (res.folder / "report.md").read_text()
     html = (res.folder / "report.html").read_text()
     assert res.n_runs == 5 and res.problems == []  # parent, 3 transfers, the RUNNING one
@@ -137,7 +137,7 @@ def test_transfer_table_and_report_from_a_sweep(store: str, tmp_path) -> None:
 
 
 def test_not_run_when_the_store_holds_only_fits(fits_store: str, tmp_path) -> None:
-    res = build_report(ReportInput(fits_store, EXP), "fits", tmp_path, log_run=False, echo=lambda _: None)
+    res = build_report(ReportInput(fits_store, EXP), "fits", tmp_path, log_run=False)
     md = (res.folder / "report.md").read_text()
     ll = [line for line in md.splitlines() if line.startswith("| lunar_lander | sindy | surrogate")]
     assert ll and ll[0].count("not run") >= 5
@@ -145,23 +145,27 @@ def test_not_run_when_the_store_holds_only_fits(fits_store: str, tmp_path) -> No
     assert "| mountain_car | rational | - | 0 | not run |" in md
 
 
-@pytest.mark.parametrize("case", ["empty", "experiment", "parent"])
-def test_bad_input_gives_a_message_and_a_report(case: str, fits_store: str, tmp_path, capsys) -> None:
+@pytest.mark.parametrize("case", ["empty", "experiment", "parent", "not_hex"])
+def test_bad_input_gives_one_line_on_stderr_and_no_report(case: str, fits_store: str, tmp_path, capsys) -> None:
     uri = f"sqlite:///{tmp_path / 'empty' / 'mlflow.db'}" if case == "empty" else fits_store
     args = ["--uri", uri, "--out", str(tmp_path / "out"), "--name", case]
-    args += {"empty": [], "experiment": ["--experiment", "nope"], "parent": ["--parent-run", "0" * 32]}[case]
+    args += {"empty": [], "experiment": ["--experiment", "nope"], "parent": ["--parent-run", "0" * 32],
+             "not_hex": ["--parent-run", "notahexid"]}[case]
+    n_runs = len(tracking.find_runs(uri, EXP))
     assert main(args) == 2
     err = capsys.readouterr()
-    expected = {"empty": "no experiment 'sdrl-bench'", "experiment": "no experiment 'nope'", "parent": "no run '000"}[case]
-    assert expected in err.out and "Traceback" not in err.out + err.err
-    md = (tmp_path / "out" / case / "report.md").read_text()
-    assert expected in md and "not run" in md
+    expected = {"empty": "no experiment 'sdrl-bench'", "experiment": "no experiment 'nope'", "parent": "no run '000",
+                "not_hex": "no run 'notahexid'"}[case]
+    assert err.out == "" and expected in err.err and len(err.err.strip().splitlines()) == 1
+    assert "Traceback" not in err.err
+    assert not (tmp_path / "out" / case).exists()  # nothing written (an older report of that name is kept)
+    assert len(tracking.find_runs(uri, EXP)) == n_runs  # no report run logged
 
 
 def test_runs_missing_metrics_are_named(store: str, tmp_path) -> None:
     with tracking.start_run(store, EXP, "bare", {"sdrl.kind": "transfer", "env": "mountain_car"}) as run:
         pass
-    res = build_report(ReportInput(store, EXP), "bare", tmp_path, log_run=False, echo=lambda _: None)
+    res = build_report(ReportInput(store, EXP), "bare", tmp_path, log_run=False)
     assert any(run.run_id in p and "real/final_return_mean" in p for p in res.problems)
     assert f"run {run.run_id} (bare) lacks" in (res.folder / "report.md").read_text()
     assert main(["--uri", store, "--tag", "nokeyvalue", "--out", str(tmp_path)]) == 2

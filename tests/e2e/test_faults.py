@@ -1,0 +1,214 @@
+"""Faults as a user meets them, done for real: kills (SIGKILL, SIGTERM) of a sweep driver and of
+a study, parallel first use of an empty store, damaged stores, bad numbers. Real processes, a
+real SQLite store, real signals."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from collections import Counter
+from pathlib import Path
+
+import optuna
+import psutil
+import pytest
+
+from helpers import compose_cfg, run_cli
+from sdrl_bench import ConfigError, tracking
+from sdrl_bench.cli.main import run_fit
+
+EXP = "sdrl-bench"
+
+
+def _env() -> dict:
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    return env
+
+
+def _start(args: list[str], cwd: Path, module: str = "sdrl_bench.cli.main") -> subprocess.Popen:
+    """A process in a session of its own (so a kill of its group reaches its workers too)."""
+    return subprocess.Popen([sys.executable, "-m", module, *args], cwd=cwd, env=_env(), start_new_session=True,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def _runs(uri: str, filt: str = "", experiment: str = EXP) -> list[dict]:
+    return tracking.find_runs(uri, experiment, filt) if Path(tracking.sqlite_path(uri)).is_file() else []
+
+
+def _wait_for(predicate, timeout: float, what: str) -> None:
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if predicate():
+            return
+        time.sleep(0.5)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what}")
+
+
+def _kinds(runs: list[dict], kind: str, status: str | None = None) -> list[dict]:
+    return [r for r in runs if r["tags"].get("sdrl.kind") == kind and (status is None or r["status"] == status)]
+
+
+# ------------------------------------------------------------------ parallel first use
+def test_parallel_processes_create_one_store_safely(tmp_path):
+    """Four processes open the same new store at once: all runs land, the store stays usable
+    (eight, through the real command, in the slow test below)."""
+    uri = f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
+    code = ("import sys; from sdrl_bench import tracking\n"
+            "with tracking.start_run(sys.argv[1], 'sdrl-bench', 'p' + sys.argv[2], {'sdrl.kind': 'probe'}) as run:\n"
+            "    run.log_metrics({'m': float(sys.argv[2])})\n")
+    procs = [subprocess.Popen([sys.executable, "-c", code, uri, str(i)], env=_env(), stderr=subprocess.PIPE, text=True)
+             for i in range(4)]
+    errs = [p.communicate(timeout=120)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0] * 4, errs
+    runs = _runs(uri)
+    assert len(runs) == 4 and {r["status"] for r in runs} == {"FINISHED"}
+    assert sorted(r["metrics"]["m"] for r in runs) == [float(i) for i in range(4)]
+    tracking.check_integrity(tracking.sqlite_path(uri))
+
+
+@pytest.mark.slow
+def test_eight_parallel_first_fits_on_an_empty_folder(tmp_path):
+    """The issue's case with the real command: ``sdrl-bench seed=i`` x 8 at once in an empty folder."""
+    procs = [_start([f"seed={i}", "tracking.uri=sqlite:///mlruns/mlflow.db"], tmp_path) for i in range(8)]
+    outs = [p.communicate(timeout=600) for p in procs]
+    assert [p.returncode for p in procs] == [0] * 8, [e for _, e in outs]
+    uri = f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
+    assert Counter(r["status"] for r in _kinds(_runs(uri), "fit")) == {"FINISHED": 8}
+    assert run_cli("seed=9", f"tracking.uri={uri}", cwd=tmp_path).returncode == 0  # and it works afterwards
+    assert len(_kinds(_runs(uri), "fit", "FINISHED")) == 9
+
+
+# ------------------------------------------------------------------ sweeps: kill, resume, signals
+SWEEP = ["-m", "env=mountain_car", "seed=0,1,2,3", "hydra.launcher.n_jobs=2"]
+
+
+def test_sigkill_mid_sweep_then_rerun_leaves_one_finished_run_per_job(tmp_path):
+    uri = f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
+    args = [*SWEEP, f"tracking.uri={uri}"]
+    proc = _start(args, tmp_path)
+    _wait_for(lambda: len(_kinds(_runs(uri), "fit", "FINISHED")) >= 1, 240, "a finished job")
+    os.killpg(proc.pid, signal.SIGKILL)  # the driver and its workers, no cleanup at all
+    proc.wait(timeout=30)
+    before = _runs(uri)
+    finished_before = {r["run_id"] for r in _kinds(before, "fit", "FINISHED")}
+    assert _kinds(before, "sweep", "RUNNING")  # what a kill -9 leaves behind
+    rerun = subprocess.run([sys.executable, "-m", "sdrl_bench.cli.main", *args], cwd=tmp_path, env=_env(),
+                           capture_output=True, text=True, timeout=600)
+    assert rerun.returncode == 0, rerun.stderr[-2000:]
+    runs = _runs(uri)
+    assert not [r for r in runs if r["status"] == "RUNNING"]
+    fits = _kinds(runs, "fit", "FINISHED")
+    by_config = Counter(r["tags"]["sdrl.config_key"] for r in fits)
+    assert len(by_config) == 4 and set(by_config.values()) == {1}  # one FINISHED run per job, no duplicate
+    assert finished_before <= {r["run_id"] for r in fits}  # adopted, not rerun
+    assert rerun.stderr.count("adopted, not rerun") == len(finished_before)
+    new_parent = [r for r in _kinds(runs, "sweep") if r["status"] == "FINISHED"]
+    assert len(new_parent) == 1 and {r["tags"][tracking.PARENT_TAG] for r in fits} == {new_parent[0]["run_id"]}
+    # resume=false forces the jobs to run again (a new run each)
+    forced = subprocess.run([sys.executable, "-m", "sdrl_bench.cli.main", *args, "resume=false"], cwd=tmp_path,
+                            env=_env(), capture_output=True, text=True, timeout=600)
+    assert forced.returncode == 0 and "adopted" not in forced.stderr
+    assert len(_kinds(_runs(uri), "fit", "FINISHED")) == 8
+
+
+def test_sigterm_to_a_sweep_driver_stops_workers_and_ends_runs_killed(tmp_path):
+    uri = f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
+    proc = _start(["-m", "env=lunar_lander", "seed=0,1,2,3", f"tracking.uri={uri}"], tmp_path)
+    _wait_for(lambda: bool(_kinds(_runs(uri), "fit", "RUNNING")), 240, "a running job")
+    workers = psutil.Process(proc.pid).children(recursive=True)
+    assert workers
+    proc.send_signal(signal.SIGTERM)  # the driver alone, as a scheduler or `kill` does
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert "stopped by SIGTERM" in err
+    psutil.wait_procs(workers, timeout=10)
+    assert not [w for w in workers if w.is_running() and w.status() != psutil.STATUS_ZOMBIE]
+    runs = _runs(uri)
+    assert not [r for r in runs if r["status"] == "RUNNING"]
+    assert _kinds(runs, "sweep")[0]["status"] == "KILLED"
+    assert {r["status"] for r in _kinds(runs, "fit")} <= {"FINISHED", "KILLED"}
+
+
+def test_sigterm_to_a_study_ends_its_runs_killed_and_the_rerun_resumes(tmp_path):
+    uri = f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
+    storage = f"sqlite:///{tmp_path / 'optuna.db'}"
+    args = [f"tracking.uri='{uri}'", f"study.storage='{storage}'", "study.name=term", "search.n_trials=400",
+            f"study.export_dir='{tmp_path / 'export'}'"]
+    proc = _start(args, tmp_path, module="sdrl_bench.cli.search")
+    _wait_for(lambda: bool(_kinds(_runs(uri, experiment="sdrl-bench-search"), "trial", "RUNNING")), 240, "a running trial")
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    # Optuna logs the failed trial's traceback itself; the command's last word is one line
+    assert err.strip().splitlines()[-1].startswith("sdrl-bench-search: stopped by SIGTERM; the trial and study runs")
+    runs = _runs(uri, experiment="sdrl-bench-search")
+    assert not [r for r in runs if r["status"] == "RUNNING"]
+    assert _kinds(runs, "study")[0]["status"] == "KILLED"
+    assert {r["status"] for r in _kinds(runs, "trial")} <= {"FINISHED", "KILLED"}
+    study = optuna.load_study(study_name="term", storage=storage)
+    assert optuna.trial.TrialState.RUNNING not in {t.state for t in study.trials}
+
+
+# ------------------------------------------------------------------ damaged stores
+@pytest.fixture(scope="module")
+def one_fit_store(tmp_path_factory) -> Path:
+    """A store holding one fit, written by a process that has exited (its WAL checkpointed)."""
+    folder = tmp_path_factory.mktemp("one_fit")
+    res = run_cli(f"tracking.uri=sqlite:///{folder / 'mlflow.db'}", cwd=folder)
+    assert res.returncode == 0, res.stderr[-2000:]
+    return folder / "mlflow.db"
+
+
+@pytest.mark.parametrize("where", ["header", "middle", "end"])
+def test_a_damaged_store_is_named_in_one_line_before_any_work_and_kept(tmp_path, one_fit_store, where):
+    db = tmp_path / "mlruns" / "mlflow.db"
+    db.parent.mkdir()
+    db.write_bytes(one_fit_store.read_bytes())
+    uri = f"sqlite:///{db}"
+    size = db.stat().st_size
+    offset = {"header": 0, "middle": size // 2, "end": size - 600}[where]
+    with open(db, "r+b") as fh:
+        fh.seek(offset)
+        fh.write(b"\xa5" * 512)
+    damaged = db.read_bytes()
+    res = run_cli(f"tracking.uri={uri}", cwd=tmp_path)
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and str(db) in lines[0] and "move it aside or restore it" in lines[0], res.stderr
+    assert db.read_bytes() == damaged  # nothing the user had is changed
+    rep = run_cli("--uri", uri, "--out", str(tmp_path / "reports"), cwd=tmp_path, module="sdrl_bench.cli.report")
+    assert rep.returncode == 2 and str(db) in rep.stderr and rep.stdout == ""
+
+
+# ------------------------------------------------------------------ bad numbers
+@pytest.mark.parametrize("override, needle", [
+    ("optimizer.threshold=nan", "optimizer.threshold: a finite number is required, got nan"),
+    ("optimizer.threshold=inf", "optimizer.threshold: a finite number is required, got inf"),
+    ("seed=x", "seed: an integer is required, got 'x'"),
+    ("seed=-1", "seed must be >= 0, got -1"),
+    ("n_transitions=abc", "n_transitions: an integer is required, got 'abc'"),
+    ("n_transitions=1.5", "n_transitions: an integer is required, got 1.5"),
+    ("collector.epsilon=1.5", "collector.epsilon must be within [0.0, 1.0], got 1.5"),
+])
+def test_bad_numbers_are_one_line_errors_before_any_run(store, override, needle):
+    with pytest.raises(ConfigError) as err:
+        run_fit(compose_cfg(f"tracking.uri={store}", override))
+    assert str(err.value) == needle
+    assert _runs(store) == []
+
+
+def test_bad_number_from_the_command_line_exits_2_with_one_line(store, tmp_path):
+    res = run_cli("optimizer.threshold=nan", f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode == 2
+    assert res.stderr.strip() == "sdrl-bench: error: optimizer.threshold: a finite number is required, got nan"
+    assert _runs(store) == []
+
+
+def test_hydra_errors_reach_stderr_with_a_non_zero_exit(store, tmp_path):
+    res = run_cli("library=nope", f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode != 0 and res.stdout == ""
+    assert "library/nope" in res.stderr and "Traceback" not in res.stderr
