@@ -27,8 +27,9 @@ compute in that env's arithmetic (float32 for MountainCar), which lets the Mount
 surrogate replay the real env bit for bit.
 
 The source is generated only from validated data: input indices (ints), op names from the term
-table (``terms.TABLE``, whose ``source`` forms are the only expressions written), and coefficients / parameters written with ``repr(float)`` (finite numbers only), so
-nothing from a model file reaches ``exec`` as text. Results agree with ``SindyModel.predict``
+table (``terms.TABLE``, whose ``source`` forms are the only expressions written), and
+coefficients / parameters written with ``repr(float)`` (finite numbers only), so nothing from a
+model file reaches ``exec`` as text. Results agree with ``SindyModel.predict``
 to rounding (the sums run in a different order); the tests check this.
 
 **Columns** (``batch_predictor``). A vectorized env holds N states; its per-variable columns
