@@ -9,17 +9,13 @@ contacts, the real recorded values: the rollout measures the regressed dynamics 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Protocol
 
 import numpy as np
 
 from sdrl_bench.data import Transitions
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.metrics import mse, pearson, r2, spearman
-
-
-class DynamicsModel(Protocol):
-    def predict(self, x: np.ndarray, u: np.ndarray) -> np.ndarray: ...
+from sdrl_bench.models.base import DynamicsModel
 
 
 def step(model: DynamicsModel, spec: EnvSpec, states: np.ndarray, actions: np.ndarray) -> np.ndarray:

@@ -1,10 +1,17 @@
-"""The protocol every dynamics model follows, and loading a saved model by its kind."""
+"""The protocol every dynamics model follows, and loading a saved model by its kind.
+
+Loading goes through a registry, ``{kind: "module:Class"}``: this module imports no concrete
+model (the models import it), and a class is imported only when a file of its kind is loaded,
+so torch loads only when an NN is used. A new kind of model registers itself with
+``register_loader``; its class provides ``from_saved(data, path)``.
+"""
 
 from __future__ import annotations
 
+import importlib
 import json
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import Any, Protocol, runtime_checkable
 from collections.abc import Sequence
 
 import numpy as np
@@ -51,16 +58,30 @@ def read_model_json(path: str | Path) -> dict:
     return data
 
 
+_LOADERS: dict[str, Any] = {
+    "sindy": "sdrl_bench.models.sindy:SindyModel",
+    "nn": "sdrl_bench.models.nn:MLPDynamics",
+}
+
+
+def register_loader(kind: str, loader: str | type) -> None:
+    """Make ``load_model`` read files of ``kind`` with ``loader``: a class with a classmethod
+    ``from_saved(data: dict, path: Path)``, or its ``"module:Class"`` name (imported on first use)."""
+    _LOADERS[kind] = loader
+
+
+def _loader(kind: str) -> Any:
+    loader = _LOADERS[kind]
+    if isinstance(loader, str):
+        module, _, attr = loader.partition(":")
+        loader = _LOADERS[kind] = getattr(importlib.import_module(module), attr)
+    return loader
+
+
 def load_model(path: str | Path) -> DynamicsModel:
-    """Load a saved model (``model.json``) of any kind; errors name the file."""
+    """Load a saved model (``model.json``) of any registered kind; errors name the file."""
     data = read_model_json(path)
     kind = data.get("kind")
-    if kind == "sindy":
-        from sdrl_bench.models.sindy import SindyModel
-
-        return SindyModel.from_dict(data, source=str(path))
-    if kind == "nn":
-        from sdrl_bench.models.nn import MLPDynamics  # torch only when needed
-
-        return MLPDynamics.load(path)
-    raise ConfigError(f"{path}: model kind {kind!r} is not supported (sindy, nn)")
+    if not isinstance(kind, str) or kind not in _LOADERS:
+        raise ConfigError(f"{path}: model kind {kind!r} is not supported ({', '.join(_LOADERS)})")
+    return _loader(kind).from_saved(data, Path(path))

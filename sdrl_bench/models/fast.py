@@ -1,5 +1,10 @@
 """Fast evaluators of a SINDy model for surrogate stepping: one state, or columns of states.
 
+These are why the project compiles models by hand: pysindy's ``predict`` costs about a
+millisecond a call, more than a hundred real MountainCar steps; a surrogate slower than the env
+it replaces defeats its purpose. Both evaluators take every op from the one term table
+(``models.terms``): its numpy column form for columns, its source form for one state.
+
 **One state** (``scalar_predictor``). ``SindyModel.predict`` is batched numpy: its per-call
 overhead (array creation, a loop over terms, a matrix product) is several microseconds, more
 than a whole step of the real MountainCar env. A single surrogate env steps one state at a
@@ -21,15 +26,16 @@ type of its own: given the numpy scalars a real env keeps, numpy's promotion rul
 compute in that env's arithmetic (float32 for MountainCar), which lets the MountainCar
 surrogate replay the real env bit for bit.
 
-The source is generated only from validated data: input indices (ints), op names from a fixed
-whitelist, and coefficients / parameters written with ``repr(float)`` (finite numbers only), so
-nothing from a model file reaches ``exec`` as text. Results agree with ``SindyModel.predict``
+The source is generated only from validated data: input indices (ints), op names from the term
+table (``terms.TABLE``, whose ``source`` forms are the only expressions written), and
+coefficients / parameters written with ``repr(float)`` (finite numbers only), so nothing from a
+model file reaches ``exec`` as text. Results agree with ``SindyModel.predict``
 to rounding (the sums run in a different order); the tests check this.
 
 **Columns** (``batch_predictor``). A vectorized env holds N states; its per-variable columns
 are contiguous (structure of arrays), so features are computed column by column into a
 (terms, N) matrix and multiplied from the left by the active coefficients, in column blocks
-that keep OpenBLAS single-threaded (see ``sindy._matmul_rows``). The result is (N, outputs)
+that keep OpenBLAS single-threaded (``models.blas``). The result is (N, outputs)
 in Fortran order: each output variable is again a contiguous column.
 """
 
@@ -41,7 +47,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from sdrl_bench.models.libraries import OPS, Term
+from sdrl_bench.models.blas import matmul_cols
+from sdrl_bench.models.terms import SOURCE_NAMESPACE, TABLE, Factor, Term, is_factor, scalar_factor
 
 ScalarPredict = Callable[[Sequence[float]], list[float]]
 
@@ -51,11 +58,6 @@ def _number(value: Any) -> str:
     if not math.isfinite(v):
         raise ValueError(f"non-finite number {value!r} in a model")
     return repr(v)
-
-
-def _unary(op: str, p: float, v: float) -> float:
-    return {"pow": v, "sin": math.sin(p * v), "cos": math.cos(p * v),
-            "rat": 1.0 / (1.0 + v * v), "xrat": v / (1.0 + v * v)}[op]
 
 
 def partial_terms(
@@ -70,7 +72,7 @@ def partial_terms(
         scale, rest = 1.0, []
         for f in term:
             if f[0] in fixed:
-                scale *= _unary(f[1], f[2], float(fixed[f[0]]))
+                scale *= scalar_factor(f, float(fixed[f[0]]))
             else:
                 rest.append(f)
         key = tuple(rest)
@@ -91,25 +93,19 @@ def scalar_source(terms: Sequence[Term], coef: np.ndarray, n_inputs: int, fixed:
     names = [f"z{i}" for i in range(n_inputs)]
     free = [names[i] for i in range(n_inputs) if i not in set(fixed)]
     lines = ["def predict(z):", f"    {', '.join(free)}, = z"]
-    factors: dict[tuple[int, str, float], str] = {}
+    factors: dict[Factor, str] = {}
 
-    def factor(f: tuple) -> str:
-        j, op, p = f
-        if not isinstance(j, (int, np.integer)) or not 0 <= int(j) < n_inputs or op not in OPS or j in fixed:
+    def factor(f: Factor) -> str:
+        if not is_factor(f, n_inputs) or f[0] in fixed:
             raise ValueError(f"bad term factor {f!r}")
-        z = names[int(j)]
-        if op == "pow":
-            return z
-        key = (int(j), str(op), float(p))
+        j, op, p = int(f[0]), str(f[1]), f[2]
+        source = TABLE[op].source
+        if source is None:  # pow: the input itself
+            return names[j]
+        key = (j, op, float(p))
         if key not in factors:
-            expr = {
-                "sin": f"_sin({_number(p)} * {z})",
-                "cos": f"_cos({_number(p)} * {z})",
-                "rat": f"1.0 / (1.0 + {z} * {z})",
-                "xrat": f"{z} / (1.0 + {z} * {z})",
-            }[op]
             factors[key] = f"f{len(factors)}"
-            lines.append(f"    {factors[key]} = {expr}")
+            lines.append(f"    {factors[key]} = {source(_number(p), names[j])}")
         return factors[key]
 
     active = [k for k in range(len(terms)) if np.any(coef[:, k] != 0)]
@@ -199,7 +195,7 @@ def compile_scalar(
     if fixed:
         terms, coef = partial_terms(terms, coef, fixed)
     chains = integrates_from(terms, coef)
-    namespace: dict[str, Any] = {"__builtins__": {}, "_sin": math.sin, "_cos": math.cos}
+    namespace: dict[str, Any] = {"__builtins__": {}, **SOURCE_NAMESPACE}
     source = scalar_source(terms, coef, n_inputs, tuple(fixed or ()), chains)
     exec(compile(source, "<sindy-scalar>", "exec"), namespace)
     predict = namespace["predict"]
@@ -248,26 +244,6 @@ def scalar_predictor(model: Any, fixed: dict[int, float] | None = None) -> Scala
 
 
 BatchPredict = Callable[[np.ndarray], np.ndarray]
-_BLOCK_FLOPS = 1 << 17
-
-
-def _column(op: str, p: float, z: np.ndarray) -> np.ndarray:
-    if op == "pow":
-        return z
-    if op == "sin":
-        return np.sin(z if p == 1.0 else p * z)
-    if op == "cos":
-        return np.cos(z if p == 1.0 else p * z)
-    if op == "rat":
-        return 1.0 / (1.0 + z * z)
-    return z / (1.0 + z * z)
-
-
-def _matmul_cols(a: np.ndarray, b: np.ndarray, out: np.ndarray) -> None:
-    """out += a @ b, in column blocks that keep OpenBLAS on one thread (see sindy._matmul_rows)."""
-    block = max(1, _BLOCK_FLOPS // max(1, a.size))
-    for i in range(0, b.shape[1], block):
-        out[:, i : i + block] += a @ b[:, i : i + block]
 
 
 def batch_predictor(model: Any) -> BatchPredict:
@@ -295,25 +271,27 @@ def batch_predictor(model: Any) -> BatchPredict:
             other.append(k)
     used = np.flatnonzero(np.any(linear != 0, axis=0))
     linear = np.ascontiguousarray(linear[:, used])
-    nl_terms, nl_coef = [terms[k] for k in other], np.ascontiguousarray(coef[:, other])
+    nl_coef = np.ascontiguousarray(coef[:, other])
+    # Each nonlinear term as its factors, the op's column function looked up once, here.
+    plan = [tuple((f, f[0], TABLE[f[1]].column, f[2]) for f in terms[k]) for k in other]
 
     def predict(z: np.ndarray) -> np.ndarray:
         out = np.empty((coef.shape[0], z.shape[1]))
         out[:] = bias
         if len(used):
-            _matmul_cols(linear, z[used] if len(used) < len(z) else z, out)
-        if nl_terms:
-            theta = np.empty((len(nl_terms), z.shape[1]))
-            cache: dict[tuple, np.ndarray] = {}
-            for r, term in enumerate(nl_terms):
+            matmul_cols(linear, z[used] if len(used) < len(z) else z, out)
+        if plan:  # terms.term_column's loop, inlined: this runs at every step of a vectorized env
+            theta = np.empty((len(plan), z.shape[1]))
+            cache: dict[Factor, np.ndarray] = {}
+            for r, factors in enumerate(plan):
                 col = None
-                for f in term:
+                for f, j, column, p in factors:
                     v = cache.get(f)
                     if v is None:
-                        v = cache[f] = _column(f[1], f[2], z[f[0]])
+                        v = cache[f] = column(p, z[j])
                     col = v if col is None else col * v
                 theta[r] = col
-            _matmul_cols(nl_coef, theta, out)
+            matmul_cols(nl_coef, theta, out)
         return out
 
     return predict

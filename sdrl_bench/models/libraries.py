@@ -5,9 +5,8 @@ inputs it acts on: ``all`` (regressed states and controls), ``states`` (regresse
 trigonometric terms never touch actions or boolean leg contacts) or ``controls``.
 
 Every output feature of a fitted library is compiled into a *term*: a product of factors
-``(input index, op, parameter)`` with ``op`` one of ``pow`` (the input itself, parameter 1),
-``sin``/``cos`` (of parameter * input), ``rat`` (1 / (1 + input^2)) or ``xrat``
-(input / (1 + input^2)). Terms are plain data: a saved model is JSON, never code.
+``(input index, op, parameter)``, the ops being those of ``models.terms`` (pow, sin, cos, rat,
+xrat). Terms are plain data: a saved model is JSON, never code.
 """
 
 from __future__ import annotations
@@ -22,39 +21,7 @@ from pysindy.feature_library.base import BaseFeatureLibrary, ConcatLibrary, x_se
 from pysindy.utils import AxesArray, comprehend_axes
 
 from sdrl_bench import ConfigError
-
-Factor = tuple[int, str, float]
-Term = tuple[Factor, ...]
-OPS = ("pow", "sin", "cos", "rat", "xrat")
-
-
-def _unary(op: str, param: float, x: np.ndarray) -> np.ndarray:
-    if op == "pow":
-        return x
-    if op == "sin":
-        return np.sin(param * x)
-    if op == "cos":
-        return np.cos(param * x)
-    if op == "rat":
-        return 1.0 / (1.0 + x * x)
-    if op == "xrat":
-        return x / (1.0 + x * x)
-    raise ValueError(f"unknown term op {op!r}")
-
-
-def evaluate_terms(terms: Sequence[Term], z: np.ndarray) -> np.ndarray:
-    """Feature matrix (N, len(terms)) of ``terms`` at inputs ``z`` (N, n_inputs)."""
-    z = np.asarray(z, dtype=float)
-    out = np.empty((z.shape[0], len(terms)))
-    cache: dict[Factor, np.ndarray] = {}
-    for k, term in enumerate(terms):
-        col = None
-        for factor in term:
-            if factor not in cache:
-                cache[factor] = _unary(factor[1], factor[2], z[:, factor[0]])
-            col = cache[factor] if col is None else col * cache[factor]
-        out[:, k] = 1.0 if col is None else col
-    return out
+from sdrl_bench.models.terms import Term, evaluate_terms
 
 
 class _TermLibrary(BaseFeatureLibrary):
@@ -219,24 +186,3 @@ def compile_terms(library: BaseFeatureLibrary, n_inputs: int) -> list[Term]:
         f"library: {type(library).__name__} cannot be compiled into a fast evaluator; use "
         "PolynomialLibrary, FourierLibrary, TrigLibrary, RationalLibrary or GeneralizedLibrary"
     )
-
-
-def validate_terms(terms: object, n_inputs: int) -> list[Term]:
-    """Check terms read from a file: every factor (int index in range, known op, finite param)."""
-    if not isinstance(terms, list):
-        raise ValueError("terms must be a list")
-    out = []
-    for t in terms:
-        if not isinstance(t, list):
-            raise ValueError(f"term {t!r} must be a list of factors")
-        factors = []
-        for f in t:
-            if (
-                not isinstance(f, list) or len(f) != 3 or not isinstance(f[0], int)
-                or not 0 <= f[0] < n_inputs or f[1] not in OPS
-                or not isinstance(f[2], (int, float)) or not np.isfinite(f[2])
-            ):
-                raise ValueError(f"bad factor {f!r} (want [input index, op in {OPS}, number])")
-            factors.append((f[0], f[1], float(f[2])))
-        out.append(tuple(factors))
-    return out

@@ -6,9 +6,10 @@ input and per output column) come from the training rows. Training: AdamW (weigh
 weights, not the biases) on the normalized-delta MSE, mini-batches reshuffled every epoch,
 early stopping on a held-out validation split (each member keeps its best-validation weights).
 
-The K members are stored as stacked tensors (layer weight ``(K, fan_in, fan_out)``), so the
-whole ensemble trains and predicts in one batched matmul per layer. Members differ by their
-initialization and mini-batch order; they share the train / validation split.
+The network is a ``torch.nn.Module`` (``models.mlp.EnsembleMLP``): the K members are stacked
+parameters (layer weight ``(K, fan_in, fan_out)``), so the whole ensemble trains and predicts in
+one batched matmul per layer. Members differ by their initialization and mini-batch order; they
+share the train / validation split.
 
 Numerics: the network runs in ``dtype`` (float32 by default); normalization, de-normalization
 and the residual ``s_t + delta`` are float64 numpy. Same seed, same thread count -> bitwise-equal
@@ -25,12 +26,12 @@ from collections.abc import Sequence
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 
 from sdrl_bench import ConfigError
 from sdrl_bench.models import nn_io
+from sdrl_bench.models.base import read_model_json
+from sdrl_bench.models.mlp import ACTIVATIONS, EnsembleMLP
 
-ACTIVATIONS = {"tanh": torch.tanh, "relu": F.relu, "silu": F.silu, "elu": F.elu, "gelu": F.gelu}
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
 KEY = "surrogate.model"
 
@@ -102,10 +103,14 @@ class MLPDynamics:
     def layer_sizes(self, n_in: int, n_out: int) -> list[int]:
         return [n_in] + [self.width] * self.depth + [n_out]
 
+    def network(self, n_in: int, n_out: int) -> EnsembleMLP:
+        """An uninitialized network of this architecture (``fit`` initializes it, loading fills it)."""
+        return EnsembleMLP(self.layer_sizes(n_in, n_out), self.ensemble_size, self.activation, DTYPES[self.dtype])
+
     @property
     def n_parameters(self) -> int:
         """Trainable scalars over all members."""
-        return int(sum(t.numel() for t in self.params_))
+        return int(sum(t.numel() for t in self.net_.parameters()))
 
     # ------------------------------------------------------------------ fit
     def fit(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray, *,
@@ -146,21 +151,22 @@ class MLPDynamics:
         yn = torch.from_numpy((dz - self.output_mean_) / self.output_std_).to(dt)
         z_tr, y_tr, z_va, y_va = zn[train], yn[train], zn[val], yn[val]
         gen = torch.Generator().manual_seed(self.seed)
-        self.params_ = _init_params(self.layer_sizes(z.shape[1], dz.shape[1]), self.ensemble_size, dt, gen)
-        self._act = ACTIVATIONS[self.activation]
-        weights, biases = self.params_[0::2], self.params_[1::2]
+        net = self.net_ = self.network(z.shape[1], dz.shape[1])
+        net.reset_parameters(gen)
+        params = list(net.parameters())
+        weights, biases = net.weights_and_biases()
         opt = torch.optim.AdamW([{"params": weights, "weight_decay": self.weight_decay},
                                  {"params": biases, "weight_decay": 0.0}], lr=self.learning_rate, fused=True)
         k, batch = self.ensemble_size, min(self.batch_size, len(train))
         best = torch.full((k,), float("inf"), dtype=torch.float64)
-        best_params = [p.detach().clone() for p in self.params_]
+        best_params = [p.detach().clone() for p in params]
         best_epoch, since = torch.zeros(k, dtype=torch.long), torch.zeros(k, dtype=torch.long)
         steps = epoch = 0
         while epoch < self.max_epochs and (self.max_steps is None or steps < self.max_steps):
             perm = torch.argsort(torch.rand(k, len(train), generator=gen), dim=1)
             for start in range(0, len(train) - batch + 1, batch):  # drop a ragged tail batch
                 idx = perm[:, start:start + batch]
-                loss = ((self._forward(z_tr[idx]) - y_tr[idx]) ** 2).mean(dim=(1, 2)).sum()
+                loss = ((net(z_tr[idx]) - y_tr[idx]) ** 2).mean(dim=(1, 2)).sum()
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
@@ -169,42 +175,29 @@ class MLPDynamics:
                     break
             epoch += 1
             with torch.no_grad():
-                val_loss = ((self._forward(z_va) - y_va) ** 2).mean(dim=(1, 2)).to(torch.float64)
+                val_loss = ((net(z_va) - y_va) ** 2).mean(dim=(1, 2)).to(torch.float64)
                 better = val_loss < best
                 best = torch.where(better, val_loss, best)
                 best_epoch = torch.where(better, epoch, best_epoch)
                 since = torch.where(better, 0, since + 1)
                 if bool(better.all()):
-                    for saved, p in zip(best_params, self.params_, strict=True):
+                    for saved, p in zip(best_params, params, strict=True):
                         saved.copy_(p)
                 elif bool(better.any()):
-                    for saved, p in zip(best_params, self.params_, strict=True):
+                    for saved, p in zip(best_params, params, strict=True):
                         saved[better] = p[better]
             if bool(torch.all(since >= self.patience)):
                 break
-        self.params_ = [p.requires_grad_(False) for p in best_params]
+        net.requires_grad_(False)
+        with torch.no_grad():
+            for p, saved in zip(params, best_params, strict=True):
+                p.copy_(saved)
         self.epochs_run_, self.steps_run_ = epoch, steps
         self.best_val_loss_ = best.numpy().copy()
         self.best_epoch_ = best_epoch.numpy().copy()
         with torch.inference_mode():
-            spread = self._forward(z_va).std(dim=0, unbiased=False).mean() if k > 1 else torch.zeros(())
+            spread = net(z_va).std(dim=0, unbiased=False).mean() if k > 1 else torch.zeros(())
         self.val_member_std_ = float(spread)
-
-    def _forward(self, z: torch.Tensor) -> torch.Tensor:
-        """(N, in) or (K, N, in) normalized inputs -> (K, N, out) normalized deltas."""
-        h = z
-        last = len(self.params_) // 2 - 1
-        if z.dim() == 2 and self.ensemble_size == 1:  # one member, one batch: plain 2-D GEMMs
-            for i in range(last + 1):
-                h = torch.addmm(self.params_[2 * i + 1][0], h, self.params_[2 * i][0])
-                if i < last:
-                    h = self._act(h)
-            return h.unsqueeze(0)
-        for i in range(last + 1):
-            h = torch.matmul(h, self.params_[2 * i]) + self.params_[2 * i + 1].unsqueeze(1)
-            if i < last:
-                h = self._act(h)
-        return h
 
     # ------------------------------------------------------------------ use
     def predict_members(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -230,7 +223,7 @@ class MLPDynamics:
         z = np.concatenate([x, np.atleast_2d(u)], axis=1)
         zn = (z - self.input_mean_) / self.input_std_
         with torch.inference_mode():
-            return self._forward(torch.from_numpy(zn.astype(self._np_dtype, copy=False))).numpy()
+            return self.net_(torch.from_numpy(zn.astype(self._np_dtype, copy=False))).numpy()
 
     @property
     def _np_dtype(self) -> type:
@@ -269,9 +262,15 @@ class MLPDynamics:
         return nn_io.save(self, Path(path))
 
     @classmethod
+    def from_saved(cls, data: dict, path: Path) -> MLPDynamics:
+        """The loader ``models.base.load_model`` calls with the JSON object of ``path``; a weights
+        file that does not match the metadata raises ConfigError."""
+        return nn_io.load(cls, data, Path(path))
+
+    @classmethod
     def load(cls, path: str | Path) -> MLPDynamics:
         """Load a saved model; a weights file that does not match the metadata raises ConfigError."""
-        return nn_io.load(cls, Path(path))
+        return cls.from_saved(read_model_json(path), Path(path))
 
 
 @functools.cache
@@ -285,15 +284,3 @@ def _stats(a: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Column mean and std (a constant column gets std 1)."""
     std = a.std(axis=0)
     return a.mean(axis=0), np.where(std > 0, std, 1.0)
-
-
-def _init_params(sizes: list[int], k: int, dt: torch.dtype, gen: torch.Generator) -> list[torch.Tensor]:
-    """[W0, b0, W1, b1, ...]: W (k, fan_in, fan_out), b (k, fan_out), uniform in +-1/sqrt(fan_in)."""
-    params = []
-    for fan_in, fan_out in zip(sizes[:-1], sizes[1:], strict=True):
-        bound = 1.0 / np.sqrt(fan_in)
-        for shape in ((k, fan_in, fan_out), (k, fan_out)):
-            t = (torch.rand(shape, generator=gen, dtype=torch.float64) * 2 - 1) * bound
-            params.append(t.to(dt).requires_grad_(True))
-    return params
-

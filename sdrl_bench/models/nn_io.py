@@ -2,45 +2,32 @@
 
 ``model.json`` holds the format tag, the kind, the hyperparameters, the state and control
 names, the normalization statistics, the training outcome, and the name and sha256 of the
-weights file (``model.pt``, written by ``torch.save`` from a dict of tensors and read back with
-``torch.load(weights_only=True)``: loading never runs code from the artifact). A weights file
-whose keys, shapes, dtype or hash do not match the metadata raises ``ConfigError`` naming it.
+weights file (``model.pt``: the network's state dict, written by ``torch.save`` and read back
+with ``torch.load(weights_only=True)``: loading never runs code from the artifact).
+
+Keys and shapes are checked by ``load_state_dict(strict=True)``; this module adds what torch
+does not do: the metadata, the dtype and finiteness of the weights (``load_state_dict`` would
+cast and copy them silently), the sha256, and one-line ``ConfigError``s naming the file.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import re
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 
 from sdrl_bench import ConfigError
-from sdrl_bench.models.base import read_model_json
-
-if TYPE_CHECKING:
-    from sdrl_bench.models.nn import MLPDynamics
 
 FORMAT = "sdrl-bench/nn-model-v1"
 TRAINING_KEYS = ("epochs_run", "steps_run", "n_train_rows", "n_val_rows", "val_member_std", "n_fit_samples")
 
 
-def param_names(n_layers: int) -> list[str]:
-    """State-dict keys in parameter order: layers.<i>.weight, layers.<i>.bias."""
-    return [f"layers.{i}.{w}" for i in range(n_layers) for w in ("weight", "bias")]
-
-
-def expected_shapes(model: MLPDynamics, n_in: int, n_out: int) -> dict[str, tuple[int, ...]]:
-    sizes = model.layer_sizes(n_in, n_out)
-    k, shapes = model.ensemble_size, {}
-    for i, (a, b) in enumerate(zip(sizes[:-1], sizes[1:], strict=True)):
-        shapes[f"layers.{i}.weight"], shapes[f"layers.{i}.bias"] = (k, a, b), (k, b)
-    return shapes
-
-
-def to_dict(model: MLPDynamics, weights_file: str, sha256: str) -> dict[str, Any]:
+def to_dict(model: Any, weights_file: str, sha256: str) -> dict[str, Any]:
     return {
         "format": FORMAT,
         "kind": model.kind,
@@ -62,11 +49,11 @@ def to_dict(model: MLPDynamics, weights_file: str, sha256: str) -> dict[str, Any
     }
 
 
-def save(model: MLPDynamics, path: Path) -> Path:
+def save(model: Any, path: Path) -> Path:
+    """Write ``path`` (the metadata of an ``MLPDynamics``) and ``<stem>.pt`` beside it."""
     path.parent.mkdir(parents=True, exist_ok=True)
     weights = path.with_suffix(".pt")
-    names = param_names(len(model.params_) // 2)
-    torch.save({n: p.detach().clone().contiguous() for n, p in zip(names, model.params_, strict=True)}, weights)
+    torch.save(dict(model.net_.state_dict()), weights)  # a plain dict of tensors
     sha = hashlib.sha256(weights.read_bytes()).hexdigest()
     path.write_text(json.dumps(to_dict(model, weights.name, sha), indent=1))
     return path
@@ -79,11 +66,11 @@ def _vector(d: dict, key: str, n: int, positive: bool = False) -> np.ndarray:
     return v
 
 
-def load(cls: type[MLPDynamics], path: Path) -> MLPDynamics:
-    d = read_model_json(path)
+def load(cls: type, d: dict, path: Path) -> Any:
+    """An ``MLPDynamics`` (``cls``) from its metadata ``d`` (read from ``path``) and weights file."""
     try:
-        if not isinstance(d, dict) or d.get("format") != FORMAT:
-            raise ValueError(f"format is {d.get('format') if isinstance(d, dict) else None!r}, expected {FORMAT!r}")
+        if d.get("format") != FORMAT:
+            raise ValueError(f"format is {d.get('format')!r}, expected {FORMAT!r}")
         model = cls(**d["hyperparameters"])
         model.state_names_ = [str(s) for s in d["state_names"]]
         model.control_names_ = [str(s) for s in d["control_names"]]
@@ -103,16 +90,13 @@ def load(cls: type[MLPDynamics], path: Path) -> MLPDynamics:
         raise ConfigError(f"{path}: {exc}") from exc
     except (KeyError, TypeError, ValueError) as exc:
         raise ConfigError(f"{path}: not a valid NN model file ({exc})") from exc
-    weights = path.parent / weights_file
-    model.params_ = _read_state_dict(weights, path, expected_shapes(model, n_in, n_out), model.dtype, sha)
-    from sdrl_bench.models.nn import ACTIVATIONS
-
-    model._act = ACTIVATIONS[model.activation]
+    model.net_ = model.network(n_in, n_out)
+    _load_weights(model.net_, path.parent / weights_file, path, sha)
+    model.net_.requires_grad_(False)
     return model
 
 
-def _read_state_dict(weights: Path, meta: Path, shapes: dict[str, tuple[int, ...]], dtype: str,
-                     sha: str) -> list[torch.Tensor]:
+def _load_weights(net: torch.nn.Module, weights: Path, meta: Path, sha: str) -> None:
     def mismatch(what: str) -> ConfigError:
         return ConfigError(f"{weights}: state dict does not match its metadata {meta.name} ({what})")
 
@@ -124,20 +108,16 @@ def _read_state_dict(weights: Path, meta: Path, shapes: dict[str, tuple[int, ...
         raise ConfigError(f"{weights}: not a readable tensor state dict ({exc.__class__.__name__})") from None
     if not isinstance(state, dict):
         raise mismatch(f"holds a {type(state).__name__}, not a dict of tensors")
-    if set(state) != set(shapes):
-        missing, extra = sorted(set(shapes) - set(state)), sorted(set(state) - set(shapes))
-        raise mismatch(f"missing keys {missing}, unexpected keys {extra}")
-    params = []
-    for name, shape in shapes.items():
-        t = state[name]
-        if not isinstance(t, torch.Tensor) or tuple(t.shape) != shape:
-            got = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
-            raise mismatch(f"{name} has shape {got}, expected {shape}")
-        if str(t.dtype) != f"torch.{dtype}":
+    try:
+        net.load_state_dict(state, strict=True)
+    except RuntimeError as exc:  # torch's message: a header line, then one line per problem
+        problems = [line.strip() for line in str(exc).splitlines()[1:] if line.strip()]
+        raise mismatch(re.sub(r"torch\.Size\(\[([^\]]*)\]\)", r"(\1)", "; ".join(problems))) from None
+    dtype = next(net.parameters()).dtype
+    for name, t in state.items():
+        if t.dtype != dtype:
             raise mismatch(f"{name} is {t.dtype}, expected {dtype}")
         if not bool(torch.all(torch.isfinite(t))):
             raise mismatch(f"{name} has non-finite values")
-        params.append(t.contiguous())
     if hashlib.sha256(weights.read_bytes()).hexdigest() != sha:
         raise mismatch("sha256 differs from weights_sha256")
-    return params

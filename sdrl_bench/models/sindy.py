@@ -1,8 +1,9 @@
 """SINDy dynamics model: a pysindy DiscreteSINDy fit, compiled into a batched numpy evaluator.
 
 pysindy's ``predict`` costs about a millisecond a call, so the fitted model is compiled: its
-active library terms become a structured feature program (see ``libraries``), and prediction
-is that feature matrix times the coefficient matrix. The compiled evaluator is checked against
+active library terms become a structured feature program (``libraries`` compiles them, ``terms``
+evaluates them), and prediction is that feature matrix times the coefficient matrix (in blocks
+that keep OpenBLAS on one thread, ``models.blas``). The compiled evaluator is checked against
 pysindy's ``predict`` on the training inputs at fit time. An equation that holds to the data's
 float precision then has its coefficients snapped to the shortest decimals the data cannot
 reject (``models.snap``): MountainCar's law comes out as 0.0015, not 0.0014999988. The model
@@ -22,29 +23,13 @@ import pysindy as ps
 from pysindy.feature_library.base import BaseFeatureLibrary
 
 from sdrl_bench import ConfigError
-from sdrl_bench.models.libraries import compile_terms, evaluate_terms, validate_terms
+from sdrl_bench.models.base import read_model_json
+from sdrl_bench.models.blas import matmul_rows
+from sdrl_bench.models.libraries import compile_terms
 from sdrl_bench.models.snap import snap_equation
+from sdrl_bench.models.terms import evaluate_terms, validate_terms
 
 FORMAT = "sdrl-bench/sindy-model-v1"
-
-
-_BLOCK_FLOPS = 1 << 17
-
-
-def _matmul_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``a @ b`` in row blocks small enough that OpenBLAS runs each on one thread.
-
-    A tall, skinny product (16384 x 15 times 15 x 6) is handed to every BLAS thread; on a
-    2-core machine that is busy with anything else it measured 2-17 ms instead of 0.1-0.4 ms.
-    Blocks of at most ``_BLOCK_FLOPS`` multiply-adds stay single-threaded and cost the same.
-    """
-    rows = max(1, _BLOCK_FLOPS // max(1, a.shape[1] * b.shape[1]))
-    if len(a) <= rows:
-        return a @ b
-    out = np.empty((len(a), b.shape[1]))
-    for i in range(0, len(a), rows):
-        np.matmul(a[i : i + rows], b, out=out[i : i + rows])
-    return out
 
 
 class SindyModel:
@@ -178,7 +163,7 @@ class SindyModel:
     def predict(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """Next regressed states (N, n_states) for states (N, n_states) and controls (N, n_controls)."""
         z = np.concatenate([np.atleast_2d(x), np.atleast_2d(u)], axis=1)
-        return _matmul_rows(evaluate_terms(self._active_terms, z), self._active_coef_t)
+        return matmul_rows(evaluate_terms(self._active_terms, z), self._active_coef_t)
 
     def equations(self, precision: int = 6) -> list[str]:
         """One line per regressed state: ``x[k+1] = c1 term1 + c2 term2 ...`` (nonzero terms)."""
@@ -261,7 +246,10 @@ class SindyModel:
         return model
 
     @classmethod
-    def load(cls, path: str | Path) -> SindyModel:
-        from sdrl_bench.models.base import read_model_json  # noqa: PLC0415
+    def from_saved(cls, data: dict, path: Path) -> SindyModel:
+        """The loader ``models.base.load_model`` calls with the JSON object of ``path``."""
+        return cls.from_dict(data, source=str(path))
 
+    @classmethod
+    def load(cls, path: str | Path) -> SindyModel:
         return cls.from_dict(read_model_json(path), source=str(path))
