@@ -49,6 +49,9 @@ class ReportResult:
 def select_runs(inp: ReportInput) -> tuple[list[dict[str, Any]], list[str]]:
     """The runs the report covers, and the problems met (unknown experiment or parent run,
     empty selection). Never raises for bad input: problems are returned as messages."""
+    local = tracking.sqlite_path(inp.uri)
+    if local is not None and not local.is_file():  # report, don't create
+        return [], [f"no tracking store at {local}"]
     names = tracking.list_experiments(inp.uri)
     if inp.experiment not in names:
         known = ", ".join(repr(n) for n in names) or "none: the store is empty"

@@ -112,7 +112,7 @@ def test_failure_after_the_run_started_marks_it_failed(store, tmp_path):
     assert list(runs["status"]) == ["FAILED"]
 
 
-def test_sigterm_mid_run_marks_the_run_failed(store, tmp_path):
+def test_sigterm_mid_run_ends_the_run_killed(store, tmp_path):
     import signal
     import subprocess
     import sys
@@ -132,9 +132,10 @@ def test_sigterm_mid_run_marks_the_run_failed(store, tmp_path):
             pass
         time.sleep(0.5)
     proc.send_signal(signal.SIGTERM)
-    proc.communicate(timeout=120)
-    assert proc.returncode != 0
-    assert list(search(store)["status"]) == ["FAILED"]
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM
+    assert err.strip().splitlines()[-1] == "sdrl-bench: stopped by SIGTERM; the run ended KILLED"
+    assert list(search(store)["status"]) == ["KILLED"]
 
 
 def test_unknown_agent_fails_at_composition(tmp_path, store):
