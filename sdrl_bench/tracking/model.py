@@ -17,16 +17,25 @@ CODE = Path(__file__).with_name("pyfunc_model.py")
 
 
 @contextlib.contextmanager
-def _tracking_uri(uri: str) -> Iterator[None]:
-    """MLflow's module-level tracking URI set to ``uri`` for calls that read it (model logging)."""
+def _fluent_target(uri: str, experiment_id: str) -> Iterator[None]:
+    """MLflow's module-level tracking URI and experiment set to the run's, for the calls that
+    read them (model logging creates the logged model in the "current" experiment)."""
+    import os
+
     import mlflow
 
     previous = mlflow.get_tracking_uri() if mlflow.tracking._tracking_service.utils.is_tracking_uri_set() else None
+    prev_exp = os.environ.get("MLFLOW_EXPERIMENT_ID")
     mlflow.set_tracking_uri(uri)
+    os.environ["MLFLOW_EXPERIMENT_ID"] = experiment_id
     try:
         yield
     finally:
         mlflow.set_tracking_uri(previous)
+        if prev_exp is None:
+            os.environ.pop("MLFLOW_EXPERIMENT_ID", None)
+        else:
+            os.environ["MLFLOW_EXPERIMENT_ID"] = prev_exp
 
 
 def _frame(transitions, spec):
@@ -92,6 +101,8 @@ def log_surrogate_model(run: Run, result) -> str:
     import mlflow
     from mlflow.models import Model, infer_signature
 
+    from sdrl_bench.tracking.client import mlflow_client
+
     spec = result.job.spec
     example, output = model_io_example(result)
     with tempfile.TemporaryDirectory() as tmp:
@@ -99,7 +110,8 @@ def log_surrogate_model(run: Run, result) -> str:
         result.model.save(model_dir / "model.json")
         env_file = Path(tmp) / "env.json"
         env_file.write_text(json.dumps({"env": spec.name}))
-        with _tracking_uri(run.uri):
+        exp_id = mlflow_client(run.uri).get_run(run.run_id).info.experiment_id
+        with _fluent_target(run.uri, exp_id):
             info = Model.log(
                 artifact_path=None, name=MODEL_NAME, flavor=mlflow.pyfunc, run_id=run.run_id,
                 python_model=str(CODE), artifacts={"model": str(model_dir), "env": str(env_file)},

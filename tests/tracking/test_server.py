@@ -83,7 +83,8 @@ def test_a_fit_run_on_a_server_has_datasets_a_loadable_model_equations_tags_and_
     # the logged model: a pyfunc from code that predicts s' from (s, a) as the project's evaluator does
     (out,) = run.outputs.model_outputs
     logged = client.get_logged_model(out.model_id)
-    assert logged.source_run_id == rid and logged.name == "surrogate"
+    assert logged.source_run_id == rid and logged.name == "surrogate" and logged.status == "READY"
+    assert logged.experiment_id == exp.experiment_id  # listed on the run page and the experiment's Models tab
     mlflow.set_tracking_uri(server)
     try:
         pyfunc = mlflow.pyfunc.load_model(f"models:/{out.model_id}")
