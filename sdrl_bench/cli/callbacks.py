@@ -64,7 +64,7 @@ class MlflowSweepCallback(Callback):
             uri, experiment, f"sweep-{sweep_dir.name}",
             {"sdrl.kind": "sweep", "sdrl.sweep_dir": str(sweep_dir.resolve()),
              "sdrl.overrides": " ".join(overrides), SWEEP_KEY_TAG: key,
-             "git_commit": tracking.git_commit()},
+             **tracking.standard_tags("sdrl-bench -m")},
         )
         sweep_dir.mkdir(parents=True, exist_ok=True)
         (sweep_dir / PARENT_FILE).write_text(run_id)
@@ -78,6 +78,10 @@ class MlflowSweepCallback(Callback):
         if self._parent is not None:
             uri, run_id, experiment = self._parent
             failed = any(s != "FINISHED" for s in tracking.child_statuses(uri, experiment, run_id))
+            try:
+                tracking.summarize_sweep(uri, run_id)  # overrides as params, best child, description
+            except Exception as exc:  # the summary is a courtesy: the sweep's status still counts
+                print(f"sdrl-bench: could not summarize sweep run {run_id}: {exc}")
             self._finish("FAILED" if failed else "FINISHED")
 
     def _finish(self, status: str) -> None:

@@ -61,18 +61,19 @@ def run_fit(cfg: DictConfig, parent: str | None = None, extra_tags: dict[str, st
     tags = {
         "sdrl.kind": "fit", "env": names["env"], "library": names["library"],
         "optimizer": names["optimizer"], "collector": names["collector"],
-        "surrogate": names["surrogate"], "seed": job.seed, "git_commit": tracking.git_commit(), **(extra_tags or {}),
+        "surrogate": names["surrogate"], "seed": job.seed, **tracking.standard_tags("sdrl-bench task=fit"),
+        **(extra_tags or {}),
     }
     model_name = f"{names['library']}-{names['optimizer']}" if names["surrogate"] == "sindy" else names["surrogate"]
     run_name = f"fit-{names['env']}-{model_name}-s{job.seed}"
     with tracking.start_run(uri, cfg.tracking.experiment, run_name, tags, parent) as run:
         result = fit_dynamics(job, checked)
-        tracking.log_fit(run, result, tracking.flatten(OmegaConf.to_container(cfg, resolve=True)))
-    _print_summary(result, uri, run.run_id)
+        tracking.log_fit(run, result, config=OmegaConf.to_container(cfg, resolve=True))
+    _print_summary(result, uri, run.run_id, tracking.ensure_experiment(uri, cfg.tracking.experiment))
     return result
 
 
-def _print_summary(result: FitResult, uri: str, run_id: str) -> None:
+def _print_summary(result: FitResult, uri: str, run_id: str, experiment_id: str = "0") -> None:
     from rich.console import Console
     from rich.table import Table
 
@@ -94,9 +95,8 @@ def _print_summary(result: FitResult, uri: str, run_id: str) -> None:
                   f"fit {result.seconds['fit_wall']:.3f} s")
     lines = result.model.describe().strip().splitlines()
     console.print(f"{result.model.summary_file[:-4]}:\n  " + "\n  ".join(lines), highlight=False, markup=False)
-    console.print(f"MLflow run {run_id} in {uri}", highlight=False)
-    console.print("browse: mlflow ui --backend-store-uri " + tracking.display_uri(uri) + "  (then open http://127.0.0.1:5000)",
-                  highlight=False)
+    console.print(f"MLflow run {run_id} in {tracking.display_uri(uri)}", highlight=False)
+    console.print(tracking.browse_hint(uri, experiment_id, run_id, tracking.display_uri(uri)), highlight=False, soft_wrap=True)
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")

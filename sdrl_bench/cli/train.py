@@ -30,20 +30,51 @@ def run_train(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict[str
     tags = {
         "sdrl.kind": "transfer", "env": spec.name, "agent": job.agent.name, "surrogate": names["surrogate"],
         "library": names["library"], "optimizer": names["optimizer"], "collector": names["collector"],
-        "seed": job.seed, "arms": ",".join(job.arms), "real_arm_key": key, "git_commit": tracking.git_commit(),
-        "solved_threshold": spec.solved_threshold, **(extra_tags or {}),
+        "seed": job.seed, "arms": ",".join(job.arms), "real_arm_key": key,
+        "solved_threshold": spec.solved_threshold, **tracking.standard_tags("sdrl-bench task=train"),
+        **(extra_tags or {}),
     }
     run_name = f"train-{spec.name}-{job.agent.name}-{names['surrogate']}-s{job.seed}"
     with tracking.start_run(uri, cfg.tracking.experiment, run_name, tags, parent) as run, \
             tempfile.TemporaryDirectory() as tmp:
-        run.log_params(tracking.flatten(OmegaConf.to_container(cfg, resolve=True)))
+        exp_id = tracking.ensure_experiment(uri, cfg.tracking.experiment)
+        _start_banner(run_name, run.run_id, uri, exp_id, job)
+        tracking.log_config(run, OmegaConf.to_container(cfg, resolve=True), uri, task="train")
+        tracking.set_description(run, f"**{spec.name}**: {job.agent.name.upper()} trained in the {names['surrogate']} "
+                                      f"surrogate and/or the real env (arms: {', '.join(job.arms)}), seed {job.seed}.")
         recorder = RunRecorder(run, cfg.tracking.experiment, key, tmp)
-        outcome = run_transfer(job, checked, recorder, reuse_real_arm=bool(cfg.rl.reuse_real_arm))
-    _print(outcome.summary, uri, run.run_id, job, outcome.model_text)
+        with tracking.system_metrics(run):
+            outcome = run_transfer(job, checked, recorder, reuse_real_arm=bool(cfg.rl.reuse_real_arm))
+        tracking.set_description(run, _description(outcome.summary, job, outcome.model_text))
+    _print(outcome.summary, uri, run.run_id, job, outcome.model_text, exp_id)
     return outcome.summary
 
 
-def _print(summary: dict[str, float], uri: str, run_id: str, job: TransferJob, model_text: str) -> None:
+def _start_banner(run_name: str, run_id: str, uri: str, exp_id: str, job: TransferJob) -> None:
+    """Printed as soon as the run exists, so the live run can be opened while it trains."""
+    budgets = {"surrogate": job.surrogate_steps, "real": job.real_steps}
+    arms = ", ".join(f"{a} arm {budgets[a]:,} steps" for a in job.arms)
+    print(f"sdrl-bench: {run_name}: {job.agent.name.upper()} on {job.fit.spec.name}, {arms}", flush=True)
+    print(f"MLflow run {run_id} in {tracking.display_uri(uri)}; "
+          f"{tracking.browse_hint(uri, exp_id, run_id, tracking.display_uri(uri))}", flush=True)
+
+
+def _description(summary: dict[str, float], job: TransferJob, model_text: str) -> str:
+    """The run's description once it ends: each arm's real return and steps, and the equations."""
+    spec = job.fit.spec
+    lines = [f"**{spec.name}**: {job.agent.name.upper()}, seed {job.seed}, judged in the real env."]
+    for arm in job.arms:
+        if f"{arm}/final_return_mean" in summary:
+            lines.append(f"- {arm} arm: real return {summary[f'{arm}/final_return_mean']:.1f} "
+                         f"(success {summary.get(f'{arm}/success_rate', float('nan')):.0%}), "
+                         f"{summary.get(f'{arm}/total_steps', float('nan')):,.0f} total steps")
+    if model_text:
+        lines.append(f"\nSurrogate ({job.fit.names['surrogate']}, {job.fit.n_transitions} real transitions):\n\n"
+                     f"```\n{model_text.strip()}\n```")
+    return "\n".join(lines) + "\n"
+
+
+def _print(summary: dict[str, float], uri: str, run_id: str, job: TransferJob, model_text: str, exp_id: str = "0") -> None:
     from rich.console import Console
     from rich.table import Table
 
@@ -63,6 +94,5 @@ def _print(summary: dict[str, float], uri: str, run_id: str, job: TransferJob, m
     console.print(table)
     if "policy_map_agreement" in summary:
         console.print(f"policy-map agreement: {summary['policy_map_agreement']:.3f}")
-    console.print(f"MLflow run {run_id} in {uri}", highlight=False)
-    console.print("browse: mlflow ui --backend-store-uri " + tracking.display_uri(uri) + "  (then open http://127.0.0.1:5000)",
-                  highlight=False)
+    console.print(f"MLflow run {run_id} in {tracking.display_uri(uri)}", highlight=False)
+    console.print(tracking.browse_hint(uri, exp_id, run_id, tracking.display_uri(uri)), highlight=False, soft_wrap=True)

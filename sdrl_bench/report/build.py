@@ -87,48 +87,60 @@ def latest_per_config(runs: list[dict[str, Any]]) -> list[dict[str, Any]]:
 
 
 class Linker:
-    """Run ids as links into the MLflow UI (when a server URL is given) and short labels."""
+    """Run ids as links into the MLflow UI (when a server URL is given) and short labels: a
+    number backed by one run opens that run's page; a number over several runs (a mean over
+    seeds) opens the compare view of exactly those runs."""
 
     def __init__(self, runs: Sequence[Mapping[str, Any]], ui_url: str | None):
         self.exp = {r["run_id"]: r.get("experiment_id", "0") for r in runs}
         self.ui = ui_url.rstrip("/") if ui_url else None
 
     def url(self, run_id: str) -> str | None:
-        return f"{self.ui}/#/experiments/{self.exp.get(run_id, '0')}/runs/{run_id}" if self.ui else None
+        return tracking.run_url(self.ui, self.exp.get(run_id, "0"), run_id) if self.ui else None
+
+    def runs_url(self, run_ids: Sequence[str]) -> str | None:
+        if not self.ui or not run_ids:
+            return None
+        if len(run_ids) == 1:
+            return self.url(run_ids[0])
+        return tracking.compare_url(self.ui, run_ids, [self.exp.get(r, "0") for r in run_ids])
 
     def cell(self, text: str, run_ids: Sequence[str]) -> Cell:
-        """A number linked to its (first) run; "not run"/"missing" text carries no link."""
+        """A number linked to the runs it is computed from; "not run"/"missing" carry no link."""
         if text in (NOT_RUN, MISSING) or not run_ids:
             return Cell(text)
-        return Cell(text, self.url(run_ids[0]))
+        return Cell(text, self.runs_url(run_ids))
 
     def ids(self, run_ids: Sequence[str], limit: int = 5) -> Cell:
         if not run_ids:
             return Cell(NOT_RUN)
         shown = ", ".join(r[:8] for r in run_ids[:limit]) + (f" +{len(run_ids) - limit}" if len(run_ids) > limit else "")
-        return Cell(shown, self.url(run_ids[0]))
+        return Cell(shown, self.runs_url(run_ids))
 
 
-def _df_table(df: pd.DataFrame, spec: Sequence[tuple[str, str, str]], link: Linker, caption: str) -> Table:
-    """Rows of ``df`` as a Table: spec is (column, header, format); numbers link to the row's
-    runs; NaN prints "not run" when the row has no runs, else "missing"."""
+def _df_table(df: pd.DataFrame, spec: Sequence[tuple[str, ...]], link: Linker, caption: str) -> Table:
+    """Rows of ``df`` as a Table: spec is (column, header, format[, runs column]); a number
+    links to the runs it comes from (the row's ``runs``, or the named runs column: SINDy cells
+    to SINDy runs, NN cells to NN runs); NaN prints "not run" when those runs are none, else
+    "missing"."""
     rows = []
     for _, r in df.iterrows():
         ids = list(r["runs"])
         cells = []
-        for col, _, kind in spec:
+        for col, _, kind, *runs_col in spec:
             v = r[col]
+            cell_ids = list(r[runs_col[0]]) if runs_col else ids
             kind, _, count_col = kind.partition("|")  # "g|n_nn": "not run" when n_nn is 0
-            empty = NOT_RUN if not ids or (count_col and not r[count_col]) else MISSING
+            empty = NOT_RUN if not cell_ids or (count_col and not r[count_col]) else MISSING
             if kind == "text":
                 cells.append(Cell("-" if v is None or (isinstance(v, float) and math.isnan(v)) else str(v)))
             elif kind.startswith("paper"):
                 cells.append(Cell(fmt(v, kind[6:] or "g", empty="-")))
             else:
-                cells.append(link.cell(fmt(v, kind, empty), ids))
+                cells.append(link.cell(fmt(v, kind, empty), cell_ids))
         cells.append(link.ids(ids))
         rows.append(cells)
-    return Table([h for _, h, _ in spec] + ["runs"], rows, caption)
+    return Table([s[1] for s in spec] + ["runs"], rows, caption)
 
 
 def _ci_text(r: Mapping[str, Any]) -> str:
@@ -160,9 +172,11 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                          "gives one MSE per env without saying how states are combined."))
     out.append(Heading(2, "3. SINDy vs NN surrogate"))
     out.append(_df_table(rt.sindy_vs_nn_table(runs), [("env", "env", "text"), ("quantity", "quantity", "text"),
-                                                      ("sindy", "SINDy", "g|n_sindy"), ("nn", "NN", "g|n_nn"),
-                                                      ("sindy_over_nn", "SINDy / NN", "g|n_nn"), ("n_sindy", "SINDy fits", "int"),
-                                                      ("n_nn", "NN fits", "int")], link,
+                                                      ("sindy", "SINDy", "g|n_sindy", "runs_sindy"),
+                                                      ("nn", "NN", "g|n_nn", "runs_nn"),
+                                                      ("sindy_over_nn", "SINDy / NN", "g|n_nn"),
+                                                      ("n_sindy", "SINDy fits", "int", "runs_sindy"),
+                                                      ("n_nn", "NN fits", "int", "runs_nn")], link,
                          "Fit runs, means over seeds. n_parameters: SINDy's active terms vs the NN's weights. "
                          "Paper (Mountain Car velocity): SINDy MSE 3.11e-06 vs NN 4.45e-06, ~95% less compute."))
     out.append(Heading(2, "4. RL transfer (real-environment evaluation)"))

@@ -104,7 +104,10 @@ def _transfer_blocks(uri: str, runs: Sequence[Mapping[str, Any]], folder: Path, 
         first = members[0]["run_id"]
         got = _fetch(uri, first, "figures/policy_maps.png", figs / f"policy_maps_{env}_{kind}.png")
         if got:
-            out.append(Image(got, f"{env} ({kind}): policy maps, real-trained vs surrogate-trained agent (run {first[:8]})"))
+            arms = [a for a in rt.ARMS if f"{a}/final_return_mean" in members[0]["metrics"]]
+            what = ("real-trained vs surrogate-trained agent" if len(arms) == 2 else
+                    f"the {arms[0] if arms else 'trained'}-arm agent (one arm ran)")
+            out.append(Image(got, f"{env} ({kind}): policy maps, {what} (run {first[:8]})"))
             out.append(Para(f"Policy maps from run {_ref(first, url)}."))
         else:
             out.append(Para(f"{env} ({kind}): policy maps missing from run {_ref(first, url)}."))

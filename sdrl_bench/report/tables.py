@@ -50,15 +50,17 @@ def finished(runs: Iterable[Run], kind: str | None = None) -> list[Run]:
 
 def fit_records(runs: Iterable[Run]) -> list[dict[str, Any]]:
     """Every finished fit as one record: fit runs, and the fit inside each transfer run
-    (its ``fit/`` metrics). Keys: run_id, source ("fit"/"transfer"), env, library, surrogate,
+    (its fit metrics). Keys: run_id, source ("fit"/"transfer"), env, library, surrogate,
     collector, seed, test_set, metrics (unprefixed)."""
     out = []
     for r in finished(runs):
         kind, tags = r["tags"].get("sdrl.kind"), r["tags"]
         if kind == "fit":
             metrics = dict(r["metrics"])
-        elif kind == "transfer":
-            metrics = {k[4:]: v for k, v in r["metrics"].items() if k.startswith("fit/")}
+        elif kind == "transfer":  # the fit under the names fit runs use (older runs: under ``fit/``)
+            old = {k[4:]: v for k, v in r["metrics"].items() if k.startswith("fit/")}
+            metrics = old or {k: v for k, v in r["metrics"].items()
+                              if not k.startswith(("surrogate/", "real/")) and k != "policy_map_agreement"}
         else:
             continue
         out.append({"run_id": r["run_id"], "source": kind, "env": tags.get("env"), "library": tags.get("library"),
@@ -148,7 +150,8 @@ def _ratio(a: float, b: float) -> float:
 
 def sindy_vs_nn_table(runs: Iterable[Run]) -> pd.DataFrame:
     """SINDy vs NN per env: per-state one-step MSE, fit wall and CPU seconds, parameters
-    (SINDy: active terms) and the SINDy/NN ratios, each the mean over the kind's fit runs."""
+    (SINDy: active terms) and the SINDy/NN ratios, each the mean over the kind's fit runs
+    (``runs_sindy`` and ``runs_nn`` name them, so each number links to its own runs)."""
     records = [r for r in fit_records(runs) if r["source"] == "fit"]
     rows = []
     for env in envs_of(records):
@@ -159,8 +162,10 @@ def sindy_vs_nn_table(runs: Iterable[Run]) -> pd.DataFrame:
             s_val = _mean(f["metrics"].get(q) for f in sindy)
             n_val = _mean(f["metrics"].get(q) for f in nn)
             rows.append({"env": env, "quantity": q, "sindy": s_val, "nn": n_val, "sindy_over_nn": _ratio(s_val, n_val),
-                         "n_sindy": len(sindy), "n_nn": len(nn), "runs": ids})
-    return pd.DataFrame(rows, columns=["env", "quantity", "sindy", "nn", "sindy_over_nn", "n_sindy", "n_nn", "runs"])
+                         "n_sindy": len(sindy), "n_nn": len(nn), "runs": ids,
+                         "runs_sindy": [f["run_id"] for f in sindy], "runs_nn": [f["run_id"] for f in nn]})
+    return pd.DataFrame(rows, columns=["env", "quantity", "sindy", "nn", "sindy_over_nn", "n_sindy", "n_nn", "runs",
+                                       "runs_sindy", "runs_nn"])
 
 
 # ---------------------------------------------------------------------- RL transfer

@@ -206,16 +206,34 @@ class TrainResult:
 
 def train(
     agent: AgentConfig, env: VecEnv, steps: int, seed: int, callback: RealEvalCallback | None = None,
-    logger: Any = None, progress_bar: bool = False,
+    logger: Any = None, progress_bar: bool | str = False,
 ) -> TrainResult:
-    """Build the agent around ``env`` and train it for ``steps`` env steps."""
+    """Build the agent around ``env`` and train it for ``steps`` env steps. ``progress_bar``:
+    a string shows a progress bar named by it (e.g. "surrogate arm, SAC")."""
     model = agent.algo(env=env, seed=seed, verbose=0)
     if logger is not None:
         model.set_logger(logger)
+    callbacks: Any = callback
+    if isinstance(progress_bar, str) and progress_bar:
+        callbacks = [c for c in (callback, named_progress_bar(progress_bar)) if c is not None]
+        progress_bar = False
     t0, c0 = time.perf_counter(), time.process_time()
-    model.learn(total_timesteps=int(steps), callback=callback, progress_bar=progress_bar)
+    model.learn(total_timesteps=int(steps), callback=callbacks, progress_bar=bool(progress_bar))
     wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     eval_wall = callback.eval_wall_seconds if callback is not None else 0.0
     eval_cpu = callback.eval_cpu_seconds if callback is not None else 0.0
     curve = callback.curve if callback is not None else Curve()
     return TrainResult(model, curve, wall - eval_wall, cpu - eval_cpu, eval_wall)
+
+
+def named_progress_bar(name: str):
+    """SB3's progress bar (tqdm + rich) with a name in front of the count."""
+    from stable_baselines3.common.callbacks import ProgressBarCallback
+
+    class NamedProgressBar(ProgressBarCallback):
+        def _on_training_start(self) -> None:
+            from tqdm.rich import tqdm
+
+            self.pbar = tqdm(total=self.locals["total_timesteps"] - self.model.num_timesteps, desc=name)
+
+    return NamedProgressBar()

@@ -7,6 +7,7 @@ and (angle, angular velocity) slices of a lander descending slowly above the pad
 
 from __future__ import annotations
 
+import textwrap
 from dataclasses import dataclass
 
 import matplotlib
@@ -57,7 +58,9 @@ def figure(maps_by_arm: dict[str, list[PolicyMap]], spec: EnvSpec, title: str) -
     """One row per slice, one column per arm, one color scale for all panels."""
     arms = list(maps_by_arm)
     n_slices = len(next(iter(maps_by_arm.values())))
-    fig = Figure(figsize=(4.6 * len(arms), 3.8 * n_slices))
+    # constrained layout: two-line panel titles and axis labels get their own room (no overlap
+    # with the row above or below), the colorbar and the suptitle too
+    fig = Figure(figsize=(4.0 * len(arms) + 1.2, 3.6 * n_slices + 0.6), layout="constrained")
     axes = fig.subplots(n_slices, len(arms), squeeze=False)
     if spec.n_discrete_actions:
         cmap = ListedColormap(["#d9d9d9", "#2c7bb6", "#fdae61", "#d7191c"][: spec.n_discrete_actions])
@@ -71,8 +74,9 @@ def figure(maps_by_arm: dict[str, list[PolicyMap]], spec: EnvSpec, title: str) -
             ax.set_xlabel(m.x_name)
             ax.set_ylabel(m.y_name)
             held = ", ".join(f"{k}={v:g}" for k, v in m.hold.items())
+            held = "\n".join(textwrap.wrap(held, 44))  # the held values of LunarLander fit the panel's width
             ax.set_title(f"{arm}" + (f"\n{held}" if held else ""), fontsize=8)
-    cbar = fig.colorbar(im, ax=axes.ravel().tolist(), shrink=0.8)
+    cbar = fig.colorbar(im, ax=axes.ravel().tolist(), shrink=0.9)
     if spec.n_discrete_actions:
         cbar.set_ticks(range(spec.n_discrete_actions))
         cbar.set_ticklabels(spec.discrete_action_labels())

@@ -150,7 +150,8 @@ def run_arm(
         on_point=(lambda s, m, sd: on_point(arm, s, m, sd)) if on_point else None,
     )
     logger = logger_factory(arm) if logger_factory else None
-    result = train(job.agent, venv, steps, job.seed, callback, logger, job.progress_bar)
+    bar = f"{arm} arm, {job.agent.name.upper()}" if job.progress_bar else False
+    result = train(job.agent, venv, steps, job.seed, callback, logger, bar)
     counts["eval_episodes"] = job.eval_episodes * len(result.curve.steps)
     seconds.update(train_wall=result.wall_seconds, train_cpu=result.cpu_seconds, curve_eval_wall=result.eval_wall_seconds)
     if arm == "surrogate" and hasattr(venv, "n_diverged"):

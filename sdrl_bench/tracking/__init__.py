@@ -3,7 +3,8 @@
 ``from sdrl_bench import tracking`` and call ``tracking.<function>``. The submodules:
 ``client`` (where the store is, creating it safely, one run's writes), ``fit`` (a fit's
 metrics, dataset, model and figures), ``transfer`` (an RL run's arms, curves, agents and the
-reuse of a finished real arm), ``sb3`` (SB3's logger into a run) and ``read`` (runs as plain
+reuse of a finished real arm), ``sb3`` (SB3's logger into a run), ``meta`` (standard tags, lean params, descriptions, system
+metrics, UI links), ``model`` (datasets and the pyfunc model), ``sweep`` (a sweep parent's summary) and ``read`` (runs as plain
 dicts for the report and the search).
 """
 
@@ -40,7 +41,21 @@ from sdrl_bench.tracking.read import (
     owner_alive,
     run_exists,
 )
+from sdrl_bench.tracking.meta import (
+    browse_hint,
+    compare_url,
+    describe_experiment,
+    log_config,
+    run_url,
+    runs_url,
+    set_description,
+    standard_tags,
+    system_metrics,
+    ui_base,
+    used_params,
+)
 from sdrl_bench.tracking.sb3 import sb3_logger
+from sdrl_bench.tracking.sweep import summarize_sweep
 from sdrl_bench.tracking.transfer import find_real_arm, log_arm, log_curve_point, reuse_real_arm
 
 __all__ = [
@@ -49,4 +64,6 @@ __all__ = [
     "fit_metrics", "flatten", "git_commit", "list_artifacts", "list_experiments", "log_arm", "log_curve_point",
     "log_fit", "log_report", "mlflow_client", "resolve_uri", "reuse_real_arm", "run_exists", "sb3_logger", "sqlite_path",
     "start_run", "uncertainty_table", "use_wal",
+    "browse_hint", "compare_url", "describe_experiment", "log_config", "run_url", "runs_url", "set_description",
+    "standard_tags", "summarize_sweep", "system_metrics", "ui_base", "used_params",
 ]

@@ -1,4 +1,5 @@
-"""Recording a fit: metrics, hashes, the dataset, the saved model, equations, figures."""
+"""Recording a fit: params and config, metrics, hashes, datasets, the saved and the logged model,
+the equations as the description, per-state tables, figures."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from sdrl_bench.tracking.client import Run
+from sdrl_bench.tracking.client import Run, mlflow_client
 
 
 def fit_metrics(result) -> dict[str, float]:
@@ -25,29 +26,41 @@ def fit_metrics(result) -> dict[str, float]:
     }
 
 
-def log_fit(run: Run, result, params: Mapping[str, Any] | None, prefix: str = "") -> None:
-    """Record a fit: params, metrics, data and test-set hashes, and the artifacts (dataset CSV
-    with its normalization sidecar, the saved model, its equations or summary, the
-    predicted-vs-true figure)."""
+def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: str = "", *,
+            config: Mapping[str, Any] | None = None, task: str = "fit", model: bool = True) -> None:
+    """Record a fit: lean params and ``config.yaml`` (from ``config``, the resolved config as a
+    plain dict; or ``params`` as given), metrics (unprefixed: the same names in fit and transfer
+    runs), data and test-set hashes, the datasets (inputs with digests), the model (the saved
+    ``model.json`` and an MLflow pyfunc model logged from code), the equations as the run's
+    description, per-state fidelity as a table, and the predicted-vs-true figure."""
     from sdrl_bench.data import save_csv
     from sdrl_bench.plots import predicted_vs_true
+    from sdrl_bench.tracking.meta import describe_experiment, experiment_id_of, log_config, set_description
+    from sdrl_bench.tracking.model import log_datasets, log_surrogate_model
 
-    spec, model = result.job.spec, result.model
-    if params is not None:
+    spec, model_ = result.job.spec, result.model
+    if config is not None:
+        log_config(run, config, run.uri, task)
+    elif params is not None:
         run.log_params(params)
     run.log_metrics({f"{prefix}{k}": v for k, v in fit_metrics(result).items()})
     run.set_tags(
         {"dataset_sha256": result.dataset_hash, "test_set": result.test_name, "test_set_sha256": result.test_hash}
     )
+    set_description(run, fit_description(result))
     with tempfile.TemporaryDirectory() as tmp:
         csv = save_csv(result.data, spec, Path(tmp) / f"{spec.name}_transitions.csv")
         run.log_artifact(csv, "data")
         run.log_artifact(f"{csv}.stats.json", "data")
         model_dir = Path(tmp) / "model"
-        model.save(model_dir / "model.json")
+        model_.save(model_dir / "model.json")
         for path in sorted(model_dir.iterdir()):
             run.log_artifact(path, "model")
-    run.log_text(model.describe(), f"model/{model.summary_file}")
+    run.log_text(model_.describe(), f"model/{model_.summary_file}")
+    log_datasets(run, result, f"data/{spec.name}_transitions.csv")
+    if model:
+        log_surrogate_model(run, result)
+    _log_table(run, per_state_table(result), "fidelity/per_state.json")
     fig = predicted_vs_true(
         spec.target_names, result.fidelity.true_next, result.fidelity.pred_next,
         result.episode_true, result.episode_pred,
@@ -56,6 +69,36 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None, prefix: str = ""
     run.log_figure(fig, "figures/predicted_vs_true.png")
     if result.fidelity.pred_std is not None:
         run.log_text(uncertainty_table(result).to_csv(index=False), "fidelity/uncertainty.csv")
+    describe_experiment(run.uri, experiment_id_of(run))
+
+
+def _log_table(run: Run, df, artifact_file: str) -> None:
+    """A DataFrame as an MLflow table (the UI's artifact view shows it; ``mlflow.load_table`` reads it)."""
+    mlflow_client(run.uri).log_table(run.run_id, df, artifact_file)
+
+
+def fit_description(result) -> str:
+    """The run's description: what was fitted on what, the headline error, the equations."""
+    job, m = result.job, result.fidelity.metrics
+    names = job.names
+    what = (f"SINDy ({names.get('library', '?')} library, {names.get('optimizer', '?')})" if job.surrogate == "sindy"
+            else f"{job.surrogate.upper()} surrogate")
+    head = (f"**{job.spec.name}**: {what} fitted on {len(result.data)} real transitions "
+            f"({names.get('collector', '?')} collector, seed {job.seed}); held-out `{result.test_name}` "
+            f"({len(result.test)} transitions): normalized one-step MSE {m.get('mse_norm/mean', float('nan')):.3g}.")
+    return f"{head}\n\n```\n{result.model.describe().strip()}\n```\n"
+
+
+def per_state_table(result):
+    """One row per regressed state: one-step MSE (raw, normalized), correlation, R^2, k-step MSE."""
+    import pandas as pd
+
+    m = result.fidelity.metrics
+    rows = []
+    for n in result.job.spec.target_names:
+        rows.append({"state": n, **{k: m.get(f"{k}/{n}", float("nan"))
+                                    for k in ("mse", "mse_norm", "corr", "r2", "rollout10_mse", "rollout50_mse")}})
+    return pd.DataFrame(rows)
 
 
 def uncertainty_table(result):

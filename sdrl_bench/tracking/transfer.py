@@ -61,7 +61,7 @@ def reuse_real_arm(run: Run, found: dict, local_dir: str | Path) -> tuple[Path, 
 
 class RunRecorder:
     """``rl.transfer.TransferRecorder`` into one MLflow run: the fit as soon as it exists
-    (``fit/*``), curve points as they come, each arm's accounting, curve and agent, figures;
+    (under the names fit runs use), curve points as they come, each arm's accounting, curve and agent, figures;
     a finished real arm with the same ``real_arm_key`` is found and copied for reuse."""
 
     def __init__(self, run: Run, experiment: str, real_arm_key: str, local_dir: str | Path):
@@ -92,7 +92,9 @@ class RunRecorder:
     def fit_done(self, fit) -> None:
         from sdrl_bench.tracking.fit import log_fit
 
-        log_fit(self.run, fit, None, prefix="fit/")
+        # the fit's metrics under the names fit runs use (``mse/x``, not ``fit/mse/x``): one
+        # column and one chart across fit and transfer runs; the arms keep their prefixes
+        log_fit(self.run, fit)
 
     def arm_done(self, result, metrics: Mapping[str, float]) -> None:
         log_arm(self.run, result, metrics)

@@ -183,3 +183,52 @@ def test_single_arm_transfer_runs_are_not_reported_as_missing_the_other_arm():
     both = {**base, "run_id": "b", "tags": {**base["tags"], "arms": "surrogate,real"},
             "metrics": {"surrogate/final_return_mean": 1.0}}
     assert missing_metrics([one_arm, both]) == ["run b (t) lacks real/final_return_mean"]
+
+
+def _md_rows(md: str, section: str) -> list[list[str]]:
+    """The table rows (cells as Markdown) of a numbered report section."""
+    part = md.split(section, 1)[1].split("\n## ", 1)[0]
+    return [[c.strip() for c in line.strip("|").split(" | ")] for line in part.splitlines()
+            if line.startswith("| ") and not line.startswith("| env |")]
+
+
+def _link(cell: str) -> str | None:
+    import re
+
+    m = re.fullmatch(r"\[.*\]\((.*)\)", cell)
+    return m.group(1) if m else None
+
+
+def test_each_report_cell_links_to_runs_of_its_own_kind_and_seed_set(fits_store: str, tmp_path) -> None:
+    """SINDy vs NN: the SINDy mean over two seeds opens the compare view of exactly those two
+    SINDy runs, the NN number the NN run's page; a count of 0 links nowhere; the RL table's
+    mean over seeds opens all its seeds."""
+    from urllib.parse import unquote
+
+    runs = tracking.find_runs(fits_store, EXP)
+    ids = {(r["tags"]["library"], r["tags"]["seed"]): r["run_id"] for r in runs}
+    sindy = {ids[("poly_trig", "0")], ids[("poly_trig", "1")]}
+    nn = ids[("nn", "0")]
+    transfers = [_transfer(fits_store, s, 90.0 + s, 80.0) for s in range(2)]
+    res = build_report(ReportInput(fits_store, EXP, ui_url="http://ui:5000"), "links", tmp_path, log_run=False,
+                       echo=lambda _: None)
+    md = (res.folder / "report.md").read_text()
+    rows = {(r[0], r[1]): r for r in _md_rows(md, "## 3. SINDy vs NN")}
+    row = rows[("mountain_car", "mse/x")]  # env, quantity, SINDy, NN, ratio, SINDy fits, NN fits, runs
+    s_url, n_url = unquote(_link(row[2])), unquote(_link(row[3]))
+    assert s_url.startswith("http://ui:5000/#/compare-runs?runs=") and "workflowType=machine_learning" in s_url
+    assert {i for i in sindy if i in s_url} == sindy and nn not in s_url
+    assert n_url == f"http://ui:5000/#/experiments/{runs[0]['experiment_id']}/runs/{nn}?workflowType=machine_learning"
+    assert row[5].startswith("[2](") and sindy <= set(unquote(_link(row[5])).replace('"', " ").split())
+    assert _link(row[6]) == n_url
+    rl = [r for r in _md_rows(md, "## 4. RL transfer") if r[:3] == ["mountain_car", "sindy", "surrogate"]][0]
+    rl_url = unquote(_link(rl[8]))  # the final real return, a mean over both seeds
+    assert all(t in rl_url for t in transfers) and "compare-runs" in rl_url
+
+
+def test_a_missing_kind_links_nowhere(store: str, tmp_path) -> None:
+    _fit(store, "mountain_car", "poly_trig", "sindy", 0, {"x": 1e-16, "v": 3e-19})
+    res = build_report(ReportInput(store, EXP, ui_url="http://ui:5000"), "nonn", tmp_path, log_run=False, echo=lambda _: None)
+    row = {(r[0], r[1]): r for r in _md_rows((res.folder / "report.md").read_text(), "## 3. SINDy vs NN")}[("mountain_car", "mse/x")]
+    assert row[3] == "not run" and row[6] == "0"  # "NN fits 0" used to link to a SINDy run
+    assert _link(row[2]).endswith("?workflowType=machine_learning") and "/runs/" in _link(row[2])

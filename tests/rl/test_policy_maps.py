@@ -52,3 +52,25 @@ def test_lunar_lander_slices_and_discrete_agreement():
     assert agreement(maps, noop, discrete=True) == pytest.approx(1 - frac_main / 3)
     fig = figure({"a": maps, "b": noop}, spec, "t")
     assert len(fig.axes) == 7  # 3 slices x 2 arms + the shared color bar
+
+
+def test_lunar_lander_figure_titles_and_labels_do_not_overlap():
+    """Every panel's title, tick labels and axis labels (its tight box) stay clear of every
+    other panel's, and of the suptitle: no title over the row above, no label under the next."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    spec = LunarLanderSpec()
+    maps = compute_maps(MainEngineBelow(), spec, resolution=11)
+    fig = figure({"trained in the real env": maps, "trained in the sindy surrogate": maps}, spec,
+                 "lunar_lander policy maps (fraction of equal actions: 1.000)")
+    canvas = FigureCanvasAgg(fig)
+    canvas.draw()
+    renderer = canvas.get_renderer()
+    panels = fig.axes[:6]
+    boxes = [ax.get_tightbbox(renderer) for ax in panels]
+    for i in range(len(boxes)):
+        for j in range(i + 1, len(boxes)):
+            ov = boxes[i].intersection(boxes[i], boxes[j])
+            assert ov is None or ov.width * ov.height < 1.0, (i, j)
+    sup = fig._suptitle.get_window_extent(renderer)
+    assert all(sup.y0 >= b.y1 - 0.5 for b in boxes)

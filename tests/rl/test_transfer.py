@@ -6,7 +6,7 @@ import pandas as pd
 import pytest
 from mlflow.tracking import MlflowClient
 
-from helpers import compose_cfg, search
+from helpers import ROOT, compose_cfg, search
 from sdrl_bench import ConfigError
 from sdrl_bench.cli.build import build_fit_job
 from sdrl_bench.cli.train import run_train
@@ -105,13 +105,13 @@ def test_both_arms_end_to_end_with_accounting_and_policy_maps(store, tmp_path):
     run = search(store).iloc[0]
     assert run["status"] == "FINISHED"
     # surrogate arm: the model's real transitions are what the collector's counted envs stepped
-    assert run["metrics.surrogate/real_transitions_model"] == 75 == run["metrics.fit/n_transitions"]
+    assert run["metrics.surrogate/real_transitions_model"] == 75 == run["metrics.n_transitions"]
     assert run["metrics.surrogate/real_transitions_train"] == 0
     assert run["metrics.surrogate/surrogate_steps"] == 64
     assert run["metrics.surrogate/total_steps"] == 75 + 64  # as the paper counts (65,075 = 75 + 65,000)
     assert run["metrics.real/real_transitions_train"] == 64 and run["metrics.real/total_steps"] == 64
     assert run["metrics.surrogate/surrogate_diverged_episodes"] == 0
-    assert run["metrics.fit/mse/v"] < 2e-18  # the surrogate was the exact law
+    assert run["metrics.mse/v"] < 2e-18  # the surrogate was the exact law
     assert 0.0 <= summary["policy_map_agreement"] <= 2.0
     assert run["metrics.policy_map_agreement"] == pytest.approx(summary["policy_map_agreement"])
     client = MlflowClient(store)
@@ -134,6 +134,77 @@ def test_ppo_in_a_vectorized_surrogate_logs_sb3_metrics_through_the_kvwriter(sto
     history = client.get_metric_history(run["run_id"], "surrogate/sb3/time/total_timesteps")
     assert [m.value for m in history] == [64, 128]  # one rollout of 4 envs x 16 steps per dump
     assert "metrics.surrogate/sb3/train/value_loss" in run.index
+
+
+def test_surrogate_steps_count_what_sac_took_and_the_fit_shares_names_with_fit_runs(store):
+    """SAC with train_freq 32 and a budget of 100 steps takes 128 (whole rounds of 32): the
+    accounting counts 128. The fit inside the transfer run is logged under the names (and
+    values) a fit run of the same config logs: ``mse/x``, not ``fit/mse/x``."""
+    from sdrl_bench.cli.main import run_fit
+    from sdrl_bench.tracking import fit_metrics
+
+    summary = train(store, "rl.arms=[surrogate]", "rl.surrogate_steps=100", "agent.algo.train_freq=32",
+                    "rl.eval_every=100")
+    assert summary["surrogate/surrogate_steps"] == 128 and summary["surrogate/total_steps"] == 75 + 128
+    fit = run_fit(compose_cfg(f"tracking.uri={store}"))
+    runs = search(store).set_index("tags.sdrl.kind")
+    transfer, fitrun = runs.loc["transfer"], runs.loc["fit"]
+    assert transfer["metrics.surrogate/surrogate_steps"] == 128
+    names = fit_metrics(fit)
+    assert not [c for c in runs.columns if c.startswith("metrics.fit/")]
+    for k, v in names.items():
+        if not k.endswith("_seconds"):
+            assert transfer[f"metrics.{k}"] == fitrun[f"metrics.{k}"] == pytest.approx(v, rel=1e-12, abs=0), k
+    client = MlflowClient(store)
+    run = client.get_run(transfer["run_id"])
+    assert {i.tags[0].value for i in run.inputs.dataset_inputs} == {"training", "testing"}
+    assert len(run.outputs.model_outputs) == 1 and "cos(3 x)" in run.data.tags["mlflow.note.content"]
+    assert len(run.data.params) <= 40 and run.data.params["agent.algo.train_freq"] == "32"
+    assert run.data.params["tracking.uri"] == store
+
+
+def test_sigterm_during_training_leaves_a_killed_run_that_keeps_its_fit(store, tmp_path):
+    """The fit is logged before the agent trains: a run stopped by SIGTERM mid-training ends
+    KILLED and still holds the fit's datasets, model and equations (and system metrics)."""
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    proc = subprocess.Popen([sys.executable, "-m", "sdrl_bench.cli.main", "task=train", f"tracking.uri={store}",
+                             "rl.arms=[surrogate]", "rl.surrogate_steps=1000000", "rl.eval_every=500000", *TINY_SAC[:4],
+                             "progress_bar=false"], cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                            text=True)
+    client = MlflowClient(store)
+    deadline, run = time.monotonic() + 120, None
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(1)
+            try:
+                runs = search(store)
+            except Exception:
+                continue
+            if len(runs):
+                run = client.get_run(runs.iloc[0]["run_id"])
+                if run.outputs.model_outputs and "system/cpu_utilization_percentage" in run.data.metrics:
+                    break
+        assert proc.poll() is None, proc.stdout.read()[-2000:]
+        proc.send_signal(signal.SIGTERM)
+        out = proc.communicate(timeout=60)[0]
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode != 0
+    assert "MLflow run " in out.splitlines()[1]  # the run id came first, before any training
+    run = client.get_run(run.info.run_id)
+    assert run.info.status == "KILLED"
+    assert {i.tags[0].value for i in run.inputs.dataset_inputs} == {"training", "testing"}
+    assert len(run.outputs.model_outputs) == 1
+    assert "cos(3 x)" in run.data.tags["mlflow.note.content"] and run.data.metrics["mse/v"] < 2e-18
+    assert "surrogate/final_return_mean" not in run.data.metrics  # training never finished
 
 
 @pytest.mark.slow

@@ -1,0 +1,122 @@
+"""A fit's data and model as MLflow knows them: the training transitions and the held-out test
+set as dataset inputs (digests, contexts "training"/"testing"), and the surrogate as a logged
+pyfunc model from code (``pyfunc_model.py``) with a signature and an input example."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+import tempfile
+from collections.abc import Iterator
+from pathlib import Path
+
+from sdrl_bench.tracking.client import Run
+
+MODEL_NAME = "surrogate"
+CODE = Path(__file__).with_name("pyfunc_model.py")
+
+
+@contextlib.contextmanager
+def _fluent_target(uri: str, experiment_id: str) -> Iterator[None]:
+    """MLflow's module-level tracking URI and experiment set to the run's, for the calls that
+    read them (model logging creates the logged model in the "current" experiment)."""
+    import os
+
+    import mlflow
+
+    previous = mlflow.get_tracking_uri() if mlflow.tracking._tracking_service.utils.is_tracking_uri_set() else None
+    prev_exp = os.environ.get("MLFLOW_EXPERIMENT_ID")
+    mlflow.set_tracking_uri(uri)
+    os.environ["MLFLOW_EXPERIMENT_ID"] = experiment_id
+    try:
+        yield
+    finally:
+        mlflow.set_tracking_uri(previous)
+        if prev_exp is None:
+            os.environ.pop("MLFLOW_EXPERIMENT_ID", None)
+        else:
+            os.environ["MLFLOW_EXPERIMENT_ID"] = prev_exp
+
+
+def _frame(transitions, spec):
+    from sdrl_bench.data import columns
+
+    df = transitions.to_frame(spec)
+    return df[columns(spec)]
+
+
+def _csv_source(run: Run, artifact: str):
+    """Where the training CSV can be fetched: the run's artifact (a server's ``get-artifact``
+    URL when artifacts are proxied by an ``mlflow server``)."""
+    from urllib.parse import quote
+
+    from mlflow.data.http_dataset_source import HTTPDatasetSource
+
+    from sdrl_bench.tracking.client import mlflow_client
+
+    base = mlflow_client(run.uri).get_run(run.run_id).info.artifact_uri.rstrip("/")
+    if base.startswith("mlflow-artifacts:") and run.uri.startswith(("http://", "https://")):
+        return HTTPDatasetSource(f"{run.uri.rstrip('/')}/get-artifact?path={quote(artifact, safe='')}&run_uuid={run.run_id}")
+    return f"{base}/{artifact}"
+
+
+def log_datasets(run: Run, result, csv_artifact: str) -> None:
+    """The training transitions (source: the run's CSV artifact) and the held-out test set
+    (source: the code that generates it) as the run's dataset inputs, with MLflow's digests."""
+    import mlflow.data
+    from mlflow.data.code_dataset_source import CodeDatasetSource
+    from mlflow.entities import DatasetInput, InputTag
+    from mlflow.utils.mlflow_tags import MLFLOW_DATASET_CONTEXT
+
+    from sdrl_bench.tracking.client import mlflow_client
+
+    spec = result.job.spec
+    test_source = CodeDatasetSource({"sdrl.test_set": result.test_name, "sdrl.test_set_sha256": result.test_hash,
+                                     "generator": "sdrl_bench.data.held_out_test_set"})
+    inputs = []
+    for data, name, context, src in ((result.data, f"{spec.name}-transitions", "training", _csv_source(run, csv_artifact)),
+                                     (result.test, result.test_name, "testing", test_source)):
+        ds = mlflow.data.from_pandas(_frame(data, spec), source=src, name=name)
+        inputs.append(DatasetInput(ds._to_mlflow_entity(), tags=[InputTag(MLFLOW_DATASET_CONTEXT, context)]))
+    mlflow_client(run.uri).log_inputs(run.run_id, datasets=inputs)
+
+
+def model_io_example(result, n: int = 5):
+    """(input example, one-step predictions) on the first ``n`` held-out transitions."""
+    from sdrl_bench.fidelity import step
+
+    spec = result.job.spec
+    x = _frame(result.test, spec).iloc[:n]
+    cols = [f"s_{s}" for s in spec.state_names] + [f"a_{i}" for i in range(spec.raw_action_width)]
+    example = x[cols].astype(float).reset_index(drop=True)
+    import pandas as pd
+
+    pred = step(result.model, spec, result.test.states[:n], result.test.actions[:n])
+    return example, pd.DataFrame(pred, columns=[f"ns_{s}" for s in spec.target_names])
+
+
+def log_surrogate_model(run: Run, result) -> str:
+    """Log the fitted surrogate as the run's MLflow model (pyfunc from code, ``model.json`` as
+    its data); returns its model URI (``models:/<model id>``)."""
+    import mlflow
+    from mlflow.models import Model, infer_signature
+
+    from sdrl_bench.tracking.client import mlflow_client
+
+    spec = result.job.spec
+    example, output = model_io_example(result)
+    with tempfile.TemporaryDirectory() as tmp:
+        model_dir = Path(tmp) / "model"
+        result.model.save(model_dir / "model.json")
+        env_file = Path(tmp) / "env.json"
+        env_file.write_text(json.dumps({"env": spec.name}))
+        exp_id = mlflow_client(run.uri).get_run(run.run_id).info.experiment_id
+        with _fluent_target(run.uri, exp_id):
+            info = Model.log(
+                artifact_path=None, name=MODEL_NAME, flavor=mlflow.pyfunc, run_id=run.run_id,
+                python_model=str(CODE), artifacts={"model": str(model_dir), "env": str(env_file)},
+                signature=infer_signature(example, output), input_example=example,
+                pip_requirements=[f"mlflow=={mlflow.__version__}", "sdrl-bench"],
+                tags={"sdrl.env": spec.name, "sdrl.surrogate": result.job.surrogate},
+            )
+    return info.model_uri

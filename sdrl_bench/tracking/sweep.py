@@ -1,0 +1,64 @@
+"""A sweep parent's summary: the sweep's overrides as params, its children counted, the best
+child's objective as metrics and tag, and a Markdown description listing the children."""
+
+from __future__ import annotations
+
+import math
+
+from sdrl_bench.tracking.client import PARENT_TAG, RUN_NAME_TAG, Run, mlflow_client
+from sdrl_bench.tracking.meta import NOTE_TAG, standard_tags
+
+#: What a child run is judged by, per kind: (metric, "min" or "max").
+OBJECTIVES = {"fit": ("mse_norm/mean", "min"), "transfer": ("surrogate/final_return_mean", "max")}
+
+
+def _overrides(text: str) -> dict[str, str]:
+    out = {}
+    for item in text.split():
+        key, sep, value = item.partition("=")
+        if sep:
+            out[key.lstrip("+~")[:250]] = value
+    return out
+
+
+def summarize_sweep(uri: str, parent_run_id: str) -> dict[str, float]:
+    """Write the summary onto the parent run (its ``sdrl.overrides`` tag names the sweep);
+    returns the metrics logged. The best child is the one with the lowest normalized one-step
+    MSE (fits) or the highest surrogate-arm real return (transfer runs)."""
+    client = mlflow_client(uri)
+    parent = client.get_run(parent_run_id)
+    children = client.search_runs([parent.info.experiment_id], filter_string=f"tags.{PARENT_TAG} = '{parent_run_id}'",
+                                  max_results=10_000)
+    run = Run(uri, parent_run_id)
+    overrides = _overrides(parent.data.tags.get("sdrl.overrides", ""))
+    if overrides:
+        run.log_params(overrides)
+    statuses = [c.info.status for c in children]
+    metrics: dict[str, float] = {"n_children": len(children), "n_finished": statuses.count("FINISHED"),
+                                 "n_failed": sum(s in ("FAILED", "KILLED") for s in statuses)}
+    kinds = {c.data.tags.get("sdrl.kind") for c in children}
+    kind = next((k for k in OBJECTIVES if k in kinds), None)
+    best = None
+    if kind is not None:
+        key, direction = OBJECTIVES[kind]
+        scored = [c for c in children if c.info.status == "FINISHED" and not math.isnan(c.data.metrics.get(key, math.nan))]
+        if scored:
+            best = (min if direction == "min" else max)(scored, key=lambda c: c.data.metrics[key])
+            metrics[f"best/{key}"] = best.data.metrics[key]
+    run.log_metrics(metrics)
+    tags = {k: v for k, v in standard_tags().items() if not parent.data.tags.get(k)}
+    lines = [f"**Sweep** over `{parent.data.tags.get('sdrl.overrides', '')}`: {len(children)} runs, "
+             f"{metrics['n_finished']:.0f} finished, {metrics['n_failed']:.0f} failed."]
+    if best is not None:
+        key, direction = OBJECTIVES[kind]
+        tags["best_run_id"] = best.info.run_id
+        lines.append(f"\nBest ({direction} `{key}`): **{best.data.tags.get(RUN_NAME_TAG, best.info.run_id)}** "
+                     f"(`{best.info.run_id}`), {best.data.metrics[key]:.4g}.")
+        lines.append(f"\n| run | status | {key} |\n|---|---|---|")
+        for c in sorted(children, key=lambda c: c.data.tags.get(RUN_NAME_TAG, "")):
+            v = c.data.metrics.get(key)
+            lines.append(f"| {c.data.tags.get(RUN_NAME_TAG, c.info.run_id)} | {c.info.status} | "
+                         f"{'-' if v is None else f'{v:.4g}'} |")
+    tags[NOTE_TAG] = "\n".join(lines)
+    run.set_tags(tags)
+    return metrics

@@ -1,0 +1,134 @@
+"""Against a real ``mlflow server`` on 127.0.0.1 (SQLite backend and artifacts in a temp dir):
+a fit run as MLflow users expect it (datasets, a logged model that loads and predicts, the
+equations as description, standard tags, lean params) and a sweep parent's summary."""
+
+from __future__ import annotations
+
+import os
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import mlflow
+import numpy as np
+import pytest
+from mlflow.tracking import MlflowClient
+
+from helpers import ROOT, compose_cfg
+from sdrl_bench import tracking
+from sdrl_bench.cli.main import run_fit
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    """``mlflow server`` on a free loopback port, stopped (by its own process id) afterwards."""
+    tmp = tmp_path_factory.mktemp("server")
+    port = _free_port()
+    mlflow_bin = Path(sys.executable).with_name("mlflow")
+    log = open(tmp / "server.log", "w")
+    proc = subprocess.Popen(
+        [str(mlflow_bin), "server", "--host", "127.0.0.1", "--port", str(port), "--workers", "1",
+         "--backend-store-uri", f"sqlite:///{tmp / 'mlflow.db'}", "--artifacts-destination", str(tmp / "artifacts")],
+        cwd=tmp, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "MLFLOW_TRACKING_URI": "", "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"},
+    )
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 60
+    while True:
+        try:
+            with urllib.request.urlopen(f"{url}/health", timeout=2) as r:
+                if r.status == 200:
+                    break
+        except OSError:
+            pass
+        if proc.poll() is not None or time.monotonic() > deadline:
+            proc.kill()
+            pytest.fail(f"mlflow server did not start: {(tmp / 'server.log').read_text()[-2000:]}")
+        time.sleep(0.5)
+    yield url
+    proc.terminate()
+    try:
+        proc.wait(timeout=15)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+    log.close()
+
+
+def test_a_fit_run_on_a_server_has_datasets_a_loadable_model_equations_tags_and_lean_params(server, monkeypatch, capsys, tmp_path):
+    monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
+    parent = tracking.create_parent_run(server, "sdrl-bench", "sweep-test",
+                                        {"sdrl.kind": "sweep", "sdrl.overrides": "seed=1,2 library=poly_trig"})
+    result = run_fit(compose_cfg(f"tracking.uri={server}", "seed=1"), parent=parent)
+    printed = capsys.readouterr().out
+    client = MlflowClient(server)
+    exp = client.get_experiment_by_name("sdrl-bench")
+    (run,) = client.search_runs([exp.experiment_id], "tags.`sdrl.kind` = 'fit'")
+    rid = run.info.run_id
+
+    # datasets: the training transitions and the held-out test set, with digests and contexts
+    inputs = {i.tags[0].value: i.dataset for i in run.inputs.dataset_inputs}
+    assert set(inputs) == {"training", "testing"}
+    assert inputs["testing"].name == "mountain_car-heldout-v1" and inputs["training"].name == "mountain_car-transitions"
+    assert all(len(d.digest) >= 8 for d in inputs.values()) and inputs["training"].digest != inputs["testing"].digest
+    assert '"num_rows": 75' in inputs["training"].profile
+
+    # the logged model: a pyfunc from code that predicts s' from (s, a) as the project's evaluator does
+    (out,) = run.outputs.model_outputs
+    logged = client.get_logged_model(out.model_id)
+    assert logged.source_run_id == rid and logged.name == "surrogate" and logged.status == "READY"
+    assert logged.experiment_id == exp.experiment_id  # listed on the run page and the experiment's Models tab
+    mlflow.set_tracking_uri(server)
+    try:
+        pyfunc = mlflow.pyfunc.load_model(f"models:/{out.model_id}")
+        per_state = client.load_table(exp.experiment_id, "fidelity/per_state.json", run_ids=[rid])  # reads the global URI
+    finally:
+        mlflow.set_tracking_uri(None)
+    spec, test = result.job.spec, result.test
+    frame = test.to_frame(spec)[[f"s_{n}" for n in spec.state_names] + [f"a_{i}" for i in range(spec.raw_action_width)]]
+    pred = pyfunc.predict(frame.astype(float))
+    assert list(pred.columns) == ["ns_x", "ns_v"] and len(pred) == len(test)
+    assert np.max(np.abs(pred.to_numpy() - result.fidelity.pred_next)) <= 1e-12
+    assert pyfunc.metadata.signature.inputs.input_names() == list(frame.columns)
+
+    # description = the equations; standard tags; lean params with the real tracking URI
+    tags = run.data.tags
+    for line in result.model.describe().strip().splitlines():
+        assert line.strip() in tags["mlflow.note.content"]
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    assert tags["mlflow.source.git.commit"] == head and len(head) == 40
+    assert tags["mlflow.user"] and tags["mlflow.source.name"]
+    params = run.data.params
+    assert len(params) <= 30 and params["tracking.uri"] == server and params["library.name"] == "poly_trig"
+    assert not any(k.startswith(("agent.", "env.expert", "rl.")) for k in params)
+    config = client.download_artifacts(rid, "config.yaml", str(tmp_path))  # the full resolved config
+    assert "expert:" in Path(config).read_text()
+    assert list(per_state["state"]) == ["x", "v"]
+    m = result.fidelity.metrics  # the JSON table keeps 10 significant digits
+    assert per_state["mse"].tolist() == pytest.approx([m["mse/x"], m["mse/v"]], rel=1e-9, abs=0)
+    assert client.get_experiment(exp.experiment_id).tags["mlflow.note.content"].startswith("sdrl-bench:")
+
+    # the CLI prints the server's run page, not an `mlflow ui` command that fails for servers
+    url = tracking.run_url(server, exp.experiment_id, rid)
+    assert f"open {url}" in printed and "mlflow ui" not in printed
+    with urllib.request.urlopen(url.split("#")[0], timeout=10) as r:
+        assert r.status == 200
+
+    # the sweep parent's summary: overrides as params, the best child as metric, tag and description
+    with tracking.start_run(server, "sdrl-bench", "worse-child", {"sdrl.kind": "fit"}, parent) as worse:
+        worse.log_metrics({"mse_norm/mean": 1.0})
+    summary = tracking.summarize_sweep(server, parent)
+    prun = client.get_run(parent)
+    assert prun.data.params == {"seed": "1,2", "library": "poly_trig"}
+    best = result.fidelity.metrics["mse_norm/mean"]
+    assert prun.data.metrics["best/mse_norm/mean"] == pytest.approx(best, rel=1e-12, abs=0)
+    assert summary["n_children"] == 2 and prun.data.metrics["n_finished"] == 2
+    assert prun.data.tags["best_run_id"] == rid and "fit-mountain_car" in prun.data.tags["mlflow.note.content"]
+    assert prun.data.tags["mlflow.source.git.commit"] == head
