@@ -228,7 +228,7 @@ def test_each_report_cell_links_to_runs_of_its_own_kind_and_seed_set(fits_store:
 
 def test_a_missing_kind_links_nowhere(store: str, tmp_path) -> None:
     _fit(store, "mountain_car", "poly_trig", "sindy", 0, {"x": 1e-16, "v": 3e-19})
-    res = build_report(ReportInput(store, EXP, ui_url="http://ui:5000"), "nonn", tmp_path, log_run=False, echo=lambda _: None)
+    res = build_report(ReportInput(store, EXP, ui_url="http://ui:5000"), "nonn", tmp_path, log_run=False)
     row = {(r[0], r[1]): r for r in _md_rows((res.folder / "report.md").read_text(), "## 3. SINDy vs NN")}[("mountain_car", "mse/x")]
     assert row[3] == "not run" and row[6] == "0"  # "NN fits 0" used to link to a SINDy run
     assert _link(row[2]).endswith("?workflowType=machine_learning") and "/runs/" in _link(row[2])
