@@ -210,8 +210,7 @@ def test_each_report_cell_links_to_runs_of_its_own_kind_and_seed_set(fits_store:
     sindy = {ids[("poly_trig", "0")], ids[("poly_trig", "1")]}
     nn = ids[("nn", "0")]
     transfers = [_transfer(fits_store, s, 90.0 + s, 80.0) for s in range(2)]
-    res = build_report(ReportInput(fits_store, EXP, ui_url="http://ui:5000"), "links", tmp_path, log_run=False,
-                       echo=lambda _: None)
+    res = build_report(ReportInput(fits_store, EXP, ui_url="http://ui:5000"), "links", tmp_path, log_run=False)
     md = (res.folder / "report.md").read_text()
     rows = {(r[0], r[1]): r for r in _md_rows(md, "## 3. SINDy vs NN")}
     row = rows[("mountain_car", "mse/x")]  # env, quantity, SINDy, NN, ratio, SINDy fits, NN fits, runs
