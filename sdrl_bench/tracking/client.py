@@ -7,6 +7,7 @@ Default store: ``sqlite:///<cwd>/mlruns/mlflow.db`` with artifacts under ``mlrun
 from __future__ import annotations
 
 import contextlib
+import logging
 import os
 import socket
 import subprocess
@@ -79,6 +80,7 @@ def mlflow_client(uri: str):
     """
     from mlflow.tracking import MlflowClient
 
+    logging.getLogger("mlflow").setLevel(logging.WARNING)  # its INFO chatter (table creation, monitors)
     local = sqlite_path(uri)
     if local is None or uri in _READY:
         return MlflowClient(tracking_uri=uri)

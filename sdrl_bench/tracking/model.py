@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import warnings
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -76,7 +77,9 @@ def log_datasets(run: Run, result, csv_artifact: str) -> None:
     inputs = []
     for data, name, context, src in ((result.data, f"{spec.name}-transitions", "training", _csv_source(run, csv_artifact)),
                                      (result.test, result.test_name, "testing", test_source)):
-        ds = mlflow.data.from_pandas(_frame(data, spec), source=src, name=name)
+        with warnings.catch_warnings():  # MLflow's hints on source ambiguity and integer columns
+            warnings.simplefilter("ignore", UserWarning)
+            ds = mlflow.data.from_pandas(_frame(data, spec), source=src, name=name)
         inputs.append(DatasetInput(ds._to_mlflow_entity(), tags=[InputTag(MLFLOW_DATASET_CONTEXT, context)]))
     mlflow_client(run.uri).log_inputs(run.run_id, datasets=inputs)
 
@@ -111,7 +114,8 @@ def log_surrogate_model(run: Run, result) -> str:
         env_file = Path(tmp) / "env.json"
         env_file.write_text(json.dumps({"env": spec.name}))
         exp_id = mlflow_client(run.uri).get_run(run.run_id).info.experiment_id
-        with _fluent_target(run.uri, exp_id):
+        with _fluent_target(run.uri, exp_id), warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)  # MLflow's type-hint and integer-column hints
             info = Model.log(
                 artifact_path=None, name=MODEL_NAME, flavor=mlflow.pyfunc, run_id=run.run_id,
                 python_model=str(CODE), artifacts={"model": str(model_dir), "env": str(env_file)},
