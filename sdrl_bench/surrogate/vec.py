@@ -85,7 +85,7 @@ class SurrogateEnvView:
         rng = np.random.default_rng(seed) if seed is not None else v._rng
         self.state = options["state"] if options and "state" in options else v.surrogate.initial_states(rng, 1)[0]
         v._t[self._index] = 0
-        return v._states[self._index].astype(v.observation_space.dtype), {}
+        return v.surrogate.observation(v._states[self._index][None])[0], {}
 
 
 class SurrogateVecEnv(VecEnv):
@@ -136,7 +136,7 @@ class SurrogateVecEnv(VecEnv):
         self._reset_seeds()
         self._reset_options()
         self.reset_infos = [{} for _ in range(self.num_envs)]
-        return self._states.astype(self._obs_dtype, order="C")
+        return self.surrogate.observation(self._states)
 
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = self.surrogate.raw_actions(actions, self.num_envs)
@@ -162,7 +162,7 @@ class SurrogateVecEnv(VecEnv):
         self._t += 1
         truncated = (self._t >= self._max_steps) | diverged
         dones = terminated | truncated
-        obs = nxt.astype(self._obs_dtype, order="C")
+        obs = self.surrogate.observation(nxt)
         infos: list[dict[str, Any]] = [RUNNING_INFO] * self.num_envs
         if dones.any():
             idx = np.flatnonzero(dones)
@@ -175,7 +175,7 @@ class SurrogateVecEnv(VecEnv):
             self.n_diverged += diverged
             fresh = self.surrogate.initial_states(self._rng, len(idx))
             nxt[idx] = fresh
-            obs[idx] = fresh.astype(self._obs_dtype)
+            obs[idx] = self.surrogate.observation(fresh)
             self._t[idx] = 0
         self._states = nxt
         return obs, rewards.astype(np.float32), dones, infos
