@@ -241,6 +241,19 @@ class EnvSpec:
         return self.target_names + self.control_names
 
     # ------------------------------------------------------------------ the real env
+    def check_registered(self) -> None:
+        """The real env is registered with gymnasium (``gym_id`` ``my_module:MyEnv-v0`` imports
+        ``my_module`` first, as ``gymnasium.make`` does); else one line naming the cause."""
+        module, sep, env_id = self.gym_id.rpartition(":")
+        if sep:
+            functional.import_object(f"{module}:__name__", f"env.spec.gym_id ({self.gym_id!r})")
+        try:
+            gym.spec(env_id)
+        except Exception as exc:  # gymnasium raises several error types for unknown ids
+            raise ConfigError(f"env.spec.gym_id: {env_id!r} is not registered with gymnasium "
+                              f"({functional.one_line(exc)}); call gymnasium.register in your module and name it "
+                              "'my_module:MyEnv-v0' so that it is imported first") from None
+
     def make_env(self, **kwargs: Any) -> gym.Env:
         return gym.make(self.gym_id, **{**self.gym_kwargs, **kwargs})
 

@@ -25,9 +25,20 @@ CONFIG_DIR_VAR = "SDRL_BENCH_CONFIG_DIR"
 """Environment variable: user config directories (``os.pathsep``-separated) searched by name."""
 
 
-def _one_line(exc: BaseException) -> str:
+def one_line(exc: BaseException) -> str:
+    """An exception as one line: its type, message and, for an error raised in a user's file,
+    where (the innermost frame outside importlib)."""
     text = " ".join(str(exc).split())
-    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+    where = ""
+    tb = exc.__traceback__
+    frames = []
+    while tb is not None:
+        frames.append(tb.tb_frame.f_code.co_filename + f":{tb.tb_lineno}")
+        tb = tb.tb_next
+    user = [f for f in frames if "importlib" not in f and "/sdrl_bench/" not in f and "/hydra/" not in f]
+    if user and not isinstance(exc, SyntaxError):  # a SyntaxError names its file and line itself
+        where = f" (at {user[-1]})"
+    return (f"{type(exc).__name__}: {text}" if text else type(exc).__name__) + where
 
 
 def import_object(path: str, key: str) -> Any:
@@ -43,7 +54,7 @@ def import_object(path: str, key: str) -> Any:
     try:
         module = importlib.import_module(module_name)
     except Exception as exc:  # a user module may raise anything while importing
-        raise ConfigError(f"{key}: cannot import module '{module_name}' for {path!r}: {_one_line(exc)}") from exc
+        raise ConfigError(f"{key}: cannot import module '{module_name}' for {path!r}: {one_line(exc)}") from exc
     obj = module
     for part in attr.split("."):
         if not hasattr(obj, part):
@@ -84,7 +95,7 @@ def spec_from_config(name: str, dirs: Sequence[str | Path] = ()) -> Any | None:
     try:
         node = (yaml.safe_load(path.read_text()) or {}).get("spec")
     except (OSError, yaml.YAMLError) as exc:
-        raise ConfigError(f"spec '{name}': cannot read {path}: {_one_line(exc)}") from exc
+        raise ConfigError(f"spec '{name}': cannot read {path}: {one_line(exc)}") from exc
     if not isinstance(node, dict) or "_target_" not in node:
         raise ConfigError(f"spec '{name}': {path} has no 'spec:' mapping with a _target_")
     kwargs = {k: v for k, v in node.items() if k != "_target_"}
@@ -96,4 +107,4 @@ def spec_from_config(name: str, dirs: Sequence[str | Path] = ()) -> Any | None:
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from exc
     except TypeError as exc:
-        raise ConfigError(f"{path}: spec: {_one_line(exc)}") from exc
+        raise ConfigError(f"{path}: spec: {one_line(exc)}") from exc
