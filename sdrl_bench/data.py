@@ -2,8 +2,8 @@
 
 A dataset CSV has one row per transition: ``episode, step``, the state ``s_<name>`` (the spec's
 states: with an observation map, angles rather than their cos and sin), the raw action ``a_<i>``
-(a discrete action's index; the spec's ``action_encoding`` makes model inputs of it), the reward ``r``, the flags ``terminated, truncated`` and the next state
-``ns_<name>``. A JSON sidecar (``<file>.stats.json``) holds the normalization statistics and
+(a discrete action's index; the spec's ``action_encoding`` makes model inputs of it), the reward
+``r``, the flags ``terminated, truncated`` and the next state ``ns_<name>``. A JSON sidecar (``<file>.stats.json``) holds the normalization statistics and
 the content hash.
 """
 

@@ -115,7 +115,6 @@ class SurrogateVecEnv(VecEnv):
         self._states = np.asarray(sur.initial_states(self._rng, n), order=sur.state_order)
         self._t = np.zeros(n, dtype=np.int64)
         self._max_steps = sur.spec.max_episode_steps
-        self._obs_dtype = sur.observation_space.dtype
         self.n_diverged = np.zeros(n, dtype=np.int64)
         """Episodes ended by the divergence guard, per copy."""
         self._actions: np.ndarray | None = None

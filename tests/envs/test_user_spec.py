@@ -110,6 +110,7 @@ def test_user_env_by_name_for_gym_make(user_dir, tmp_path):
     from sdrl_bench.envs.base import find_spec
 
     assert find_spec("oscillator", [str(conf)]) == spec
+    assert find_spec("cartpole").action_encoding == "values"  # the package's own YAML
     with pytest.raises(ConfigError, match=r"spec: unknown env 'nowhere': no spec class named so .* no env/nowhere.yaml"):
         gym.make("sdrl/Surrogate-v0", model=None, spec="nowhere")
 
