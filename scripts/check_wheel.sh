@@ -55,4 +55,12 @@ if ok:  # the user's library was used: its cos(3x) term is in the recovered law
 sys.exit(0 if ok else 1)
 PY
 test -f reports/wheel/report.md
-echo "check_wheel: OK (installed wheel, entry points, --config-dir library, report)"
+# A user's own env (README "Add your own environment"): a gymnasium env registered in the user's
+# package (tests/user_env.py writes it), its YAML in a --config-dir, fitted and transferred.
+PYTHONPATH="$ROOT/tests" "$V/python" -c "from pathlib import Path; from user_env import write_user_dir; write_user_dir(Path('byo'))"
+PYTHONPATH="$WORK/user/byo/src" run "$V/sdrl-bench" --config-dir byo/conf env=oscillator collector=random task=train \
+    rl.surrogate_steps=64 rl.real_steps=64 rl.eval_every=64 rl.eval_episodes=1 rl.final_episodes=1 \
+    agent.algo.train_freq=16 agent.algo.gradient_steps=2 agent.algo.batch_size=32 progress_bar=false \
+    tracking.uri=sqlite:///byo.db
+grep -q "x\[k+1\] = 1 x +0.1 v" "$WORK/out.log" || { cat "$WORK/out.log"; echo "check_wheel: user env law not recovered" >&2; exit 1; }
+echo "check_wheel: OK (installed wheel, entry points, --config-dir library and user env, report)"

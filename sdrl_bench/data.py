@@ -1,8 +1,9 @@
 """Transitions from a real environment: collection, CSV storage, hashing, held-out sets.
 
-A dataset CSV has one row per transition: ``episode, step``, the state ``s_<name>``, the raw
-action ``a_<i>``, the reward ``r``, the flags ``terminated, truncated`` and the next state
-``ns_<name>``. A JSON sidecar (``<file>.stats.json``) holds the normalization statistics and
+A dataset CSV has one row per transition: ``episode, step``, the state ``s_<name>`` (the spec's
+states: with an observation map, angles rather than their cos and sin), the raw action ``a_<i>``
+(a discrete action's index; the spec's ``action_encoding`` makes model inputs of it), the reward
+``r``, the flags ``terminated, truncated`` and the next state ``ns_<name>``. A JSON sidecar (``<file>.stats.json``) holds the normalization statistics and
 the content hash.
 """
 
@@ -184,12 +185,16 @@ def _play_episode(spec, policy_factory, epsilon, seed, episode, limit, wrap_env=
         rng = np.random.default_rng(seed)
         obs, _ = env.reset(seed=seed)
         rows = []
+        mapped = spec.maps_observations  # rows record states (angles from their cos / sin)
+        state = spec.coordinates(obs) if mapped else obs
         for t in range(int(min(limit, spec.max_episode_steps + 1))):
             explore = policy is None or rng.random() < epsilon
             action = spec.random_action(rng, env) if explore else policy(obs)
             nxt, reward, term, trunc, _ = env.step(action)
-            rows.append((obs, np.atleast_1d(np.asarray(action, dtype=float)), reward, nxt, term, trunc, episode, t))
-            obs = nxt
+            # the next angle unwrapped next to the current one (the step's change stays continuous)
+            next_state = spec.coordinates(nxt, reference=state) if mapped else nxt
+            rows.append((state, np.atleast_1d(np.asarray(action, dtype=float)), reward, next_state, term, trunc, episode, t))
+            obs, state = nxt, (spec.coordinates(nxt) if mapped else nxt)
             if term or trunc:
                 break
         return rows

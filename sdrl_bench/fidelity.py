@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from sdrl_bench.data import Transitions
-from sdrl_bench.envs.base import EnvSpec
+from sdrl_bench.envs.base import EnvSpec, wrap_angle
 from sdrl_bench.metrics import mse, pearson, r2, spearman
 from sdrl_bench.models.base import DynamicsModel
 
@@ -141,7 +141,18 @@ def rollouts(
         nxt[diverged] = 0.0  # frozen; excluded from the error
         state = test.next_states[starts + j].copy()  # exogenous variables: the real values
         state[:, tgt] = nxt
-    return test.next_states[starts + k - 1][:, tgt], state[:, tgt], diverged
+    final_true = test.next_states[starts + k - 1][:, tgt]
+    return final_true, _align_angles(spec, final_true, state[:, tgt]), diverged
+
+
+def _align_angles(spec: EnvSpec, true: np.ndarray, pred: np.ndarray) -> np.ndarray:
+    """Predicted angles (``spec.angles``) moved by whole turns to within pi of the true ones: an
+    angle's error is its wrapped difference."""
+    cols = [i for i, n in enumerate(spec.target_names) if n in spec.angles]
+    if cols:
+        pred = pred.copy()
+        pred[:, cols] = true[:, cols] + wrap_angle(pred[:, cols] - true[:, cols])
+    return pred
 
 
 def open_loop_episode(
@@ -157,4 +168,5 @@ def open_loop_episode(
         state = test.next_states[i : i + 1].copy()
         state[:, spec.target_index] = nxt
         pred.append(nxt[0])
-    return test.next_states[idx][:, spec.target_index], np.asarray(pred)
+    true = test.next_states[idx][:, spec.target_index]
+    return true, _align_angles(spec, true, np.asarray(pred))

@@ -20,8 +20,10 @@ from hydra import initialize_config_module
 from hydra.core.global_hydra import GlobalHydra
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import InterpolationResolutionError
 
 from sdrl_bench import ConfigError
+from sdrl_bench.envs.functional import one_line
 from sdrl_bench.models.libraries import LibraryPart
 from sdrl_bench.pipeline import FitJob
 from sdrl_bench.rl.transfer import TransferJob
@@ -43,11 +45,34 @@ def compose(overrides: Sequence[str] = (), config_name: str = "config", return_h
 
 
 def instantiate_key(node: Any, key: str) -> Any:
+    """``instantiate(node)``; any failure is one line naming ``key`` and the root cause (a user
+    module's own import error with its file and line, not Hydra's wrapper)."""
     try:
         return instantiate(node, _convert_="all")
     except Exception as exc:
-        cause = exc.__cause__ or exc
-        raise ConfigError(f"{key}: {cause}".splitlines()[0]) from None
+        root = exc  # the first ConfigError of the chain (already one line), else the innermost cause
+        while root.__cause__ is not None and root.__cause__ is not root and not isinstance(root, ConfigError):
+            root = root.__cause__
+        if isinstance(root, ConfigError):
+            raise ConfigError(f"{key}: {' '.join(str(root).split())}") from None
+        target = node.get("_target_") if isinstance(node, (dict, DictConfig)) else None
+        if target and (isinstance(exc.__cause__, ImportError) or isinstance(root, (ImportError, SyntaxError))):
+            raise ConfigError(f"{key}: cannot import {target!r}: {one_line(root)}") from None
+        raise ConfigError(f"{key}: {one_line(root)}") from None
+
+
+def _check_resolvable(cfg: DictConfig, group: str) -> None:
+    """Every interpolation in ``group`` resolves (``collector=expert`` reads ``env.expert.*``,
+    which only envs with an expert define)."""
+    try:
+        OmegaConf.to_container(cfg[group], resolve=True)
+    except InterpolationResolutionError as exc:
+        missing = str(getattr(exc, "msg", exc)).splitlines()[0]
+        if group == "collector" and "env.expert" in missing:
+            raise ConfigError(f"collector=expert: env '{cfg.env.spec.get('name', '?')}' names no expert ({missing}); add "
+                              "'defaults: [/agent@expert.agent: sac, _self_]' and 'expert: {budget: N}' to its YAML, "
+                              "or use collector=random / heuristic") from None
+        raise ConfigError(f"{group}: {missing}") from None
 
 
 def _inputs(value: Any) -> str | tuple[str, ...]:
@@ -102,6 +127,8 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
         if group not in cfg or cfg[group] is None:
             raise ConfigError(f"{group}: missing config group")
     spec = instantiate_key(cfg.env.spec, "env.spec")
+    spec.check_registered()  # the real env (a user module that registers it): collection and test set use it
+    _check_resolvable(cfg, "collector")
     policy = instantiate_key(cfg.collector.policy, "collector.policy")
     parts = tuple(
         LibraryPart(instantiate_key(p.library, f"library.parts[{i}].library"), _inputs(p.get("inputs", "all")))

@@ -5,8 +5,16 @@ which of them a dynamics model regresses (``target_names``) and which it takes a
 (``exogenous_names``, e.g. LunarLander's boolean leg contacts), encodes actions as model
 inputs, and applies the known state bounds the way the real environment applies them.
 
-A new environment needs only a YAML file when this generic behaviour fits (box bounds that the
-env clips to, actions used as they are); subclasses add per-environment knowledge.
+A new environment needs only a YAML file and a few plain functions (reward, termination,
+initial states, a heuristic: ``reward_fn`` etc., dotted paths resolved at config time, see
+``envs.functional``) when this generic behaviour fits: box bounds that the env clips to, actions
+encoded one-hot, by index, as physical values or as they are (``action_encoding``), and angles
+observed as (cos, sin) pairs regressed as the angle itself (``angles``). Subclasses add
+per-environment knowledge (and may override ``observe`` / ``coordinates`` for other manifolds).
+
+States vs observations: ``state_names`` are the coordinates the model regresses and the task
+functions see (a dataset records them); ``observation_names`` the real env's observation, which
+the agent sees. They are the same unless an observation map (``angles``) is declared.
 
 Longer than the project's ~300-line habit on purpose: ``EnvSpec`` is the whole contract a user
 writes against (names, bounds, encodings, task, success, policy-map slices, test set), and it
@@ -24,6 +32,8 @@ import gymnasium as gym
 import numpy as np
 
 from sdrl_bench import ConfigError
+from sdrl_bench.envs import functional
+from sdrl_bench.envs.functional import resolve, spec_from_config
 
 Policy = Callable[[np.ndarray], Any]
 StepOne = Callable[[list, Any], tuple[np.ndarray, list, float, bool, bool]]
@@ -73,6 +83,39 @@ class EnvSpec:
     (low, high))`` each. Empty: the first two regressed states over their bounds (or +-1)."""
     policy_map_hold: dict = field(default_factory=dict)
     """Values of the states off a slice's axes in the policy maps (others are 0)."""
+    action_encoding: str = "auto"
+    """How raw actions become model inputs. Discrete: ``one_hot`` (one input per action, named
+    by ``action_names``; "auto"), ``index`` (one input, the action's index) or ``values`` (the
+    action's physical values from ``action_values``: CartPole's push left / right as a force
+    -1 / +1, which keeps the law sparse). Continuous: ``raw`` (as given; "auto") or ``clip``
+    (clipped to the real env's action space, as most envs clip before acting)."""
+    action_values: tuple = ()
+    """For ``action_encoding: values``: one entry per discrete action, a number (or a list, one
+    number per name in ``action_names``)."""
+    observation_names: tuple[str, ...] = ()
+    """Names of the real env's observation components when they differ from ``state_names``
+    (an observation map such as ``angles``). Empty: the observation is the state."""
+    angles: dict = field(default_factory=dict)
+    """Angle-valued states the real env observes as a (cos, sin) pair: ``{th: [cos_th, sin_th]}``.
+    The model regresses the angle (atan2 of the pair; the next angle unwrapped next to the
+    current one, so th' = th + 0.05 thdot' stays exact across +-pi); the surrogate wraps it to
+    [-pi, pi) and emits cos and sin, which stay on the circle."""
+    reward_fn: str | None = None
+    """Dotted path of ``reward(states, actions, next_states) -> (N,)`` (batched, states in
+    ``state_names`` order, raw actions (N, raw width)); makes the spec a task for a surrogate."""
+    termination_fn: str | None = None
+    """Dotted path of ``terminated(states, actions, next_states) -> (N,) bool`` (default: never)."""
+    initial_state_fn: str | None = None
+    """Dotted path of ``initial_states(rng, n) -> (n, n_state)`` (default: states observed after
+    real resets)."""
+    heuristic_fn: str | None = None
+    """Dotted path of a controller ``policy(observation) -> action`` (for ``collector=heuristic``)."""
+    exogenous_fn: str | None = None
+    """Dotted path of ``exogenous(states, actions, next_states) -> (N, n_exogenous)``: the
+    non-regressed states after a step (an event hook such as a contact flag)."""
+    termination_causes_fn: str | None = None
+    """Dotted path of ``causes(states, actions, next_states) -> {name: (N,) bool}``: why the
+    surrogate's rules end each transition (tracked per cause in fidelity metrics)."""
 
     has_task: ClassVar[bool] = False
     """Whether the spec defines the env's reward and termination (a surrogate needs them):
@@ -87,10 +130,10 @@ class EnvSpec:
         unknown = set(self.exogenous_names) - set(self.state_names)
         if unknown:
             raise ConfigError(f"env.spec.exogenous_names: {sorted(unknown)} are not state names")
-        for key in ("state_low", "state_high"):
+        for key, unbounded in (("state_low", -np.inf), ("state_high", np.inf)):
             bound = getattr(self, key)
-            if bound is not None:
-                bound = tuple(float(b) for b in bound)
+            if bound is not None:  # a null entry: that variable is unbounded
+                bound = tuple(unbounded if b is None else float(b) for b in bound)
                 object.__setattr__(self, key, bound)
                 if len(bound) != len(self.state_names):
                     raise ConfigError(
@@ -99,21 +142,78 @@ class EnvSpec:
         if self.state_low is not None and self.state_high is not None:
             if any(lo >= hi for lo, hi in zip(self.state_low, self.state_high, strict=True)):
                 raise ConfigError("env.spec.state_low must be below env.spec.state_high everywhere")
-        if self.n_discrete_actions and len(self.action_names) != self.n_discrete_actions:
-            raise ConfigError(
-                f"env.spec.action_names: {len(self.action_names)} names for "
-                f"{self.n_discrete_actions} one-hot encoded discrete actions"
-            )
+        self._check_actions()
         if self.max_episode_steps <= 0:
             raise ConfigError("env.spec.max_episode_steps must be positive")
         object.__setattr__(self, "action_labels", tuple(self.action_labels))
-        if self.action_labels and len(self.action_labels) != len(self.action_names):
-            raise ConfigError(f"env.spec.action_labels: {len(self.action_labels)} labels for {len(self.action_names)} actions")
+        n_actions = self.n_discrete_actions or len(self.action_names)
+        if self.action_labels and len(self.action_labels) != n_actions:
+            raise ConfigError(f"env.spec.action_labels: {len(self.action_labels)} labels for {n_actions} actions")
+        self._check_observation_map()
+        fns = {k: resolve(getattr(self, k), f"env.spec.{k}") for k in _TASK_FNS}
+        object.__setattr__(self, "_fns", fns)
         slices = tuple(_parse_slice(sl, i, self.state_names) for i, sl in enumerate(self.policy_map_slices))
         object.__setattr__(self, "policy_map_slices", slices)
         unknown = set(self.policy_map_hold) - set(self.state_names)
         if unknown:
             raise ConfigError(f"env.spec.policy_map_hold: {sorted(unknown)} are not state names")
+
+    def _check_actions(self) -> None:
+        enc, k, names = self.action_encoding, self.n_discrete_actions, self.action_names
+        allowed = ("one_hot", "index", "values") if k else ("raw", "clip")
+        if enc == "auto":
+            enc = allowed[0]
+            object.__setattr__(self, "action_encoding", enc)
+        if enc not in allowed:
+            kind = "discrete" if k else "continuous"
+            raise ConfigError(f"env.spec.action_encoding: {enc!r} for {kind} actions; one of {list(allowed)}")
+        if enc == "one_hot" and len(names) != k:
+            raise ConfigError(f"env.spec.action_names: {len(names)} names for {k} one-hot encoded discrete actions "
+                              "(or set env.spec.action_encoding: index / values)")
+        if enc == "index" and len(names) != 1:
+            raise ConfigError(f"env.spec.action_names: the index encoding is one input; got {len(names)} names")
+        if enc == "values":
+            try:
+                table = np.array([np.atleast_1d(np.asarray(v, dtype=float)) for v in self.action_values], dtype=float)
+            except (TypeError, ValueError):
+                table = np.zeros((0, 0))
+            if table.shape != (k, len(names)) or not np.all(np.isfinite(table)):
+                raise ConfigError(f"env.spec.action_values: need {k} entries (one per discrete action) of "
+                                  f"{len(names)} finite number(s) for {list(names)}, got {list(self.action_values)!r}")
+            table.setflags(write=False)
+            object.__setattr__(self, "_action_table", table)
+        elif self.action_values:
+            raise ConfigError(f"env.spec.action_values: only used with action_encoding: values (not {enc!r})")
+        object.__setattr__(self, "action_values", tuple(self.action_values))
+
+    def _check_observation_map(self) -> None:
+        """Validate ``observation_names`` / ``angles``; store which state or angle each
+        observation component comes from."""
+        object.__setattr__(self, "observation_names", tuple(self.observation_names))
+        angles = {str(a): tuple(pair) for a, pair in dict(self.angles).items()}
+        object.__setattr__(self, "angles", angles)
+        if not self.observation_names:
+            if angles:
+                raise ConfigError("env.spec.angles: name the real observation too (env.spec.observation_names)")
+            return
+        obs = self.observation_names
+        if len(set(obs)) != len(obs):
+            raise ConfigError(f"env.spec.observation_names: duplicate names in {list(obs)}")
+        source: dict[str, tuple[str, str]] = {}
+        for a, pair in angles.items():
+            if a not in self.state_names:
+                raise ConfigError(f"env.spec.angles: '{a}' is not a state name ({list(self.state_names)})")
+            if len(pair) != 2 or any(p not in obs for p in pair):
+                raise ConfigError(f"env.spec.angles.{a}: expected [cos name, sin name] from observation_names "
+                                  f"{list(obs)}, got {list(pair)}")
+            source[pair[0]], source[pair[1]] = ("cos", a), ("sin", a)
+        for n in obs:
+            if n not in source and n not in self.state_names:
+                raise ConfigError(f"env.spec.observation_names: '{n}' is neither a state nor the cos / sin of an angle")
+        missing = [n for n in self.state_names if n not in obs and n not in angles]
+        if missing:
+            raise ConfigError(f"env.spec.state_names: {missing} are neither observed nor angles (env.spec.angles)")
+        object.__setattr__(self, "_obs_source", tuple(source.get(n, ("state", n)) for n in obs))
 
     # ------------------------------------------------------------------ names and indices
     # Derived from frozen fields, so computed once (cached_property writes the instance dict,
@@ -141,6 +241,19 @@ class EnvSpec:
         return self.target_names + self.control_names
 
     # ------------------------------------------------------------------ the real env
+    def check_registered(self) -> None:
+        """The real env is registered with gymnasium (``gym_id`` ``my_module:MyEnv-v0`` imports
+        ``my_module`` first, as ``gymnasium.make`` does); else one line naming the cause."""
+        module, sep, env_id = self.gym_id.rpartition(":")
+        if sep:
+            functional.import_object(f"{module}:__name__", f"env.spec.gym_id ({self.gym_id!r})")
+        try:
+            gym.spec(env_id)
+        except Exception as exc:  # gymnasium raises several error types for unknown ids
+            raise ConfigError(f"env.spec.gym_id: {env_id!r} is not registered with gymnasium "
+                              f"({functional.one_line(exc)}); call gymnasium.register in your module and name it "
+                              "'my_module:MyEnv-v0' so that it is imported first") from None
+
     def make_env(self, **kwargs: Any) -> gym.Env:
         return gym.make(self.gym_id, **{**self.gym_kwargs, **kwargs})
 
@@ -150,11 +263,68 @@ class EnvSpec:
         return 1 if self.n_discrete_actions else len(self.action_names)
 
     def encode_actions(self, actions: np.ndarray) -> np.ndarray:
-        """Raw actions (N, raw width) -> model action features (N, len(action_names))."""
+        """Raw actions (N, raw width) -> model action features (N, len(action_names)), by
+        ``action_encoding``."""
         actions = np.asarray(actions, dtype=float).reshape(-1, self.raw_action_width)
-        if not self.n_discrete_actions:
+        enc = self.action_encoding
+        if enc == "raw":
             return actions
-        return np.eye(self.n_discrete_actions)[actions[:, 0].astype(int)]
+        if enc == "clip":
+            low, high = action_bounds(self)
+            return np.clip(actions, low, high)
+        index = actions[:, 0].astype(int)
+        if enc == "one_hot":
+            return np.eye(self.n_discrete_actions)[index]
+        if enc == "index":
+            return actions[:, :1].copy()
+        return self._action_table[index]
+
+    # ------------------------------------------------------------------ observations <-> states
+    @property
+    def obs_names(self) -> tuple[str, ...]:
+        """Names of the real env's observation components (``state_names`` without a map)."""
+        return self.observation_names or self.state_names
+
+    @property
+    def maps_observations(self) -> bool:
+        """Whether observations differ from states (an observation map is declared)."""
+        return bool(self.observation_names)
+
+    def observe(self, states: np.ndarray) -> np.ndarray:
+        """States (N, n_state) -> the real env's observations (N, n_obs): each angle's cos and
+        sin, the other states as they are. The identity (the same array) without a map."""
+        if not self.maps_observations:
+            return states
+        states = np.asarray(states, dtype=float)
+        cols = []
+        for kind, name in self._obs_source:
+            col = states[..., self.state_names.index(name)]
+            cols.append(np.cos(col) if kind == "cos" else np.sin(col) if kind == "sin" else col)
+        return np.stack(cols, axis=-1)
+
+    def coordinates(self, observations: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
+        """Real observations (N, n_obs) -> states (N, n_state): angles by atan2 in [-pi, pi],
+        or, given the ``reference`` states (the step's current states), unwrapped to lie
+        within pi of them (a step's angle change stays continuous). Identity without a map."""
+        if not self.maps_observations:
+            return observations
+        obs = np.asarray(observations, dtype=float)
+        out = np.empty(obs.shape[:-1] + (len(self.state_names),))
+        for i, n in enumerate(self.state_names):
+            if n in self.angles:
+                c, s = (self.obs_names.index(p) for p in self.angles[n])
+                out[..., i] = np.arctan2(obs[..., s], obs[..., c])
+                if reference is not None:
+                    ref = np.asarray(reference, dtype=float)[..., i]
+                    out[..., i] = ref + wrap_angle(out[..., i] - ref)
+            else:
+                out[..., i] = obs[..., self.obs_names.index(n)]
+        return out
+
+    @cached_property
+    def angle_index(self) -> np.ndarray:
+        """Columns of the angle-valued states (in ``state_names``)."""
+        return _readonly([self.state_names.index(a) for a in self.angles])
 
     def random_action(self, rng: np.random.Generator, env: gym.Env) -> Any:
         space = env.action_space
@@ -163,7 +333,10 @@ class EnvSpec:
         return rng.uniform(space.low, space.high).astype(space.dtype)
 
     def heuristic_policy(self, env: gym.Env) -> Policy:
-        raise ConfigError(f"collector: env '{self.name}' has no heuristic policy; use collector=random")
+        if self._fns["heuristic_fn"] is not None:
+            return self._fns["heuristic_fn"]
+        raise ConfigError(f"collector: env '{self.name}' has no heuristic policy (env.spec.heuristic_fn); "
+                          "use collector=random")
 
     # ------------------------------------------------------------------ model <-> state
     def model_inputs(self, states: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -204,9 +377,8 @@ class EnvSpec:
         """Per regressed variable: a magnitude beyond which a predicted state counts as diverged."""
         if self.state_low is not None and self.state_high is not None:
             span = np.asarray(self.state_high) - np.asarray(self.state_low)
-            return (np.maximum(np.abs(self.state_low), np.abs(self.state_high)) + 10 * span)[
-                self.target_index
-            ]
+            limit = (np.maximum(np.abs(self.state_low), np.abs(self.state_high)) + 10 * span)[self.target_index]
+            return np.where(np.isfinite(limit), limit, 1e3)  # 1e3 for unbounded variables
         return np.full(len(self.target_names), 1e3)
 
     # ------------------------------------------------------------------ the task (surrogate envs)
@@ -215,8 +387,9 @@ class EnvSpec:
     # states (N, n_state) in ``state_names`` order, raw actions (N, raw width).
     @property
     def defines_task(self) -> bool:
-        """Whether this spec knows the env's reward and termination (needed by a surrogate)."""
-        return self.has_task
+        """Whether this spec knows the env's reward and termination (needed by a surrogate):
+        a subclass with ``has_task``, or ``reward_fn`` given."""
+        return self.has_task or self._fns["reward_fn"] is not None
 
     def is_success(self, episode_return: float, terminated: bool) -> bool:
         """Whether a finished episode counts as a success. Default: its return reaches
@@ -231,18 +404,28 @@ class EnvSpec:
         names = self.target_names[:2]
         if len(names) < 2:
             raise ConfigError(f"env.spec.policy_map_slices: '{self.name}' has fewer than two regressed states; name the slices")
-        lows = self.state_low or (-1.0,) * len(self.state_names)
-        highs = self.state_high or (1.0,) * len(self.state_names)
-        ranges = [(lows[self.state_names.index(n)], highs[self.state_names.index(n)]) for n in names]
+        lows = self.state_low or (-np.inf,) * len(self.state_names)
+        highs = self.state_high or (np.inf,) * len(self.state_names)
+        ranges = []
+        for n in names:  # unbounded: +-pi for an angle, else +-1
+            wide = np.pi if n in self.angles else 1.0
+            lo, hi = lows[self.state_names.index(n)], highs[self.state_names.index(n)]
+            ranges.append((lo if np.isfinite(lo) else -wide, hi if np.isfinite(hi) else wide))
         return ((names[0], ranges[0], names[1], ranges[1]),)
 
     def discrete_action_labels(self) -> tuple[str, ...]:
-        return self.action_labels or self.action_names
+        if self.action_labels or self.action_encoding == "one_hot":
+            return self.action_labels or self.action_names
+        if self.action_encoding == "values":
+            return tuple(", ".join(f"{n}={v:g}" for n, v in zip(self.action_names, row, strict=True))
+                         for row in self._action_table)
+        return tuple(str(i) for i in range(self.n_discrete_actions))
 
     def termination_causes(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> dict[str, np.ndarray]:
         """Why the surrogate's rules end each transition, per named cause (N,) bool; empty
         when the spec does not tell causes apart."""
-        return {}
+        fn = self._fns["termination_causes_fn"]
+        return {} if fn is None else {str(k): np.asarray(v, dtype=bool) for k, v in fn(states, actions, next_states).items()}
 
     def observed_termination_causes(self, rewards: np.ndarray, terminated: np.ndarray) -> dict[str, np.ndarray]:
         """Why the real env ended each transition, per cause named in ``termination_causes``."""
@@ -250,13 +433,17 @@ class EnvSpec:
 
     def reward(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
         """Reward of each transition (N,)."""
+        if self._fns["reward_fn"] is not None:
+            return np.asarray(self._fns["reward_fn"](states, actions, next_states), dtype=float).reshape(len(states))
         raise ConfigError(
-            f"env.spec: '{self.name}' ({type(self).__name__}) defines no reward function; a "
-            "surrogate env needs an EnvSpec subclass with reward() and terminated()"
+            f"env.spec.reward_fn: '{self.name}' ({type(self).__name__}) defines no reward function; a "
+            "surrogate env needs env.spec.reward_fn (a dotted path) or an EnvSpec subclass with reward()"
         )
 
     def terminated(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
         """Whether each transition ends the episode (N,) bool. Default: never."""
+        if self._fns["termination_fn"] is not None:
+            return np.asarray(self._fns["termination_fn"](states, actions, next_states), dtype=bool).reshape(len(states))
         return np.zeros(len(states), dtype=bool)
 
     def reward_terminated(
@@ -268,6 +455,9 @@ class EnvSpec:
     def exogenous(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
         """Values of the exogenous (not regressed) state variables after each transition,
         (N, len(exogenous_names)); ``next_states`` holds the regressed values already."""
+        if self._fns["exogenous_fn"] is not None:
+            out = np.asarray(self._fns["exogenous_fn"](states, actions, next_states), dtype=float)
+            return out.reshape(len(states), len(self.exogenous_names))
         if self.exogenous_names:
             raise ConfigError(
                 f"env.spec.exogenous_names: '{self.name}' does not say how to derive "
@@ -279,8 +469,14 @@ class EnvSpec:
         """n states from the real env's initial-state distribution (N, n_state).
 
         Default: drawn uniformly from states observed after resets of the real env
-        (``observed_initial_states``). Specs that know the distribution override this.
+        (``observed_initial_states``). ``initial_state_fn`` or a subclass knows the distribution.
         """
+        if self._fns["initial_state_fn"] is not None:
+            out = np.asarray(self._fns["initial_state_fn"](rng, n), dtype=float)
+            if out.shape != (n, len(self.state_names)) or not np.all(np.isfinite(out)):
+                raise ConfigError(f"env.spec.initial_state_fn: returned shape {out.shape} (or non-finite values) "
+                                  f"for n={n}; need finite ({n}, {len(self.state_names)}) states")
+            return out
         pool = observed_initial_states(self)
         return pool[rng.integers(len(pool), size=n)]
 
@@ -324,10 +520,37 @@ def _parse_slice(value: Any, i: int, state_names: tuple[str, ...]) -> tuple:
     return out
 
 
-def find_spec(name: str) -> EnvSpec:
+_TASK_FNS = ("reward_fn", "termination_fn", "initial_state_fn", "heuristic_fn", "exogenous_fn", "termination_causes_fn")
+
+
+def wrap_angle(values: np.ndarray) -> np.ndarray:
+    """Angles wrapped to [-pi, pi)."""
+    return (np.asarray(values) + np.pi) % (2 * np.pi) - np.pi
+
+
+_ACTION_BOUNDS: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def action_bounds(spec: EnvSpec) -> tuple[np.ndarray, np.ndarray]:
+    """(low, high) of the real env's Box action space, cached per env and process."""
+    key = (spec.gym_id, repr(sorted(spec.gym_kwargs.items())))
+    if key not in _ACTION_BOUNDS:
+        env = spec.make_env()
+        try:
+            space = env.action_space
+        finally:
+            env.close()
+        if not isinstance(space, gym.spaces.Box):
+            raise ConfigError(f"env.spec.action_encoding: clip needs a Box action space; {spec.gym_id} has {space}")
+        _ACTION_BOUNDS[key] = (space.low.astype(float), space.high.astype(float))
+    return _ACTION_BOUNDS[key]
+
+
+def find_spec(name: str, config_dirs: Sequence[str] = ()) -> EnvSpec:
     """The spec class whose ``name`` defaults to ``name`` (the built-in specs, or any user
-    subclass already imported), built with its defaults: the class is the one source of an
-    env's name, so no registry has to be kept beside the configs."""
+    subclass already imported), built with its defaults; else the spec of ``env/<name>.yaml``
+    in ``config_dirs``, ``$SDRL_BENCH_CONFIG_DIR`` or the package's configs
+    (``envs.functional.spec_from_config``). No registry is kept beside the configs."""
     found: dict[str, type[EnvSpec]] = {}
     todo = list(EnvSpec.__subclasses__())
     while todo:
@@ -336,9 +559,14 @@ def find_spec(name: str) -> EnvSpec:
         default = next((f.default for f in fields(cls) if f.name == "name"), MISSING)
         if isinstance(default, str):
             found.setdefault(default, cls)
-    if name not in found:
-        raise ConfigError(f"spec: unknown env {name!r} (one of {sorted(found)}, or an EnvSpec)")
-    return found[name]()
+    if name in found:
+        return found[name]()
+    from_config = spec_from_config(name, config_dirs)
+    if from_config is None:
+        raise ConfigError(f"spec: unknown env {name!r}: no spec class named so ({sorted(found)}) and no env/{name}.yaml "
+                          f"in {[str(d) for d in functional.config_dirs(config_dirs)]} (config_dir= or "
+                          f"${functional.CONFIG_DIR_VAR})")
+    return from_config
 
 
 @dataclass(frozen=True)
@@ -367,6 +595,7 @@ def observed_initial_states(spec: EnvSpec, n: int = 200, seed: int = 1_000_000) 
         env = spec.make_env()
         try:
             pool = np.array([env.reset(seed=seed + i)[0] for i in range(n)], dtype=float)
+            pool = np.array(spec.coordinates(pool), dtype=float)  # states (a copy only with a map)
         finally:
             env.close()
         pool.setflags(write=False)

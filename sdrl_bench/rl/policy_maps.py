@@ -38,9 +38,10 @@ def compute_maps(policy, spec: EnvSpec, resolution: int = 41) -> list[PolicyMap]
     for xn, (x0, x1), yn, (y0, y1) in spec.map_slices():
         xs, ys = np.linspace(x0, x1, resolution), np.linspace(y0, y1, resolution)
         gx, gy = np.meshgrid(xs, ys)
-        obs = np.tile(np.array([hold[n] for n in spec.state_names], dtype=np.float32), (gx.size, 1))
-        obs[:, spec.state_names.index(xn)] = gx.ravel()
-        obs[:, spec.state_names.index(yn)] = gy.ravel()
+        states = np.tile(np.array([hold[n] for n in spec.state_names], dtype=float), (gx.size, 1))
+        states[:, spec.state_names.index(xn)] = gx.ravel()
+        states[:, spec.state_names.index(yn)] = gy.ravel()
+        obs = np.asarray(spec.observe(states), dtype=np.float32)  # what the policy sees (e.g. cos, sin of an angle)
         actions, _ = policy.predict(obs, deterministic=True)
         actions = np.asarray(actions, dtype=float).reshape(gx.size, -1)[:, 0]
         maps.append(PolicyMap(xn, yn, xs, ys, actions.reshape(gx.shape), {k: v for k, v in hold.items() if k not in (xn, yn)}))

@@ -59,8 +59,14 @@ class TransferJob:
         unknown = set(self.arms) - set(ARMS)
         if unknown or not self.arms:
             raise ConfigError(f"rl.arms: {sorted(unknown) or 'empty'}; choose from {list(ARMS)}")
-        self.agent.check(self.fit.spec)
+        spec = self.fit.spec
+        self.agent.check(spec)
+        spec.map_slices()  # the policy maps' slices (a ConfigError names env.spec.policy_map_slices)
         if "surrogate" in self.arms:
+            if not spec.defines_task:
+                raise ConfigError(f"env.spec.reward_fn: env '{spec.name}' defines no reward (nor termination): the "
+                                  "surrogate arm needs env.spec.reward_fn and termination_fn (dotted paths) or an "
+                                  "EnvSpec subclass with reward(); or run rl.arms=[real]")
             check_budget("rl.surrogate_steps", self.surrogate_steps)
         if "real" in self.arms:
             check_budget("rl.real_steps", self.real_steps)

@@ -19,6 +19,13 @@ and ``step_one`` the plain-Python step of one state that ``SurrogateEnv`` uses. 
 ``SurrogateEnv`` is registered as ``sdrl/Surrogate-v0`` (``import sdrl_bench`` first)::
 
     env = gym.make("sdrl/Surrogate-v0", model="model.json", spec="mountain_car")
+    env = gym.make("sdrl/Surrogate-v0", model="model.json", spec="my_env", config_dir="my_conf")
+
+A spec name is a spec class's or an ``env/<name>.yaml`` of the config tree (``envs.base.find_spec``).
+
+States and observations: the surrogate steps the spec's states (the model's coordinates) and
+emits the real env's observations (``EnvSpec.observe``: an angle's cos and sin, clipped to the
+observation space); angles are wrapped to [-pi, pi) after each step.
 """
 
 from __future__ import annotations
@@ -31,16 +38,16 @@ import numpy as np
 
 from sdrl_bench import ConfigError
 from sdrl_bench.envs import EnvSpec
-from sdrl_bench.envs.base import find_spec, observed_initial_states
+from sdrl_bench.envs.base import find_spec, observed_initial_states, wrap_angle
 from sdrl_bench.models.base import load_model
 from sdrl_bench.models.fast import batch_predictor, scalar_predictor
 
 _SPACES: dict[tuple, tuple[gym.Space, gym.Space]] = {}
 
 
-def resolve_spec(spec: EnvSpec | str) -> EnvSpec:
+def resolve_spec(spec: EnvSpec | str, config_dir: str | None = None) -> EnvSpec:
     if isinstance(spec, str):
-        return find_spec(spec)
+        return find_spec(spec, [config_dir] if config_dir else [])
     if not isinstance(spec, EnvSpec):
         raise ConfigError(f"spec: expected an EnvSpec or an env name, got {type(spec).__name__}")
     return spec
@@ -76,11 +83,12 @@ class Surrogate:
         initial-state distribution.
     fused : use the spec's fused batched step when it has one (``EnvSpec.make_step_batch``);
         False composes the spec's numpy functions instead (same results; for comparisons).
+    config_dir : a config directory holding ``env/<spec>.yaml``, for a spec given by name.
     """
 
     def __init__(self, model: Any, spec: EnvSpec | str, initial_states: np.ndarray | None = None,
-                 fused: bool = True):
-        self.spec = spec = resolve_spec(spec)
+                 fused: bool = True, config_dir: str | None = None):
+        self.spec = spec = resolve_spec(spec, config_dir)
         source = f"model file {model}" if isinstance(model, (str, Path)) else "model"
         self.model = model = load_model(model) if isinstance(model, (str, Path)) else model
         if not callable(getattr(model, "predict", None)) or not hasattr(model, "state_names_"):
@@ -91,14 +99,16 @@ class Surrogate:
                 raise ConfigError(f"{source} {what} {list(got)} ({len(got)}), but env.spec "
                                   f"'{spec.name}' needs {list(want)} ({len(want)})")
         if not spec.defines_task:
-            raise ConfigError(f"env.spec: '{spec.name}' ({type(spec).__name__}) defines no reward / "
-                              "termination; a surrogate needs an EnvSpec subclass with reward() and terminated()")
+            raise ConfigError(f"env.spec.reward_fn: '{spec.name}' ({type(spec).__name__}) defines no reward / termination; "
+                              "a surrogate needs env.spec.reward_fn (and termination_fn) or an EnvSpec subclass with reward()")
         self.observation_space, self.action_space = obs_space, act_space = real_spaces(spec)
         self._check_spaces(obs_space, act_space)
         self.obs_low, self.obs_high = obs_space.low.astype(float), obs_space.high.astype(float)
         # Clipping to the observation space is skipped when the spec bounds every variable inside it.
+        # With an observation map the states are not observations: the spec's bounds (apply_bounds)
+        # hold them, and the emitted observations are clipped to the space instead.
         inside = spec.state_low is not None and spec.state_high is not None and not spec.exogenous_names
-        self._clip = not (inside and np.all(np.asarray(spec.state_low) >= self.obs_low)
+        self._clip = not spec.maps_observations and not (inside and np.all(np.asarray(spec.state_low) >= self.obs_low)
                           and np.all(np.asarray(spec.state_high) <= self.obs_high))
         self.limit = np.asarray(spec.divergence_limit(), dtype=float)
         if self.limit.shape != (len(spec.target_names),) or not np.all(self.limit > 0):
@@ -111,7 +121,7 @@ class Surrogate:
             self._initial = init
         # The default reset distribution (states observed after real resets), looked up once.
         self._pool = self._initial
-        if self._pool is None and type(spec).initial_states is EnvSpec.initial_states:
+        if self._pool is None and type(spec).initial_states is EnvSpec.initial_states and spec.initial_state_fn is None:
             self._pool = observed_initial_states(spec)
         self.step_one = spec.make_step_one(self.predictor, self.obs_low, self.obs_high) or self._generic_step_one
         self._step_batch = spec.make_step_batch(self.limit, self.obs_low, self.obs_high) if fused else None
@@ -125,32 +135,43 @@ class Surrogate:
         self._n_state_inputs = len(index)
         # slice(None) when the states are the model's first inputs, in order (no copy needed)
         self._input_index = slice(None) if np.array_equal(index, np.arange(len(index))) else index
-        self._one_hot = bool(spec.n_discrete_actions) and type(spec).encode_actions is EnvSpec.encode_actions
+        self._one_hot = spec.action_encoding == "one_hot" and type(spec).encode_actions is EnvSpec.encode_actions
         self._action_ids = np.arange(spec.n_discrete_actions)[:, None]
         self._limit_col = self.limit[:, None]
         # Columns of the regressed and the derived (exogenous) variables: slices where they are
         # contiguous (cheaper to assign than index arrays).
         self._targets, self._exogenous = _as_slice(spec.target_index), _as_slice(spec.exogenous_index)
+        self._angles = spec.angle_index if len(spec.angle_index) else None
 
     def _check_spaces(self, obs_space: gym.Space, act_space: gym.Space) -> None:
         spec = self.spec
-        n = len(spec.state_names)
+        n = len(spec.obs_names)
         if not isinstance(obs_space, gym.spaces.Box) or obs_space.shape != (n,):
-            raise ConfigError(f"env.spec.state_names: {n} names for {spec.gym_id}'s observation space {obs_space}")
+            key = "observation_names" if spec.maps_observations else "state_names"
+            raise ConfigError(f"env.spec.{key}: {n} names for {spec.gym_id}'s observation space {obs_space}")
+        observed = [i for i, name in enumerate(spec.state_names) if name in spec.obs_names]
+        where = np.array([spec.obs_names.index(spec.state_names[i]) for i in observed], dtype=int)
         for key, bound in (("state_low", spec.state_low), ("state_high", spec.state_high)):
             if bound is None:
                 continue
-            b = np.asarray(bound).astype(obs_space.dtype)
-            bad = np.flatnonzero((b < obs_space.low) | (b > obs_space.high))
+            b = np.asarray(bound)[observed].astype(obs_space.dtype)
+            bad = np.flatnonzero(np.isfinite(b) & ((b < obs_space.low[where]) | (b > obs_space.high[where])))
             if len(bad):
-                i = int(bad[0])
+                i, j = observed[int(bad[0])], int(where[bad[0]])
                 raise ConfigError(f"env.spec.{key}[{i}] = {bound[i]} ({spec.state_names[i]}) lies outside "
-                                  f"{spec.gym_id}'s observation space [{obs_space.low[i]}, {obs_space.high[i]}]")
+                                  f"{spec.gym_id}'s observation space [{obs_space.low[j]}, {obs_space.high[j]}]")
         if isinstance(act_space, gym.spaces.Discrete):
             if spec.n_discrete_actions != act_space.n:
                 raise ConfigError(f"env.spec.n_discrete_actions: {spec.n_discrete_actions}, but {spec.gym_id} has {act_space.n} actions")
         elif spec.n_discrete_actions or act_space.shape != (spec.raw_action_width,):
             raise ConfigError(f"env.spec.action_names: {len(spec.action_names)} names for {spec.gym_id}'s action space {act_space}")
+
+    def observation(self, states: np.ndarray) -> np.ndarray:
+        """States (N, n_state) -> the observations the agent sees (the real env's dtype)."""
+        dtype = self.observation_space.dtype
+        if not self.spec.maps_observations:
+            return states.astype(dtype, order="C")
+        return np.clip(self.spec.observe(states), self.obs_low, self.obs_high).astype(dtype)
 
     def predictor(self, fixed: dict[int, float] | None = None):
         """The model's fast one-state evaluator (see ``models.fast.scalar_predictor``)."""
@@ -216,6 +237,8 @@ class Surrogate:
             outside = (nxt.min(axis=0) < self.obs_low) | (nxt.max(axis=0) > self.obs_high)
             for j in np.flatnonzero(outside):
                 np.clip(nxt[:, j], self.obs_low[j], self.obs_high[j], out=nxt[:, j])
+        if self._angles is not None:
+            nxt[:, self._angles] = wrap_angle(nxt[:, self._angles])
         rewards, terminated = spec.reward_terminated(states, actions, nxt)
         rewards = np.asarray(rewards, dtype=float)
         terminated = np.asarray(terminated, dtype=bool)
@@ -228,7 +251,7 @@ class Surrogate:
     def _generic_step_one(self, state: list, action: Any):
         s = np.asarray([state], dtype=float)
         nxt, r, term, div = self.transition(s, self.raw_actions(action, 1))
-        return nxt[0].astype(self.observation_space.dtype), nxt[0].tolist(), float(r[0]), bool(term[0]), bool(div[0])
+        return self.observation(nxt[:1])[0], nxt[0].tolist(), float(r[0]), bool(term[0]), bool(div[0])
 
 
 class SurrogateEnv(gym.Env):
@@ -241,10 +264,10 @@ class SurrogateEnv(gym.Env):
     metadata = {"render_modes": []}
 
     def __init__(self, model: Any, spec: EnvSpec | str, initial_states: np.ndarray | None = None,
-                 render_mode: str | None = None):
+                 render_mode: str | None = None, config_dir: str | None = None):
         if render_mode is not None:
             raise ConfigError(f"render_mode: the surrogate env does not render ({render_mode!r})")
-        self.surrogate = Surrogate(model, spec, initial_states)
+        self.surrogate = Surrogate(model, spec, initial_states, config_dir=config_dir)
         self.observation_space = self.surrogate.observation_space
         self.action_space = self.surrogate.action_space
         self.render_mode = None
@@ -271,16 +294,17 @@ class SurrogateEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
-        if options and "state" in options:
+        if options and "state" in options:  # a state (state_names order), not an observation
             s = np.asarray(options["state"], dtype=float)
-            if s.shape != self.observation_space.shape or not np.all(np.isfinite(s)):
-                raise ValueError(f"options['state'] must be a finite array of shape {self.observation_space.shape}")
+            shape = (len(self.surrogate.spec.state_names),)
+            if s.shape != shape or not np.all(np.isfinite(s)):
+                raise ValueError(f"options['state'] must be a finite array of shape {shape}")
         else:
             s = self.surrogate.initial_states(self.np_random, 1)[0]
         # numpy scalars, as the real env keeps its state (float64 after a reset): a spec's
         # one-state step may compute in the real env's arithmetic (see MountainCarSpec)
         self._state, self._t = list(s), 0
-        return s.astype(self.observation_space.dtype), {}
+        return self.surrogate.observation(s[None])[0], {}
 
     def step(self, action: Any):
         if self._state is None:

@@ -85,7 +85,7 @@ class SurrogateEnvView:
         rng = np.random.default_rng(seed) if seed is not None else v._rng
         self.state = options["state"] if options and "state" in options else v.surrogate.initial_states(rng, 1)[0]
         v._t[self._index] = 0
-        return v._states[self._index].astype(v.observation_space.dtype), {}
+        return v.surrogate.observation(v._states[self._index][None])[0], {}
 
 
 class SurrogateVecEnv(VecEnv):
@@ -115,7 +115,6 @@ class SurrogateVecEnv(VecEnv):
         self._states = np.asarray(sur.initial_states(self._rng, n), order=sur.state_order)
         self._t = np.zeros(n, dtype=np.int64)
         self._max_steps = sur.spec.max_episode_steps
-        self._obs_dtype = sur.observation_space.dtype
         self.n_diverged = np.zeros(n, dtype=np.int64)
         """Episodes ended by the divergence guard, per copy."""
         self._actions: np.ndarray | None = None
@@ -136,7 +135,7 @@ class SurrogateVecEnv(VecEnv):
         self._reset_seeds()
         self._reset_options()
         self.reset_infos = [{} for _ in range(self.num_envs)]
-        return self._states.astype(self._obs_dtype, order="C")
+        return self.surrogate.observation(self._states)
 
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = self.surrogate.raw_actions(actions, self.num_envs)
@@ -162,7 +161,7 @@ class SurrogateVecEnv(VecEnv):
         self._t += 1
         truncated = (self._t >= self._max_steps) | diverged
         dones = terminated | truncated
-        obs = nxt.astype(self._obs_dtype, order="C")
+        obs = self.surrogate.observation(nxt)
         infos: list[dict[str, Any]] = [RUNNING_INFO] * self.num_envs
         if dones.any():
             idx = np.flatnonzero(dones)
@@ -175,7 +174,7 @@ class SurrogateVecEnv(VecEnv):
             self.n_diverged += diverged
             fresh = self.surrogate.initial_states(self._rng, len(idx))
             nxt[idx] = fresh
-            obs[idx] = fresh.astype(self._obs_dtype)
+            obs[idx] = self.surrogate.observation(fresh)
             self._t[idx] = 0
         self._states = nxt
         return obs, rewards.astype(np.float32), dones, infos

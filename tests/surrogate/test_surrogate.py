@@ -414,8 +414,10 @@ def test_bad_models_and_specs_fail_at_construction_naming_the_culprit(mc_model, 
         SurrogateEnv(mc_model, MountainCarSpec(state_low=(-5.0, -0.07)))
     with pytest.raises(ConfigError, match="defines no reward"):
         SurrogateEnv(mc_model, EnvSpec(name="mc", gym_id="MountainCarContinuous-v0", state_names=("x", "v")))
-    with pytest.raises(ConfigError, match="unknown env 'cartpole'"):
-        SurrogateEnv(mc_model, "cartpole")
+    with pytest.raises(ConfigError, match="unknown env 'acrobot'"):
+        SurrogateEnv(mc_model, "acrobot")
+    with pytest.raises(ConfigError, match=r"but env.spec 'cartpole' needs \['x', 'xdot', 'th', 'thdot'\]"):
+        SurrogateEnv(mc_model, "cartpole")  # found by name in the config tree (conf/env/cartpole.yaml)
 
 
 # ---------------------------------------------------------------------- LunarLander task fidelity

@@ -1,0 +1,110 @@
+"""An env described by YAML and plain functions: dotted paths resolved once, specs found by name.
+
+A spec's task can be given as functions instead of an ``EnvSpec`` subclass (as mbrl-lib injects
+``reward_fn`` and ``termination_fn`` into its model env): ``env.spec.reward_fn:
+my_envs.task.reward`` names a module-level function that ``resolve`` imports at config time, so a
+missing module or a typo fails in one line naming the key and the cause, before any env step.
+
+``spec_from_config`` finds ``env/<name>.yaml`` in the user's config directories and the package's
+own, and builds the spec of its ``spec:`` node without Hydra (the node is plain data and a
+``_target_``): ``gym.make("sdrl/Surrogate-v0", spec="pendulum")`` knows every env of the config
+tree, the user's included (``config_dir=`` or ``$SDRL_BENCH_CONFIG_DIR``).
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+from sdrl_bench import ConfigError
+
+CONFIG_DIR_VAR = "SDRL_BENCH_CONFIG_DIR"
+"""Environment variable: user config directories (``os.pathsep``-separated) searched by name."""
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception as one line: its type, message and, for an error raised in a user's file,
+    where (the innermost frame outside importlib)."""
+    text = " ".join(str(exc).split())
+    where = ""
+    tb = exc.__traceback__
+    frames = []
+    while tb is not None:
+        frames.append(tb.tb_frame.f_code.co_filename + f":{tb.tb_lineno}")
+        tb = tb.tb_next
+    user = [f for f in frames if "importlib" not in f and "/sdrl_bench/" not in f and "/hydra/" not in f]
+    if user and not isinstance(exc, SyntaxError):  # a SyntaxError names its file and line itself
+        where = f" (at {user[-1]})"
+    return (f"{type(exc).__name__}: {text}" if text else type(exc).__name__) + where
+
+
+def import_object(path: str, key: str) -> Any:
+    """The object at dotted ``path`` (``pkg.module.name`` or ``pkg.module:name``); a failure is
+    a ``ConfigError`` naming ``key``, the path and the cause (the module's own import error)."""
+    if not isinstance(path, str) or not path.strip():
+        raise ConfigError(f"{key}: expected a dotted path 'package.module.function', got {path!r}")
+    module_name, sep, attr = path.partition(":")
+    if not sep:
+        module_name, _, attr = path.rpartition(".")
+    if not module_name or not attr:
+        raise ConfigError(f"{key}: {path!r} is not a dotted path 'package.module.function'")
+    try:
+        module = importlib.import_module(module_name)
+    except Exception as exc:  # a user module may raise anything while importing
+        raise ConfigError(f"{key}: cannot import module '{module_name}' for {path!r}: {one_line(exc)}") from exc
+    obj = module
+    for part in attr.split("."):
+        if not hasattr(obj, part):
+            raise ConfigError(f"{key}: module '{module_name}' ({getattr(module, '__file__', '?')}) has no '{attr}'")
+        obj = getattr(obj, part)
+    return obj
+
+
+def resolve(value: str | Callable | None, key: str) -> Callable | None:
+    """A task function from a dotted path (or a callable as it is); None stays None."""
+    if value is None or callable(value):
+        return value
+    obj = import_object(value, key)
+    if not callable(obj):
+        raise ConfigError(f"{key}: {value!r} is a {type(obj).__name__}, not a function")
+    return obj
+
+
+# ---------------------------------------------------------------------- specs by name
+def config_dirs(extra: Sequence[str | Path] = ()) -> list[Path]:
+    """Where env configs are looked up: ``extra``, then ``$SDRL_BENCH_CONFIG_DIR``, then the package's."""
+    dirs = [Path(d) for d in extra]
+    dirs += [Path(d) for d in os.environ.get(CONFIG_DIR_VAR, "").split(os.pathsep) if d]
+    dirs.append(Path(__file__).resolve().parent.parent / "conf")
+    return dirs
+
+
+def spec_from_config(name: str, dirs: Sequence[str | Path] = ()) -> Any | None:
+    """The spec of ``env/<name>.yaml`` in the first config dir that has one (None: no such file)."""
+    import yaml  # PyYAML, a dependency of hydra-core and of this package
+
+    for d in config_dirs(dirs):
+        path = d / "env" / f"{name}.yaml"
+        if path.is_file():
+            break
+    else:
+        return None
+    try:
+        node = (yaml.safe_load(path.read_text()) or {}).get("spec")
+    except (OSError, yaml.YAMLError) as exc:
+        raise ConfigError(f"spec '{name}': cannot read {path}: {one_line(exc)}") from exc
+    if not isinstance(node, dict) or "_target_" not in node:
+        raise ConfigError(f"spec '{name}': {path} has no 'spec:' mapping with a _target_")
+    kwargs = {k: v for k, v in node.items() if k != "_target_"}
+    if any(isinstance(v, str) and "${" in v for v in kwargs.values()):
+        raise ConfigError(f"spec '{name}': {path} uses interpolations in spec:, which need Hydra; pass an EnvSpec")
+    cls = import_object(node["_target_"], f"{path}: spec._target_")
+    try:
+        return cls(**kwargs)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from exc
+    except TypeError as exc:
+        raise ConfigError(f"{path}: spec: {one_line(exc)}") from exc
