@@ -18,11 +18,15 @@ import numpy as np
 from gymnasium.envs.box2d.lunar_lander import heuristic
 
 from sdrl_bench.envs.lunar_lander import task
+from sdrl_bench import ConfigError
 from sdrl_bench.envs.base import EnvSpec, Policy, StepOne, TestSetRecipe
 from sdrl_bench.envs.lunar_lander.task import LanderRules
 
 STATE_NAMES = ("x", "y", "vx", "vy", "angle", "angvel", "leg_left", "leg_right")
 LEGS = ("leg_left", "leg_right")
+FLIGHT_NOISE_FLOOR = (5.78e-9, 3.56e-8, 5.37e-5, 7.02e-5, 1.30e-7, 5.21e-5)
+"""The replay noise floor (variance) per regressed state on the held-out set's flight rows
+(``benchmarks/noise_floor.py``, 1015 rows sampled, 2 redraws each)."""
 
 
 @dataclass(frozen=True)
@@ -38,7 +42,15 @@ class LunarLanderSpec(EnvSpec):
     max_episode_steps: int = 1000
     solved_threshold: float | None = 200.0
     rules: LanderRules = LanderRules()
-    """Constants of the surrogate's contact approximations (legs, crash, rest)."""
+    """Constants of the surrogate's task rules (touchdown event, settle, rest)."""
+    fit_regime: str | None = None
+    """Fit the dynamics model on this regime's rows only ("flight": rows before each episode's
+    first touchdown; ``regimes``); None: all rows."""
+    uncertainty_penalty: float = 0.0
+    """MOPO-style penalty: reward minus this x the ensemble's disagreement (max over states of
+    the members' standard deviation in units of ``uncertainty_scale``), in flight."""
+    uncertainty_limit: float = float("inf")
+    """Disagreement beyond which a flight step ends the episode as a crash (-100)."""
     action_labels: tuple[str, ...] = ("noop", "left engine", "main engine", "right engine")
     # policy maps: a lander descending slowly above the pad, legs up, over three slices
     policy_map_slices: tuple = (("x", (-1.0, 1.0), "y", (0.0, 1.4)), ("vx", (-1.0, 1.0), "vy", (-1.5, 0.5)),
@@ -70,9 +82,11 @@ class LunarLanderSpec(EnvSpec):
         return task.reward_terminated(self.rules, bool(self.n_discrete_actions), states, actions, next_states)
 
     def termination_causes(self, states, actions, next_states) -> dict[str, np.ndarray]:
-        """Why the surrogate ends each transition: crash (or |x'| >= 1) and rest."""
-        crash, out, rest = task.events(self.rules, states, next_states)
-        return {"crash": crash | out, "rest": rest}
+        """Why the surrogate ends each transition: crash (or |x'| >= 1) and rest (one step of
+        the sleep counter: rest only when ``rules.rest_frames`` <= 1; ``task.sleep_counts``
+        follows whole episodes)."""
+        crash, out, quiet = task.events(self.rules, states, next_states, actions, bool(self.n_discrete_actions))
+        return {"crash": crash | out, "rest": quiet & (self.rules.rest_frames <= 1)}
 
     def observed_termination_causes(self, rewards: np.ndarray, terminated: np.ndarray) -> dict[str, np.ndarray]:
         """Why the real env ended each transition, read off its reward (-100 crash or out, +100 rest)."""
@@ -98,6 +112,39 @@ class LunarLanderSpec(EnvSpec):
         three of each (landings, crashes and flights off-screen)."""
         mix = (("heuristic", 0.0), ("heuristic", 0.2), ("heuristic", 0.5), ("random", 1.0)) * 3
         return TestSetRecipe(name=f"{self.name}-heldout-v1", seed=20_000, episodes=mix)
+
+    # ------------------------------------------------------------------ regimes
+    def regimes(self, episode, states, rewards, next_states) -> dict[str, np.ndarray]:
+        """flight: rows before each episode's first touchdown (the first row whose s' has a leg
+        flag, or that ends in a crash inside the screen: reward -100 with |x'| < 1); contact: the
+        touchdown row and every row after it. Rows in episode order."""
+        episode, ns = np.asarray(episode), np.asarray(next_states, dtype=float)
+        hit = (ns[:, 6] > 0.5) | (ns[:, 7] > 0.5) | ((np.asarray(rewards) == -100) & (np.abs(ns[:, 0]) < 1.0))
+        flight = np.zeros(len(ns), dtype=bool)
+        starts = np.flatnonzero(np.r_[True, episode[1:] != episode[:-1]])
+        for a, b in zip(starts, np.r_[starts[1:], len(ns)], strict=True):
+            h = np.flatnonzero(hit[a:b])
+            flight[a:a + (h[0] if len(h) else b - a)] = True
+        return {"flight": flight, "contact": ~flight}
+
+    def fit_rows(self, episode, states, rewards, next_states) -> np.ndarray | None:
+        if self.fit_regime is None:
+            return None
+        masks = self.regimes(episode, states, rewards, next_states)
+        if self.fit_regime not in masks:
+            raise ConfigError(f"env.spec.fit_regime: {self.fit_regime!r} is not one of {sorted(masks)}")
+        return masks[self.fit_regime]
+
+    def regime_dynamics(self, states, actions, predicted) -> np.ndarray:
+        """Landers on their legs take the settle step (``task``); in flight, the model's prediction."""
+        return task.regime_dynamics(self.rules, bool(self.n_discrete_actions), states, actions, predicted)
+
+    def uncertainty_scale(self) -> np.ndarray | None:
+        """The replay noise floor's standard deviation per state in flight (held-out set,
+        ``benchmarks/noise_floor.py``): disagreement is counted in units of the irreducible noise."""
+        if self.uncertainty_penalty == 0.0 and not np.isfinite(self.uncertainty_limit):
+            return None
+        return np.sqrt(np.array(FLIGHT_NOISE_FLOOR))
 
 
 @dataclass(frozen=True)
