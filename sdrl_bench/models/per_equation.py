@@ -179,7 +179,7 @@ class PerEquationLibrary(BaseFeatureLibrary):
 
     def transform(self, x_full):
         raise ConfigError(f"{self.key}: a per-equation library is fitted by its own model; "
-                          "use surrogate=per_equation (sdrl_bench.models.per_equation.sparse_model)")
+                          "fit it with surrogate=sindy (sdrl_bench.models.per_equation.sparse_model)")
 
     def get_feature_names(self, input_features=None):
         return [f"{t}:{term_text(term)}" for t, eq in self.parsed.items() for term in eq]
@@ -197,7 +197,7 @@ def _find_library(library: Any) -> PerEquationLibrary | None:
 
 def sparse_model(library: Any, optimizer: Any = None, seed: int = 0, **kwargs: Any):
     """The sparse-regression model a library asks for: ``PerEquationModel`` for a per-equation
-    library, else ``SindyModel`` (the ``surrogate=per_equation`` factory)."""
+    library, else ``SindyModel`` (the factory of ``surrogate=sindy``)."""
     if _find_library(library) is not None:
         return PerEquationModel(library, optimizer, seed, **kwargs)
     from sdrl_bench.models.sindy import SindyModel  # noqa: PLC0415

@@ -76,10 +76,13 @@ class Surrogate:
         initial-state distribution.
     fused : use the spec's fused batched step when it has one (``EnvSpec.make_step_batch``);
         False composes the spec's numpy functions instead (same results; for comparisons).
+    noise : add the model's step noise (``noise_``), seeded by ``seed_noise``; False: deterministic.
+    penalty : apply the ensemble's disagreement penalty (``members_`` and the spec's
+        ``uncertainty_scale``); False: the task's reward as it is.
     """
 
     def __init__(self, model: Any, spec: EnvSpec | str, initial_states: np.ndarray | None = None,
-                 fused: bool = True, noise: bool = True):
+                 fused: bool = True, noise: bool = True, penalty: bool = True):
         self.spec = spec = resolve_spec(spec)
         source = f"model file {model}" if isinstance(model, (str, Path)) else "model"
         self.model = model = load_model(model) if isinstance(model, (str, Path)) else model
@@ -113,10 +116,8 @@ class Surrogate:
         self._pool = self._initial
         if self._pool is None and type(spec).initial_states is EnvSpec.initial_states:
             self._pool = observed_initial_states(spec)
-        self._setup_uncertainty(noise)
+        self._setup_uncertainty(noise, penalty)
         self.step_one = spec.make_step_one(self.predictor, self.obs_low, self.obs_high) or self._generic_step_one
-        if self._members:
-            self.step_one = self._penalized_step_one(self.step_one)
         self._step_batch = spec.make_step_batch(self.limit, self.obs_low, self.obs_high) if fused else None
         self.state_order = "F" if self._step_batch is None else "C"
         """Memory layout of the states ``transition`` returns (and steps fastest): a spec's fused
@@ -134,6 +135,8 @@ class Surrogate:
         # Columns of the regressed and the derived (exogenous) variables: slices where they are
         # contiguous (cheaper to assign than index arrays).
         self._targets, self._exogenous = _as_slice(spec.target_index), _as_slice(spec.exogenous_index)
+        if self._members:
+            self.step_one = self._penalized_step_one(self.step_one)
 
     def _check_spaces(self, obs_space: gym.Space, act_space: gym.Space) -> None:
         spec = self.spec
@@ -172,15 +175,16 @@ class Surrogate:
         return noisy
 
     def __reduce__(self):  # compiled functions are rebuilt, not pickled
-        return (Surrogate, (self.model, self.spec, self._initial, self._step_batch is not None, self._noise_on))
+        return (Surrogate, (self.model, self.spec, self._initial, self._step_batch is not None, self._noise_on,
+                            self._penalty_on))
 
     # ------------------------------------------------------------------ noise and uncertainty
-    def _setup_uncertainty(self, noise: bool) -> None:
+    def _setup_uncertainty(self, noise: bool, penalty: bool) -> None:
         """Step noise (``model.noise_``: {one-hot action column: covariance of the fit's
         residuals}; the engine dispersion of LunarLander) and the ensemble's disagreement
         penalty (``model.members_`` with ``spec.uncertainty_scale()``)."""
         spec, model = self.spec, self.model
-        self._noise_on = bool(noise)
+        self._noise_on, self._penalty_on = bool(noise), bool(penalty)
         self.noise_rng = np.random.default_rng()
         self._chol: np.ndarray | None = None
         cov = getattr(model, "noise_", None) or {}
@@ -194,7 +198,7 @@ class Surrogate:
                     chol[spec.action_names.index(name)] = v * np.sqrt(np.clip(w, 0.0, None))
             self._chol = chol if np.any(chol) else None
         self._members: list = []
-        scale = spec.uncertainty_scale()
+        scale = spec.uncertainty_scale() if penalty else None
         members = getattr(model, "members_", None) or []
         if scale is not None and len(members) > 1:
             self._scale = np.asarray(scale, dtype=float)[:, None]
@@ -203,6 +207,7 @@ class Surrogate:
             self._members = [batch_predictor(mb) for mb in shim]
             self._penalty = float(getattr(spec, "uncertainty_penalty", 0.0))
             self._limit_u = float(getattr(spec, "uncertainty_limit", np.inf))
+            self._free = float(getattr(spec, "uncertainty_free", 0.0))
 
     def seed_noise(self, seed: Any) -> None:
         """Seed the step noise (same seed and actions: the same trajectory)."""
@@ -229,7 +234,7 @@ class Surrogate:
         flight = ~diverged & ~terminated
         if hasattr(self.spec, "rules"):  # LunarLander: legs up in s
             flight &= (states[:, 6] <= 0.5) & (states[:, 7] <= 0.5)
-        rewards = np.where(flight, rewards - self._penalty * u, rewards)
+        rewards = np.where(flight, rewards - self._penalty * np.maximum(u - self._free, 0.0), rewards)
         over = flight & (u > self._limit_u)
         if over.any():
             rewards = np.where(over, -100.0, rewards)

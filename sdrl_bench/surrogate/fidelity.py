@@ -31,7 +31,7 @@ def surrogate_fidelity(model: Any, spec: EnvSpec | str, test: Transitions) -> di
     nothing to divide by; per cause too, for specs with ``termination_causes``), accuracy per
     exogenous variable, and counts.
     """
-    sur = Surrogate(model, spec)
+    sur = Surrogate(model, spec, noise=False, penalty=False)  # the deterministic step and the task's own reward
     spec = sur.spec
     s, a, real = test.states, test.actions, test.next_states
     true_term = np.asarray(test.terminated, dtype=bool)
