@@ -141,7 +141,7 @@ def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = N
     t0, c0 = time.perf_counter(), time.process_time()
     test_name, test = held_out_test_set(spec)
     norm = {n: s["std"] for n, s in data.normalization(spec).items()}
-    report = evaluate(model, spec, test, norm_std=norm)
+    report = evaluate(model, spec, test, norm_std=norm, test_name=test_name)
     if spec.defines_task:  # reward, termination and derived-flag fidelity of the surrogate built on it
         from sdrl_bench.surrogate.fidelity import surrogate_fidelity  # noqa: PLC0415
 

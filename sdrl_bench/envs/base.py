@@ -334,6 +334,17 @@ class EnvSpec:
         measured in for the surrogate's uncertainty penalty; None: no penalty."""
         return None
 
+    def noise_floor(self, test_name: str) -> dict[str, Sequence[float]] | None:
+        """{regime ("all" and those of ``regimes``): per regressed state, the replay noise floor
+        (variance) of one-step prediction on the named test set}, or None when unknown
+        (``fidelity.replay_noise_floor`` measures it; ``benchmarks/noise_floor.py``)."""
+        return None
+
+    def task_fidelity(self, test: Any) -> dict[str, float]:
+        """Extra task-fidelity metrics of the surrogate's rules on real episodes (``test``: a
+        ``data.Transitions`` of whole episodes); default: none."""
+        return {}
+
 
 def _parse_slice(value: Any, i: int, state_names: tuple[str, ...]) -> tuple:
     key = f"env.spec.policy_map_slices[{i}]"

@@ -59,4 +59,5 @@ def surrogate_fidelity(model: Any, spec: EnvSpec | str, test: Transitions) -> di
     if spec.exogenous_names:
         m["surrogate/reward_mse_real_exogenous"] = float(np.mean((spec.reward(s, a, real) - test.rewards) ** 2))
     m["surrogate/one_step/diverged_fraction"] = float(div.mean())
+    m.update({f"surrogate/{k}": float(v) for k, v in spec.task_fidelity(test).items()})
     return m

@@ -11,6 +11,7 @@ prediction has a noise floor no deterministic model beats (measured by replay: R
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import ClassVar
 from collections.abc import Callable
 
@@ -24,9 +25,16 @@ from sdrl_bench.envs.lunar_lander.task import LanderRules
 
 STATE_NAMES = ("x", "y", "vx", "vy", "angle", "angvel", "leg_left", "leg_right")
 LEGS = ("leg_left", "leg_right")
-FLIGHT_NOISE_FLOOR = (5.78e-9, 3.56e-8, 5.37e-5, 7.02e-5, 1.30e-7, 5.21e-5)
-"""The replay noise floor (variance) per regressed state on the held-out set's flight rows
-(``benchmarks/noise_floor.py``, 1015 rows sampled, 2 redraws each)."""
+HELDOUT_NOISE_FLOOR = {
+    "all": (3.21e-9, 2.07e-8, 2.98e-5, 4.08e-5, 8.14e-8, 3.25e-5),
+    "flight": (5.78e-9, 3.56e-8, 5.37e-5, 7.02e-5, 1.30e-7, 5.21e-5),
+    "contact": (1.48e-9, 1.06e-8, 1.37e-5, 2.09e-5, 4.85e-8, 1.93e-5),
+}
+"""The replay noise floor (variance) per regime and regressed state on ``lunar_lander-heldout-v1``
+(``fidelity.replay_noise_floor``, 400 rows per episode, 2 redraws each: 2518 rows, 1015 in
+flight; ``benchmarks/noise_floor.py``). The contact floor is a lower bound (terrain and leg
+joints kept). No-op flight steps have zero variance: the noise is the engines'."""
+FLIGHT_NOISE_FLOOR = HELDOUT_NOISE_FLOOR["flight"]
 
 
 @dataclass(frozen=True)
@@ -55,6 +63,10 @@ class LunarLanderSpec(EnvSpec):
     flight rows of seed 0's fit: 0.33)."""
     uncertainty_limit: float = float("inf")
     """Disagreement beyond which a flight step ends the episode as a crash (-100)."""
+    touchdown_set: str | None = None
+    """Path of a saved touchdown test set (``touchdowns.TouchdownSet``, made by
+    ``benchmarks/touchdown_set.py``): when it exists, every fit scores the touchdown event and
+    the sleep counter on it."""
     action_labels: tuple[str, ...] = ("noop", "left engine", "main engine", "right engine")
     # policy maps: a lander descending slowly above the pad, legs up, over three slices
     policy_map_slices: tuple = (("x", (-1.0, 1.0), "y", (0.0, 1.4)), ("vx", (-1.0, 1.0), "vy", (-1.5, 0.5)),
@@ -142,6 +154,40 @@ class LunarLanderSpec(EnvSpec):
     def regime_dynamics(self, states, actions, predicted) -> np.ndarray:
         """Landers on their legs take the settle step (``task``); in flight, the model's prediction."""
         return task.regime_dynamics(self.rules, bool(self.n_discrete_actions), states, actions, predicted)
+
+    def noise_floor(self, test_name: str) -> dict | None:
+        return HELDOUT_NOISE_FLOOR if test_name == self.test_set_recipe().name else None
+
+    def task_fidelity(self, test) -> dict[str, float]:
+        """The sleep counter along the test set's real episodes (rest: the first row whose count
+        reaches ``rest_frames``, against the real +100 rows: precision, recall, timing error in
+        steps), and, with ``touchdown_set``, the touchdown event's confusion matrix on it (its
+        odd seeds: the half the constants were not fitted on) and the counter on its landings."""
+        rules = self.rules
+        counts = task.sleep_counts(rules, test.episode, test.next_states, test.actions, bool(self.n_discrete_actions))
+        real = np.asarray(test.terminated, bool) & (np.asarray(test.rewards) == 100)
+        pred = np.zeros(len(test), bool)
+        errs = []
+        for ep in np.unique(test.episode):
+            idx = np.flatnonzero(test.episode == ep)
+            fire, true = idx[counts[idx] >= rules.rest_frames], idx[real[idx]]
+            if len(fire):
+                pred[fire[0]] = True
+            if len(fire) and len(true):
+                errs.append(int(fire[0] - true[0]))
+        tp = float(np.sum(pred & real))
+        m = {"rest_counter_precision": tp / pred.sum() if pred.any() else float("nan"),
+             "rest_counter_recall": tp / real.sum() if real.any() else float("nan"),
+             "rest_counter_n_real": float(real.sum()),
+             "rest_counter_timing_abs_mean": float(np.mean(np.abs(errs))) if errs else float("nan")}
+        if self.touchdown_set and Path(self.touchdown_set).is_file():
+            from sdrl_bench.envs.lunar_lander import touchdowns  # noqa: PLC0415
+
+            d = touchdowns.TouchdownSet.load(self.touchdown_set)
+            held = np.flatnonzero(d.seed % 2 == 1)
+            m.update({f"touchdown/{k}": v for k, v in touchdowns.score_events(rules, d, held).items()})
+            m.update({f"touchdown/rest_{k}": v for k, v in touchdowns.score_rest(rules, d).items()})
+        return m
 
     def uncertainty_scale(self) -> np.ndarray | None:
         """The replay noise floor's standard deviation per state in flight (held-out set,
