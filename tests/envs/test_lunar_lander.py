@@ -111,3 +111,24 @@ def test_regimes_split_episodes_at_the_first_touchdown():
     ns[5, 0] = 0.5  # episode 1 crashes (inside the screen) at its second row
     reg = SPEC.regimes(np.array([0, 0, 0, 0, 1, 1]), ns, rewards, ns)
     assert reg["flight"].tolist() == [True, True, False, False, True, False]
+
+
+def test_one_state_step_agrees_with_the_batched_step_with_the_penalty(flight_model):
+    """Flight, touchdowns and the settle step, with the ensemble penalty on (noise off)."""
+    from sdrl_bench.surrogate.env import Surrogate
+
+    spec = LunarLanderSpec(fit_regime="flight", uncertainty_penalty=1.0, uncertainty_free=0.0)
+    sur, rng = Surrogate(flight_model, spec, noise=False), np.random.default_rng(2)
+    states = sur.initial_states(rng, 200)
+    states[:, 1] = rng.uniform(-0.03, 0.1, 200)
+    states[:, 2:6] = rng.normal(0, 0.3, (200, 4))
+    states[:, 6:8] = rng.integers(0, 2, (200, 1))
+    actions = rng.integers(0, 4, (200, 1))
+    nxt, rewards, terminated, diverged = sur.transition(states, actions)
+    one = [sur.step_one(states[i].tolist(), int(actions[i, 0])) for i in range(200)]
+    assert np.allclose([o[1] for o in one], nxt, rtol=0, atol=1e-6)
+    assert np.allclose([o[2] for o in one], rewards, rtol=0, atol=1e-6)
+    assert [o[3] for o in one] == terminated.tolist() and 0 < terminated.sum() < 200
+    plain = Surrogate(flight_model, LunarLanderSpec(), noise=False).transition(states, actions)[1]
+    flight = (states[:, 6] == 0) & ~terminated
+    assert np.all(rewards[flight] < plain[flight]) and np.array_equal(rewards[~flight], plain[~flight])
