@@ -69,14 +69,24 @@ def settle(x, y, vx, vy, an, w, left, main, right, k):
 
 @njit(cache=True)
 def _legs(s, y, an, k):
-    """(leg flag, touchdown) after a step to height y, attitude an: a lander in flight touches
-    down when a leg's height ``y +- leg_tilt sin(an)`` reaches ``touch_height`` (both flags set:
-    it stands on its legs from then on); one on its legs lifts off above ``release_height``."""
-    if s[6] > 0.5 or s[7] > 0.5:
-        return (0.0 if y > k[RELEASE] else 1.0), False
+    """(left flag, right flag, touchdown) after a step to height y, attitude an. Leg i touches
+    when its height ``y +- leg_tilt sin(an)`` (the left leg is lower at positive angles) drops to
+    ``touch_height`` and, once down, stays down until that height rises above
+    ``release_height``; flags set in s mean the lander stands on its legs (contact regime). A
+    touchdown is the first flag set from flight (both flags 0 in s)."""
     t = k[TILT] * math.sin(an)
-    down = y + t <= k[TOUCH] or y - t <= k[TOUCH]
-    return (1.0 if down else 0.0), down
+    hl, hr = y + t, y - t
+    ll = 1.0 if (hl <= k[TOUCH] or (s[6] > 0.5 and hl <= k[RELEASE])) else 0.0
+    lr = 1.0 if (hr <= k[TOUCH] or (s[7] > 0.5 and hr <= k[RELEASE])) else 0.0
+    flight = s[6] <= 0.5 and s[7] <= 0.5
+    return ll, lr, flight and (ll > 0.5 or lr > 0.5)
+
+
+@njit(cache=True)
+def _flags(s, ns):
+    """(on the legs after the step, touchdown) from the leg flags of s and s'."""
+    legs = ns[6] > 0.5 or ns[7] > 0.5
+    return legs, legs and s[6] <= 0.5 and s[7] <= 0.5
 
 
 @njit(cache=True)
@@ -86,14 +96,14 @@ def _outcome(s, x, an, legs, touchdown, cost, quiet, k):
     if touchdown:
         crash = touchdown_crash(s[3], s[4], k)
     else:
-        crash = legs > 0.5 and abs(an) > k[TIP]
+        crash = legs and abs(an) > k[TIP]
     return crash, abs(x) >= 1.0, quiet
 
 
 @njit(cache=True)
 def _quiet(vx, vy, w, legs, cost, k):
     rvx, rvy = vx * k[INV_VX], vy * k[INV_VY]
-    return legs > 0.5 and cost == 0.0 and rvx * rvx + rvy * rvy <= k[REST_V2] and abs(w * k[INV_W]) <= k[REST_W]
+    return legs and cost == 0.0 and rvx * rvx + rvy * rvy <= k[REST_V2] and abs(w * k[INV_W]) <= k[REST_W]
 
 
 @njit(cache=True)
@@ -114,18 +124,18 @@ def regime_dynamics(states, pred, eng, k, out):
 def leg_contacts(states, next_states, k, out):
     """Leg flags (N, 2) of s' into ``out``."""
     for i in range(states.shape[0]):
-        f, _ = _legs(states[i], next_states[i, 1], next_states[i, 4], k)
-        out[i, 0] = f
-        out[i, 1] = f
+        ll, lr, _ = _legs(states[i], next_states[i, 1], next_states[i, 4], k)
+        out[i, 0] = ll
+        out[i, 1] = lr
 
 
 @njit(cache=True)
 def events(states, next_states, cost, k, crash, out, quiet):
     """Per row: crash (touchdown event or tipping over), |x'| >= 1, quiet (one step of the
-    sleep counter; rest needs ``rest_frames`` of them in a row)."""
+    sleep counter; rest needs ``rest_frames`` of them in a row); leg flags read from s and s'."""
     for i in range(states.shape[0]):
         ns = next_states[i]
-        legs, down = _legs(states[i], ns[1], ns[4], k)
+        legs, down = _flags(states[i], ns)
         q = _quiet(ns[2], ns[3], ns[5], legs, cost[i], k)
         crash[i], out[i], quiet[i] = _outcome(states[i], ns[0], ns[4], legs, down, cost[i], q, k)
 
@@ -145,7 +155,7 @@ def reward_terminated(states, next_states, cost, k, reward, terminated):
     ``rest_frames`` <= 1)."""
     for i in range(states.shape[0]):
         ns = next_states[i]
-        legs, down = _legs(states[i], ns[1], ns[4], k)
+        legs, down = _flags(states[i], ns)
         q = _quiet(ns[2], ns[3], ns[5], legs, cost[i], k)
         crash, out, _ = _outcome(states[i], ns[0], ns[4], legs, down, cost[i], q, k)
         rest = q and 1.0 >= k[FRAMES]
@@ -162,7 +172,7 @@ def sleep_counter(episode, next_states, cost, k, out):
         if i > 0 and episode[i] != episode[i - 1]:
             q = 0
         ns = next_states[i]
-        legs = 1.0 if (ns[6] > 0.5 or ns[7] > 0.5) else 0.0
+        legs = ns[6] > 0.5 or ns[7] > 0.5
         q = q + 1 if _quiet(ns[2], ns[3], ns[5], legs, cost[i], k) else 0
         out[i] = q
 
@@ -203,9 +213,10 @@ def step(states, pred, cost, limit, low, high, k, last, count, nxt, reward, term
         # the real env's float32 observation
         x, y, vx, vy = float(np.float32(pred[0, i])), float(np.float32(pred[1, i])), float(np.float32(pred[2, i])), float(np.float32(pred[3, i]))
         an, w = float(np.float32(pred[4, i])), float(np.float32(pred[5, i]))
-        legs, down = _legs(s, y, an, k)
+        ll, lr, down = _legs(s, y, an, k)
         x, y, vx, vy = _bound(x, 0, low, high), _bound(y, 1, low, high), _bound(vx, 2, low, high), _bound(vy, 3, low, high)
-        an, w, ll, lr = _bound(an, 4, low, high), _bound(w, 5, low, high), _bound(legs, 6, low, high), _bound(legs, 7, low, high)
+        an, w, ll, lr = _bound(an, 4, low, high), _bound(w, 5, low, high), _bound(ll, 6, low, high), _bound(lr, 7, low, high)
+        legs = ll > 0.5 or lr > 0.5
         q = _quiet(vx, vy, w, legs, cost[i], k)
         crash, out, _ = _outcome(s, x, an, legs, down, cost[i], q, k)
         count[i] = count[i] + 1 if q else 0

@@ -14,13 +14,18 @@ with where it comes from (prior: the real env's source or Box2D's; fitted: on wh
 * **Flight** (both leg flags 0 in s): the fitted model (LunarLander's default is the
   per-equation flight law, fitted on flight rows; ``conf/library/lunar_lander_flight.yaml``),
   with the engine dispersion as noise (``surrogate.env``).
-* **Touchdown** (event): a leg's height ``y' +- leg_tilt sin(angle')`` reaches ``touch_height``.
-  Crash or survive is decided once, from the *pre-impact* state s: crash iff the downward speed
-  ``-vy / (2/15)`` exceeds ``touchdown_speed`` m/s or ``|angle| > tip_angle``. Survived: both leg
-  flags set; the lander stands on its legs.
+* **Leg flags**, per leg: leg i touches when its height ``y' +- leg_tilt sin(angle')`` drops to
+  ``touch_height`` and stays down until that height rises above ``release_height``. One leg
+  usually touches a few steps before the other, as in the real env: an agent trained here sees
+  one-leg states (a surrogate that set both flags at once taught agents that fired their
+  engines on one leg and crashed: 4 of 20 real episodes of seed 0).
+* **Touchdown** (event): the first flag set from flight. Crash or survive is decided once, from
+  the *pre-impact* state s: crash iff the downward speed ``-vy / (2/15)`` exceeds
+  ``touchdown_speed`` m/s or ``|angle| > tip_angle``. Survived: the lander stands on its legs.
 * **On the legs** (either flag set in s): the settle step (``kernels.settle``), a small fitted
-  model (``SETTLE_TERMS``) with a prior Coulomb friction and stiction; it lifts off (flags 0,
-  flight again) above ``release_height``; tipping beyond ``tip_angle`` is a crash.
+  model (``SETTLE_TERMS``) with a prior Coulomb friction and stiction; it lifts off (both flags
+  0, flight again) when both legs rise above ``release_height``; tipping beyond ``tip_angle`` is
+  a crash.
 * **Rest**: Box2D's sleep rule as a per-env counter: ``rest_frames`` consecutive quiet steps
   (on the legs, engines off, speed under 0.01 m/s and 2 deg/s) give +100 and end the episode.
   On real episodes this rule (engines off dropped, since the real env's legs settle under
@@ -151,7 +156,7 @@ def leg_contacts(rules: LanderRules, states: np.ndarray, next_states: np.ndarray
 
 
 def events(rules: LanderRules, states, next_states, actions=None, discrete: bool = True) -> tuple[np.ndarray, ...]:
-    """(crash, out of bounds, quiet) per row; leg flags of s' are derived (``leg_contacts``).
+    """(crash, out of bounds, quiet) per row; the leg flags of s and s' decide touchdown.
     ``quiet`` is one step of the sleep counter (engines off needs ``actions``; None: all off)."""
     s, ns = _arrays(states, next_states)
     cost = np.zeros(len(s)) if actions is None else engine_cost(actions, discrete)
@@ -272,30 +277,28 @@ def make_step_one(
         if not all(map(le, map(abs, pred), lims)):  # non-finite or beyond the limit
             return np.array(state, dtype=f32), state, 0.0, False, True
         x, y, vx, vy, an, w = f6.unpack(f6.pack(*pred))  # float32 observation
-        down = False
-        if on_legs:
-            legs = 0.0 if y > release else 1.0
-        else:
-            t = tilt_k * sin(an)
-            down = y + t <= touch or y - t <= touch
-            legs = 1.0 if down else 0.0
-        nxt = [x, y, vx, vy, an, w, legs, legs]
+        t = tilt_k * sin(an)
+        ll = 1.0 if (y + t <= touch or (state[6] > 0.5 and y + t <= release)) else 0.0
+        lr = 1.0 if (y - t <= touch or (state[7] > 0.5 and y - t <= release)) else 0.0
+        down = not on_legs and (ll > 0.5 or lr > 0.5)
+        nxt = [x, y, vx, vy, an, w, ll, lr]
         if not all(map(le, lows, nxt)) or not all(map(le, nxt, highs)):
             nxt = [lo if v < lo else (hi if v > hi else v) for v, lo, hi in zip(nxt, lows, highs, strict=False)]
-            x, y, vx, vy, an, w, legs, _ = nxt
+            x, y, vx, vy, an, w, ll, lr = nxt
+        legs = ll > 0.5 or lr > 0.5
         rvx, rvy = vx * inv_vx, vy * inv_vy
-        quiet = legs > 0.5 and cost == 0.0 and rvx * rvx + rvy * rvy <= rest_v2 and abs(w * inv_w) <= rest_w
+        quiet = legs and cost == 0.0 and rvx * rvx + rvy * rvy <= rest_v2 and abs(w * inv_w) <= rest_w
         if down:
             crash = -state[3] * inv_vy > v_free or abs(state[4]) > tip
         else:
-            crash = legs > 0.5 and abs(an) > tip
+            crash = legs and abs(an) > tip
         count = counts.get(tuple(state), 0) + 1 if quiet else 0
         if len(counts) > 4096:
             counts.clear()
         counts[tuple(nxt)] = count
         rest = count >= frames
         phi0 = last[1] if state is last[0] else phi(*state[:5], state[6], state[7])
-        phi1 = phi(x, y, vx, vy, an, legs, legs)
+        phi1 = phi(x, y, vx, vy, an, ll, lr)
         last[0], last[1] = nxt, phi1
         if rest:
             r = 100.0
