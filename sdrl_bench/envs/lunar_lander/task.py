@@ -148,7 +148,7 @@ def _arrays(states, next_states):
 
 
 def leg_contacts(rules: LanderRules, states: np.ndarray, next_states: np.ndarray) -> np.ndarray:
-    """Leg flags (N, 2) of s': set at touchdown, cleared at lift-off (both legs together)."""
+    """Leg flags (N, 2) of s', per leg with hysteresis (see ``kernels._legs``)."""
     s, ns = _arrays(states, next_states)
     out = np.empty((len(s), 2))
     _kernels().leg_contacts(s, ns, rules_vector(rules), out)
