@@ -45,10 +45,14 @@ def evaluate(
     norm_std: dict[str, float] | None = None,
     horizons: tuple[int, ...] = (10, 50),
     stride: int = 5,
+    test_name: str | None = None,
 ) -> FidelityReport:
     """One-step MSE (raw units, and in units of ``norm_std``), correlation, R^2 per regressed
     state; one-step MSE on the smooth transitions alone (``mse_smooth``, see ``smooth_mask``);
-    and k-step open-loop rollout MSE with the fraction of diverged rollouts."""
+    per regime of the spec (``mse_<regime>``, e.g. LunarLander's flight and contact) and, where
+    the spec knows the replay noise floor of test set ``test_name``, the ratio to it
+    (``floor_ratio_<regime>``: 1 is the best any deterministic model can do); and k-step
+    open-loop rollout MSE with the fraction of diverged rollouts."""
     names = spec.target_names
     true = test.next_states[:, spec.target_index]
     pred = step(model, spec, test.states, test.actions)
@@ -70,6 +74,19 @@ def evaluate(
         err_s = mse(true[smooth], pred[smooth])
         for i, n in enumerate(names):
             m[f"mse_smooth/{n}"] = float(err_s[i])
+    floors = spec.noise_floor(test_name) if test_name else None
+    for regime, mask in spec.regimes(test.episode, test.states, test.rewards, test.next_states).items():
+        mask = np.asarray(mask, bool) & finite
+        m[f"{regime}_fraction"] = float(mask.mean())
+        if not mask.any():
+            continue
+        err_r = mse(true[mask], pred[mask])
+        for i, n in enumerate(names):
+            m[f"mse_{regime}/{n}"] = float(err_r[i])
+            if floors and regime in floors:
+                m[f"floor_ratio_{regime}/{n}"] = float(err_r[i] / floors[regime][i])
+        if floors and regime in floors:
+            m[f"floor_ratio_{regime}/max"] = float(max(m[f"floor_ratio_{regime}/{n}"] for n in names))
     if norm_std is not None:
         m["mse_norm/mean"] = float(np.mean([m[f"mse_norm/{n}"] for n in names]))
     if _has_uncertainty(model):
@@ -170,3 +187,54 @@ def open_loop_episode(
         pred.append(nxt[0])
     true = test.next_states[idx][:, spec.target_index]
     return true, _align_angles(spec, true, np.asarray(pred))
+
+
+def replay_noise_floor(spec: EnvSpec, test: Transitions, episode_seeds: dict[int, int], rows_per_episode: int = 400,
+                       k: int = 2, seed: int = 0) -> dict[str, list[float] | float]:
+    """The replay noise floor of one-step prediction per regime: for a sample of rows, reset the
+    real env with the episode's seed, replay its recorded actions to the row, give the env a
+    fresh random generator and step the row's action again, ``k`` times. For envs whose only
+    randomness after ``reset`` is ``env.np_random`` (LunarLander's engine dispersion), this
+    redraws that step's noise alone: same state, terrain and contacts. With the recorded s',
+    that is k + 1 draws of s' | (s, a); their unbiased variance, averaged over the rows of a
+    regime, is the MSE of the best deterministic predictor (the floor). Returns
+    {regime: per regressed state variance} (plus ``"all"``), ``n_<regime>`` row counts and
+    ``replay_max_abs_diff`` (the replay with the original generator must reproduce the record: 0).
+    Cost: O(episode length) env steps per draw."""
+    rng = np.random.default_rng(seed)
+    tgt = spec.target_index
+    env = spec.make_env().unwrapped
+    rows, draws, worst = [], [], 0.0
+    try:
+        for ep in np.unique(test.episode):
+            idx = np.flatnonzero(test.episode == ep)
+            env.reset(seed=int(episode_seeds[int(ep)]))
+            for r in idx:  # the replay check: bit-exact
+                worst = max(worst, float(np.max(np.abs(np.asarray(env.step(_raw(spec, test.actions[r]))[0]) - test.next_states[r]))))
+            pick = np.sort(rng.choice(idx, size=min(len(idx), rows_per_episode), replace=False))
+            for r in pick:
+                out = []
+                for _ in range(k):
+                    env.reset(seed=int(episode_seeds[int(ep)]))
+                    for q in idx[: np.searchsorted(idx, r)]:
+                        env.step(_raw(spec, test.actions[q]))
+                    env.np_random = np.random.default_rng(int(rng.integers(2**63)))
+                    out.append(np.asarray(env.step(_raw(spec, test.actions[r]))[0], dtype=float)[tgt])
+                rows.append(r)
+                draws.append(out)
+    finally:
+        env.close()
+    rows_a = np.asarray(rows)
+    allv = np.concatenate([test.next_states[rows_a][:, tgt][:, None, :], np.asarray(draws)], axis=1)
+    var = allv.var(axis=1, ddof=1)
+    masks = {"all": np.ones(len(test), bool), **spec.regimes(test.episode, test.states, test.rewards, test.next_states)}
+    res: dict[str, list[float] | float] = {"replay_max_abs_diff": worst}
+    for name, mask in masks.items():
+        sel = np.asarray(mask, bool)[rows_a]
+        res[name] = var[sel].mean(axis=0).tolist() if sel.any() else [float("nan")] * len(tgt)
+        res[f"n_{name}"] = float(sel.sum())
+    return res
+
+
+def _raw(spec: EnvSpec, action: np.ndarray):
+    return int(action[0]) if spec.n_discrete_actions else np.asarray(action, dtype=np.float32)

@@ -83,7 +83,9 @@ def check(job: FitJob) -> tuple[Any, Transitions | None]:
         raise ConfigError(f"optimizer.threshold must be >= 0, got {threshold}")
     library = build_library(job.library_parts, spec.target_names, spec.control_names)
     n_terms = count_features(library, len(spec.input_names)) if job.surrogate == "sindy" else 0
-    build_model(job, library)  # model hyperparameters are validated in its __init__
+    model = build_model(job, library)  # model hyperparameters are validated in its __init__
+    if hasattr(model, "check_inputs"):  # a per-equation library names its inputs: checked before any data
+        model.check_inputs(spec.target_names, spec.control_names)
     data = load_csv(spec, job.dataset_path) if job.dataset_path else None
     n_rows = len(data) if data is not None else job.n_transitions
     if data is None and job.n_transitions <= 0:
@@ -125,8 +127,11 @@ def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = N
     x, u = spec.model_inputs(data.states, data.actions)
     x_next = data.next_states[:, spec.target_index]
     keep = ~spec.at_bound(data.next_states) if job.exclude_bound_transitions else np.ones(len(data), bool)
+    regime = spec.fit_rows(data.episode, data.states, data.rewards, data.next_states)
+    if regime is not None:  # the regime the model describes (LunarLander: flight)
+        keep &= regime
     if keep.sum() == 0:
-        raise ConfigError("dataset: every transition lies on a state bound; nothing to fit")
+        raise ConfigError("dataset: every transition lies on a state bound or outside the fitted regime; nothing to fit")
     model = build_model(job, library).fit(
         x[keep], u[keep], x_next[keep], state_names=spec.target_names, control_names=spec.control_names
     )
@@ -136,7 +141,7 @@ def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = N
     t0, c0 = time.perf_counter(), time.process_time()
     test_name, test = held_out_test_set(spec)
     norm = {n: s["std"] for n, s in data.normalization(spec).items()}
-    report = evaluate(model, spec, test, norm_std=norm)
+    report = evaluate(model, spec, test, norm_std=norm, test_name=test_name)
     if spec.defines_task:  # reward, termination and derived-flag fidelity of the surrogate built on it
         from sdrl_bench.surrogate.fidelity import surrogate_fidelity  # noqa: PLC0415
 

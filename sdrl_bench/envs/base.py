@@ -506,6 +506,41 @@ class EnvSpec:
         """The fixed, named held-out test set every model of this env is scored on."""
         return TestSetRecipe(name=f"{self.name}-heldout-v1", seed=10_000, episodes=(("random", 1.0),) * 6)
 
+    # ------------------------------------------------------------------ regimes (hooks; neutral defaults)
+    def regimes(self, episode: np.ndarray, states: np.ndarray, rewards: np.ndarray,
+                next_states: np.ndarray) -> dict[str, np.ndarray]:
+        """Named row masks of transitions (N,) by physical regime (e.g. LunarLander's flight and
+        contact), for fitting a model on the regime it describes and scoring per regime.
+        Default: none (one regime: all rows)."""
+        return {}
+
+    def fit_rows(self, episode: np.ndarray, states: np.ndarray, rewards: np.ndarray,
+                 next_states: np.ndarray) -> np.ndarray | None:
+        """The rows a dynamics model is fitted on (a mask), or None: all of them."""
+        return None
+
+    def regime_dynamics(self, states: np.ndarray, actions: np.ndarray, predicted: np.ndarray) -> np.ndarray:
+        """The surrogate's next regressed values (n_target, N) from the model's ``predicted``
+        ones: a spec whose model describes one regime (LunarLander: flight) steps the others
+        here (its lander on its legs). Default: the model's prediction."""
+        return predicted
+
+    def uncertainty_scale(self) -> np.ndarray | None:
+        """Per regressed state, the scale (a standard deviation) the ensemble's disagreement is
+        measured in for the surrogate's uncertainty penalty; None: no penalty."""
+        return None
+
+    def noise_floor(self, test_name: str) -> dict[str, Sequence[float]] | None:
+        """{regime ("all" and those of ``regimes``): per regressed state, the replay noise floor
+        (variance) of one-step prediction on the named test set}, or None when unknown
+        (``fidelity.replay_noise_floor`` measures it; ``benchmarks/noise_floor.py``)."""
+        return None
+
+    def task_fidelity(self, test: Any) -> dict[str, float]:
+        """Extra task-fidelity metrics of the surrogate's rules on real episodes (``test``: a
+        ``data.Transitions`` of whole episodes); default: none."""
+        return {}
+
 
 def _parse_slice(value: Any, i: int, state_names: tuple[str, ...]) -> tuple:
     key = f"env.spec.policy_map_slices[{i}]"

@@ -126,6 +126,23 @@ def surrogate_vec_env(model: Any, spec: EnvSpec, n_envs: int, seed: int):
     return SurrogateVecEnv(model, spec, n_envs, seed=seed)
 
 
+def evaluate_surrogate(policy: Any, model: Any, spec: EnvSpec, n_episodes: int, seed: int) -> np.ndarray:
+    """Returns of ``policy`` (deterministic) in the surrogate of ``model``, reset seeds ``seed + i``."""
+    from sdrl_bench.surrogate.env import SurrogateEnv  # noqa: PLC0415
+
+    env, rets = SurrogateEnv(model, spec), []
+    for i in range(n_episodes):
+        obs, _ = env.reset(seed=seed + i)
+        total, done = 0.0, False
+        while not done:
+            action, _ = policy.predict(obs, deterministic=True)
+            obs, r, term, trunc, _ = env.step(action)
+            total += float(r)
+            done = term or trunc
+        rets.append(total)
+    return np.asarray(rets)
+
+
 def run_arm(
     job: TransferJob, arm: str, checked: tuple[Any, Any] | None = None,
     logger_factory: Callable[[str], Any] | None = None,
@@ -166,6 +183,11 @@ def run_arm(
     t0, c0 = time.perf_counter(), time.process_time()
     final = evaluate_real(result.model, spec, job.final_episodes, seed=FINAL_EVAL_SEED + job.seed * 1000, counts=counts, phase="final")
     seconds.update(evaluate_wall=time.perf_counter() - t0, evaluate_cpu=time.process_time() - c0)
+    if arm == "surrogate" and fit_result is not None and spec.defines_task:
+        # the optimism gap: the agent's return in its own surrogate (same reset seeds, same
+        # episode count) minus its return in the real env
+        own = evaluate_surrogate(result.model, fit_result.model, spec, job.final_episodes, FINAL_EVAL_SEED + job.seed * 1000)
+        stats.update(return_mean=float(own.mean()), optimism_gap=float(own.mean() - final.returns.mean()))
     maps = compute_maps(result.model, spec)
     return ArmResult(
         arm=arm, model=result.model, curve=result.curve, final_returns=final.returns.tolist(),

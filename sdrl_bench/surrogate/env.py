@@ -83,11 +83,14 @@ class Surrogate:
         initial-state distribution.
     fused : use the spec's fused batched step when it has one (``EnvSpec.make_step_batch``);
         False composes the spec's numpy functions instead (same results; for comparisons).
+    noise : add the model's step noise (``noise_``), seeded by ``seed_noise``; False: deterministic.
+    penalty : apply the ensemble's disagreement penalty (``members_`` and the spec's
+        ``uncertainty_scale``); False: the task's reward as it is.
     config_dir : a config directory holding ``env/<spec>.yaml``, for a spec given by name.
     """
 
     def __init__(self, model: Any, spec: EnvSpec | str, initial_states: np.ndarray | None = None,
-                 fused: bool = True, config_dir: str | None = None):
+                 fused: bool = True, noise: bool = True, penalty: bool = True, config_dir: str | None = None):
         self.spec = spec = resolve_spec(spec, config_dir)
         source = f"model file {model}" if isinstance(model, (str, Path)) else "model"
         self.model = model = load_model(model) if isinstance(model, (str, Path)) else model
@@ -123,6 +126,7 @@ class Surrogate:
         self._pool = self._initial
         if self._pool is None and type(spec).initial_states is EnvSpec.initial_states and spec.initial_state_fn is None:
             self._pool = observed_initial_states(spec)
+        self._setup_uncertainty(noise, penalty)
         self.step_one = spec.make_step_one(self.predictor, self.obs_low, self.obs_high) or self._generic_step_one
         self._step_batch = spec.make_step_batch(self.limit, self.obs_low, self.obs_high) if fused else None
         self.state_order = "F" if self._step_batch is None else "C"
@@ -142,6 +146,8 @@ class Surrogate:
         # contiguous (cheaper to assign than index arrays).
         self._targets, self._exogenous = _as_slice(spec.target_index), _as_slice(spec.exogenous_index)
         self._angles = spec.angle_index if len(spec.angle_index) else None
+        if self._members:
+            self.step_one = self._penalized_step_one(self.step_one)
 
     def _check_spaces(self, obs_space: gym.Space, act_space: gym.Space) -> None:
         spec = self.spec
@@ -174,11 +180,108 @@ class Surrogate:
         return np.clip(self.spec.observe(states), self.obs_low, self.obs_high).astype(dtype)
 
     def predictor(self, fixed: dict[int, float] | None = None):
-        """The model's fast one-state evaluator (see ``models.fast.scalar_predictor``)."""
-        return scalar_predictor(self.model, fixed)
+        """The model's fast one-state evaluator (see ``models.fast.scalar_predictor``), with the
+        model's step noise for a discrete action held fixed (``noise_``)."""
+        predict = scalar_predictor(self.model, fixed)
+        chol = self._noise_for_fixed(fixed)
+        if chol is None:
+            return predict
+        rng_of, m = (lambda: self.noise_rng), chol.shape[0]
+
+        def noisy(z):
+            out = predict(z)
+            d = chol @ rng_of().standard_normal(m)
+            return [v + float(e) for v, e in zip(out, d, strict=True)]
+
+        return noisy
 
     def __reduce__(self):  # compiled functions are rebuilt, not pickled
-        return (Surrogate, (self.model, self.spec, self._initial, self._step_batch is not None))
+        return (Surrogate, (self.model, self.spec, self._initial, self._step_batch is not None, self._noise_on,
+                            self._penalty_on))
+
+    # ------------------------------------------------------------------ noise and uncertainty
+    def _setup_uncertainty(self, noise: bool, penalty: bool) -> None:
+        """Step noise (``model.noise_``: {one-hot action column: covariance of the fit's
+        residuals}; the engine dispersion of LunarLander) and the ensemble's disagreement
+        penalty (``model.members_`` with ``spec.uncertainty_scale()``)."""
+        spec, model = self.spec, self.model
+        self._noise_on, self._penalty_on = bool(noise), bool(penalty)
+        self.noise_rng = np.random.default_rng()
+        self._chol: np.ndarray | None = None
+        cov = getattr(model, "noise_", None) or {}
+        if noise and cov and spec.n_discrete_actions:
+            m = len(spec.target_names)
+            chol = np.zeros((spec.n_discrete_actions, m, m))
+            for name, c in cov.items():
+                if name in spec.action_names:
+                    c = np.asarray(c, dtype=float)
+                    w, v = np.linalg.eigh((c + c.T) / 2)  # PSD square root (covariances may be singular)
+                    chol[spec.action_names.index(name)] = v * np.sqrt(np.clip(w, 0.0, None))
+            self._chol = chol if np.any(chol) else None
+        self._members: list = []
+        scale = spec.uncertainty_scale() if penalty else None
+        members = getattr(model, "members_", None) or []
+        if scale is not None and len(members) > 1:
+            self._scale = np.asarray(scale, dtype=float)[:, None]
+            shim = [type("Member", (), {"terms_": model.terms_, "coef_": np.asarray(c), "state_names_": model.state_names_,
+                                        "control_names_": model.control_names_})() for c in members]
+            self._members = [batch_predictor(mb) for mb in shim]
+            self._penalty = float(getattr(spec, "uncertainty_penalty", 0.0))
+            self._limit_u = float(getattr(spec, "uncertainty_limit", np.inf))
+            self._free = float(getattr(spec, "uncertainty_free", 0.0))
+
+    def seed_noise(self, seed: Any) -> None:
+        """Seed the step noise (same seed and actions: the same trajectory)."""
+        self.noise_rng = np.random.default_rng(seed)
+
+    def _noise_for_fixed(self, fixed: dict[int, float] | None) -> np.ndarray | None:
+        if self._chol is None or not fixed:
+            return None
+        first = len(self.spec.input_names) - self.spec.n_discrete_actions
+        hot = [i - first for i, v in fixed.items() if i >= first and v == 1.0]
+        return self._chol[hot[0]] if len(hot) == 1 and np.any(self._chol[hot[0]]) else None
+
+    def disagreement(self, z: np.ndarray) -> np.ndarray:
+        """(N,) the ensemble's disagreement at model inputs z (n_inputs, N): the largest over
+        regressed states of the members' standard deviation, in units of the spec's scale."""
+        preds = np.stack([p(z) for p in self._members])
+        return (preds.std(axis=0) / self._scale).max(axis=0)
+
+    def _penalize(self, states, z, nxt, rewards, terminated, diverged):
+        """MOPO-style: in flight (the model's regime: the spec's regime_dynamics leaves a row to
+        the model when its prediction passes through unchanged), reward minus penalty x
+        disagreement; beyond the limit the episode ends as a crash (-100)."""
+        u = self.disagreement(z)
+        flight = ~diverged & ~terminated
+        if hasattr(self.spec, "rules"):  # LunarLander: legs up in s
+            flight &= (states[:, 6] <= 0.5) & (states[:, 7] <= 0.5)
+        rewards = np.where(flight, rewards - self._penalty * np.maximum(u - self._free, 0.0), rewards)
+        over = flight & (u > self._limit_u)
+        if over.any():
+            rewards = np.where(over, -100.0, rewards)
+            terminated = terminated | over
+        return rewards, terminated
+
+    def _penalized_step_one(self, step_one):
+        n_s = self._n_state_inputs
+
+        def step(state, action):
+            obs, nxt, r, term, div = step_one(state, action)
+            if div or term:
+                return obs, nxt, r, term, div
+            s = np.asarray([state], dtype=float)
+            z = np.empty((n_s + len(self.spec.action_names), 1))
+            z[:n_s] = s.T[self._input_index]
+            z[n_s:] = self.spec.encode_actions(self.raw_actions(action, 1)).T
+            rew, ter = self._penalize(s, z, np.asarray([nxt]), np.array([r]), np.array([False]), np.array([False]))
+            return obs, nxt, float(rew[0]), bool(ter[0]), div
+
+        return step
+
+    def _add_noise(self, rows: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        a = np.asarray(actions).reshape(len(actions), -1)[:, 0].astype(np.intp)
+        eps = self.noise_rng.standard_normal((len(a), rows.shape[0]))
+        return rows + np.einsum("nij,nj->in", self._chol[a], eps)
 
     # ------------------------------------------------------------------ stepping
     def initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
@@ -220,9 +323,18 @@ class Surrogate:
                     z[n_s:] = spec.encode_actions(actions).T
                 rows = self._predict_rows(z)
             else:
+                z = None
                 rows = np.asarray(self.model.predict(*spec.model_inputs(states, actions)), dtype=float).T
+            if self._chol is not None:  # the step noise (e.g. engine dispersion), seeded
+                rows = self._add_noise(rows, actions)
+            if type(spec).regime_dynamics is not EnvSpec.regime_dynamics:
+                rows = spec.regime_dynamics(states, actions, rows)
             if self._step_batch is not None:  # the spec's fused step does the rest
-                return self._step_batch(states, actions, rows)
+                out = self._step_batch(states, actions, rows)
+                if self._members and z is not None:
+                    rewards, terminated = self._penalize(states, z, *out)
+                    out = (out[0], rewards, terminated, out[3])
+                return out
             ok = (np.abs(rows) <= self._limit_col).all(axis=0)  # False for NaN and inf
         bad = None if ok.all() else np.flatnonzero(~ok)
         pred = rows.T  # (N, m), Fortran order
@@ -294,6 +406,8 @@ class SurrogateEnv(gym.Env):
 
     def reset(self, *, seed: int | None = None, options: dict | None = None):
         super().reset(seed=seed)
+        if seed is not None:  # the step noise too: same seed and actions, same episode
+            self.surrogate.seed_noise(seed)
         if options and "state" in options:  # a state (state_names order), not an observation
             s = np.asarray(options["state"], dtype=float)
             shape = (len(self.surrogate.spec.state_names),)

@@ -31,7 +31,7 @@ def surrogate_fidelity(model: Any, spec: EnvSpec | str, test: Transitions) -> di
     nothing to divide by; per cause too, for specs with ``termination_causes``), accuracy per
     exogenous variable, and counts.
     """
-    sur = Surrogate(model, spec)
+    sur = Surrogate(model, spec, noise=False, penalty=False)  # the deterministic step and the task's own reward
     spec = sur.spec
     s, a, real = test.states, test.actions, test.next_states
     true_term = np.asarray(test.terminated, dtype=bool)
@@ -39,6 +39,7 @@ def surrogate_fidelity(model: Any, spec: EnvSpec | str, test: Transitions) -> di
     if spec.exogenous_names:
         ns[:, spec.exogenous_index] = spec.exogenous(s, a, ns)
     one, r_one, term_one, div = sur.transition(s, a)
+    regimes = spec.regimes(test.episode, s, test.rewards, real)
     m: dict[str, float] = {"surrogate/n_transitions": float(len(test)), "surrogate/n_terminated": float(true_term.sum())}
     for prefix, nxt, rew, term in (
         ("surrogate/", ns, spec.reward(s, a, ns), spec.terminated(s, a, ns)),
@@ -48,6 +49,9 @@ def surrogate_fidelity(model: Any, spec: EnvSpec | str, test: Transitions) -> di
         m[prefix + "reward_mse"] = float(np.mean(err2))
         running = ~true_term & ~np.asarray(term, bool)  # shaping and costs, without terminal rewards
         m[prefix + "reward_mse_running"] = float(np.mean(err2[running])) if running.any() else float("nan")
+        for regime, mask in regimes.items():  # e.g. LunarLander's flight (shaping exact) and contact (leg flags)
+            sel = running & np.asarray(mask, bool)
+            m[f"{prefix}reward_mse_running_{regime}"] = float(np.mean(err2[sel])) if sel.any() else float("nan")
         m[prefix + "terminated_precision"], m[prefix + "terminated_recall"] = _precision_recall(np.asarray(term, bool), true_term)
         m[prefix + "n_terminated_pred"] = float(np.sum(term))
         for name, i in zip(spec.exogenous_names, spec.exogenous_index, strict=True):
@@ -59,4 +63,5 @@ def surrogate_fidelity(model: Any, spec: EnvSpec | str, test: Transitions) -> di
     if spec.exogenous_names:
         m["surrogate/reward_mse_real_exogenous"] = float(np.mean((spec.reward(s, a, real) - test.rewards) ** 2))
     m["surrogate/one_step/diverged_fraction"] = float(div.mean())
+    m.update({f"surrogate/{k}": float(v) for k, v in spec.task_fidelity(test).items()})
     return m

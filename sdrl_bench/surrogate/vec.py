@@ -112,6 +112,8 @@ class SurrogateVecEnv(VecEnv):
         self._views = [SurrogateEnvView(self, i) for i in range(n)]
         super().__init__(n, sur.observation_space, sur.action_space)
         self._rng = np.random.default_rng(seed)
+        if seed is not None:
+            self.surrogate.seed_noise([seed, 1])
         self._states = np.asarray(sur.initial_states(self._rng, n), order=sur.state_order)
         self._t = np.zeros(n, dtype=np.int64)
         self._max_steps = sur.spec.max_episode_steps
@@ -129,6 +131,7 @@ class SurrogateVecEnv(VecEnv):
         seeds = [s for s in self._seeds if s is not None]
         if seeds:
             self._rng = np.random.default_rng(seeds)
+            self.surrogate.seed_noise([*seeds, 1])  # the step noise: its own stream
         self._states = np.asarray(self.surrogate.initial_states(self._rng, self.num_envs),
                                   order=self.surrogate.state_order)
         self._t[:] = 0

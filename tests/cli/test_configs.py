@@ -35,6 +35,10 @@ def test_every_combination_instantiates(env, library, optimizer):
     collector = "random" if env == "pendulum" else "heuristic"
     cfg = compose_cfg(f"env={env}", f"library={library}", f"optimizer={optimizer}", f"collector={collector}")
     job = build_fit_job(cfg)
+    if library == "lunar_lander_flight" and env != "lunar_lander":  # a per-equation library names its env's states
+        with pytest.raises(ConfigError, match=r"^library.equations.\w+(\[\d+\])?: (not a regressed state|unknown name)"):
+            check(job)
+        return
     library_obj, data = check(job)  # validates budgets against the library size, no env steps
     assert data is None
     assert job.spec.name == env
@@ -45,12 +49,13 @@ def test_every_combination_instantiates(env, library, optimizer):
 
 
 def test_each_env_has_its_default_library_and_the_command_line_wins():
-    """LunarLander defaults to polynomials (its env config overrides the library group);
-    MountainCar keeps poly_trig; an explicit library= always wins."""
+    """LunarLander defaults to its per-equation flight law (its env config overrides the library
+    group), the continuous one to polynomials; MountainCar keeps poly_trig; an explicit library= always wins."""
     defaults = {env: build_fit_job(compose_cfg(f"env={env}")) for env in ("mountain_car", "lunar_lander", "lunar_lander_continuous")}
     assert {env: job.names["library"] for env, job in defaults.items()} == {
-        "mountain_car": "poly_trig", "lunar_lander": "polynomial", "lunar_lander_continuous": "polynomial"}
-    assert len(check(defaults["lunar_lander"])[0].libraries) == 1  # no trigonometric part
+        "mountain_car": "poly_trig", "lunar_lander": "lunar_lander_flight", "lunar_lander_continuous": "polynomial"}
+    assert len(check(defaults["lunar_lander_continuous"])[0].libraries) == 1  # no trigonometric part
+    assert defaults["lunar_lander"].spec.fit_regime == "flight"
     assert build_fit_job(compose_cfg("env=lunar_lander", "library=poly_trig")).names["library"] == "poly_trig"
     assert build_fit_job(compose_cfg("experiment=paper_mountain_car")).names["library"] == "poly_trig"
 

@@ -11,6 +11,7 @@ prediction has a noise floor no deterministic model beats (measured by replay: R
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import ClassVar
 from collections.abc import Callable
 
@@ -18,11 +19,22 @@ import numpy as np
 from gymnasium.envs.box2d.lunar_lander import heuristic
 
 from sdrl_bench.envs.lunar_lander import task
+from sdrl_bench import ConfigError
 from sdrl_bench.envs.base import EnvSpec, Policy, StepOne, TestSetRecipe
 from sdrl_bench.envs.lunar_lander.task import LanderRules
 
 STATE_NAMES = ("x", "y", "vx", "vy", "angle", "angvel", "leg_left", "leg_right")
 LEGS = ("leg_left", "leg_right")
+HELDOUT_NOISE_FLOOR = {
+    "all": (3.21e-9, 2.07e-8, 2.98e-5, 4.08e-5, 8.14e-8, 3.25e-5),
+    "flight": (5.78e-9, 3.56e-8, 5.37e-5, 7.02e-5, 1.30e-7, 5.21e-5),
+    "contact": (1.48e-9, 1.06e-8, 1.37e-5, 2.09e-5, 4.85e-8, 1.93e-5),
+}
+"""The replay noise floor (variance) per regime and regressed state on ``lunar_lander-heldout-v1``
+(``fidelity.replay_noise_floor``, 400 rows per episode, 2 redraws each: 2518 rows, 1015 in
+flight; ``benchmarks/noise_floor.py``). The contact floor is a lower bound (terrain and leg
+joints kept). No-op flight steps have zero variance: the noise is the engines'."""
+FLIGHT_NOISE_FLOOR = HELDOUT_NOISE_FLOOR["flight"]
 
 
 @dataclass(frozen=True)
@@ -38,7 +50,23 @@ class LunarLanderSpec(EnvSpec):
     max_episode_steps: int = 1000
     solved_threshold: float | None = 200.0
     rules: LanderRules = LanderRules()
-    """Constants of the surrogate's contact approximations (legs, crash, rest)."""
+    """Constants of the surrogate's task rules (touchdown event, settle, rest)."""
+    fit_regime: str | None = None
+    """Fit the dynamics model on this regime's rows only ("flight": rows before each episode's
+    first touchdown; ``regimes``); None: all rows."""
+    uncertainty_penalty: float = 0.0
+    """MOPO-style penalty: reward minus this x the ensemble's disagreement beyond
+    ``uncertainty_free`` (max over states of the members' standard deviation in units of
+    ``uncertainty_scale``), in flight."""
+    uncertainty_free: float = 0.35
+    """Disagreement left unpenalized: the data's own level (the 99th percentile on held-out
+    flight rows of seed 0's fit: 0.33)."""
+    uncertainty_limit: float = float("inf")
+    """Disagreement beyond which a flight step ends the episode as a crash (-100)."""
+    touchdown_set: str | None = None
+    """Path of a saved touchdown test set (``touchdowns.TouchdownSet``, made by
+    ``benchmarks/touchdown_set.py``): when it exists, every fit scores the touchdown event and
+    the sleep counter on it."""
     action_labels: tuple[str, ...] = ("noop", "left engine", "main engine", "right engine")
     # policy maps: a lander descending slowly above the pad, legs up, over three slices
     policy_map_slices: tuple = (("x", (-1.0, 1.0), "y", (0.0, 1.4)), ("vx", (-1.0, 1.0), "vy", (-1.5, 0.5)),
@@ -70,9 +98,11 @@ class LunarLanderSpec(EnvSpec):
         return task.reward_terminated(self.rules, bool(self.n_discrete_actions), states, actions, next_states)
 
     def termination_causes(self, states, actions, next_states) -> dict[str, np.ndarray]:
-        """Why the surrogate ends each transition: crash (or |x'| >= 1) and rest."""
-        crash, out, rest = task.events(self.rules, states, next_states)
-        return {"crash": crash | out, "rest": rest}
+        """Why the surrogate ends each transition: crash (or |x'| >= 1) and rest (one step of
+        the sleep counter: rest only when ``rules.rest_frames`` <= 1; ``task.sleep_counts``
+        follows whole episodes)."""
+        crash, out, quiet = task.events(self.rules, states, next_states, actions, bool(self.n_discrete_actions))
+        return {"crash": crash | out, "rest": quiet & (self.rules.rest_frames <= 1)}
 
     def observed_termination_causes(self, rewards: np.ndarray, terminated: np.ndarray) -> dict[str, np.ndarray]:
         """Why the real env ended each transition, read off its reward (-100 crash or out, +100 rest)."""
@@ -98,6 +128,73 @@ class LunarLanderSpec(EnvSpec):
         three of each (landings, crashes and flights off-screen)."""
         mix = (("heuristic", 0.0), ("heuristic", 0.2), ("heuristic", 0.5), ("random", 1.0)) * 3
         return TestSetRecipe(name=f"{self.name}-heldout-v1", seed=20_000, episodes=mix)
+
+    # ------------------------------------------------------------------ regimes
+    def regimes(self, episode, states, rewards, next_states) -> dict[str, np.ndarray]:
+        """flight: rows before each episode's first touchdown (the first row whose s' has a leg
+        flag, or that ends in a crash inside the screen: reward -100 with |x'| < 1); contact: the
+        touchdown row and every row after it. Rows in episode order."""
+        episode, ns = np.asarray(episode), np.asarray(next_states, dtype=float)
+        hit = (ns[:, 6] > 0.5) | (ns[:, 7] > 0.5) | ((np.asarray(rewards) == -100) & (np.abs(ns[:, 0]) < 1.0))
+        flight = np.zeros(len(ns), dtype=bool)
+        starts = np.flatnonzero(np.r_[True, episode[1:] != episode[:-1]])
+        for a, b in zip(starts, np.r_[starts[1:], len(ns)], strict=True):
+            h = np.flatnonzero(hit[a:b])
+            flight[a:a + (h[0] if len(h) else b - a)] = True
+        return {"flight": flight, "contact": ~flight}
+
+    def fit_rows(self, episode, states, rewards, next_states) -> np.ndarray | None:
+        if self.fit_regime is None:
+            return None
+        masks = self.regimes(episode, states, rewards, next_states)
+        if self.fit_regime not in masks:
+            raise ConfigError(f"env.spec.fit_regime: {self.fit_regime!r} is not one of {sorted(masks)}")
+        return masks[self.fit_regime]
+
+    def regime_dynamics(self, states, actions, predicted) -> np.ndarray:
+        """Landers on their legs take the settle step (``task``); in flight, the model's prediction."""
+        return task.regime_dynamics(self.rules, bool(self.n_discrete_actions), states, actions, predicted)
+
+    def noise_floor(self, test_name: str) -> dict | None:
+        return HELDOUT_NOISE_FLOOR if test_name == self.test_set_recipe().name else None
+
+    def task_fidelity(self, test) -> dict[str, float]:
+        """The sleep counter along the test set's real episodes (rest: the first row whose count
+        reaches ``rest_frames``, against the real +100 rows: precision, recall, timing error in
+        steps), and, with ``touchdown_set``, the touchdown event's confusion matrix on it (its
+        odd seeds: the half the constants were not fitted on) and the counter on its landings."""
+        rules = self.rules
+        counts = task.sleep_counts(rules, test.episode, test.next_states, test.actions, bool(self.n_discrete_actions))
+        real = np.asarray(test.terminated, bool) & (np.asarray(test.rewards) == 100)
+        pred = np.zeros(len(test), bool)
+        errs = []
+        for ep in np.unique(test.episode):
+            idx = np.flatnonzero(test.episode == ep)
+            fire, true = idx[counts[idx] >= rules.rest_frames], idx[real[idx]]
+            if len(fire):
+                pred[fire[0]] = True
+            if len(fire) and len(true):
+                errs.append(int(fire[0] - true[0]))
+        tp = float(np.sum(pred & real))
+        m = {"rest_counter_precision": tp / pred.sum() if pred.any() else float("nan"),
+             "rest_counter_recall": tp / real.sum() if real.any() else float("nan"),
+             "rest_counter_n_real": float(real.sum()),
+             "rest_counter_timing_abs_mean": float(np.mean(np.abs(errs))) if errs else float("nan")}
+        if self.touchdown_set and Path(self.touchdown_set).is_file():
+            from sdrl_bench.envs.lunar_lander import touchdowns  # noqa: PLC0415
+
+            d = touchdowns.TouchdownSet.load(self.touchdown_set)
+            held = np.flatnonzero(d.seed % 2 == 1)
+            m.update({f"touchdown/{k}": v for k, v in touchdowns.score_events(rules, d, held).items()})
+            m.update({f"touchdown/rest_{k}": v for k, v in touchdowns.score_rest(rules, d).items()})
+        return m
+
+    def uncertainty_scale(self) -> np.ndarray | None:
+        """The replay noise floor's standard deviation per state in flight (held-out set,
+        ``benchmarks/noise_floor.py``): disagreement is counted in units of the irreducible noise."""
+        if self.uncertainty_penalty == 0.0 and not np.isfinite(self.uncertainty_limit):
+            return None
+        return np.sqrt(np.array(FLIGHT_NOISE_FLOOR))
 
 
 @dataclass(frozen=True)

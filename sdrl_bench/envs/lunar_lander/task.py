@@ -1,38 +1,41 @@
-"""LunarLander's reward, termination and leg contacts as pure functions of (s, a, s').
+"""LunarLander's task in the surrogate: regimes, the touchdown event, settling, rest, reward.
 
 The reward is exact up to rounding: the real env's shaping potential
 ``-100 |(x, y)| - 100 |(vx, vy)| - 100 |angle| + 10 leg_left + 10 leg_right`` is a function of
 the observation, and its "previous value" is the potential of s, so the shaped reward is
 ``phi(s') - phi(s)`` minus the engine costs (0.3 per frame of main engine, 0.03 of side engine,
-scaled by throttle for the continuous env). (The real env evaluates phi before rounding the
-observation to float32; here it sees the float32 observation: differences of order 1e-5.)
+scaled by throttle for the continuous env).
 
-What a dynamics model cannot give is *contact*: the real env's leg flags, its crash
-(``game_over``: the lander's body touched the ground) and its rest (Box2D put the body to sleep)
-are contact events of a physics engine on a random terrain. The surrogate replaces them with
-deliberate rules in a world whose ground is flat at the helipad's height (y = 0); every constant
-is in ``LanderRules`` and was calibrated on real transitions from the flat pad (|x| <= 0.2) of
-calibration episodes disjoint from the held-out test set (``benchmarks/calibrate_lunar_lander.py``):
+What a dynamics model fitted on 1000 transitions cannot give is *contact*: the expert's data
+hold 1-3 touchdowns. The surrogate therefore has two regimes and an event between them, in a
+world whose ground is flat at the pad's height (y = 0); every constant is in ``LanderRules``
+with where it comes from (prior: the real env's source or Box2D's; fitted: on what):
 
-* **Leg contacts** (approximation 1): leg i touches when its height ``y' +- leg_tilt sin(angle')``
-  (the left leg is lower when the lander tilts to positive angles) drops to ``touch_height``,
-  and a touching leg stays down until that height rises above ``release_height`` (legs bounce
-  and spring; the hysteresis follows the real flags better than any single threshold). Real
-  terrain off the pad is higher or lower than the pad: those contacts are missed or invented.
-* **Crash** (approximation 2): the body hits the flat ground when the lander sinks through the
-  floor (``y`` crosses ``floor`` downward), arrives at ``impact_height`` faster than
-  ``crash_speed`` (vy of s), or lies at ``impact_height`` tilted beyond ``tip_angle``.
-* **Rest** (approximation 3): Box2D sleeps a body whose speed stays under its tolerances
-  (0.01 m/s, 2 deg/s) for 0.5 s. Here: both legs touch and s' is under the same tolerances,
-  converted to observation units; the 0.5 s wait is dropped, so the surrogate's episode ends
-  (with +100) up to 25 steps earlier than the real one would.
-* ``|x'| >= 1`` ends the episode with -100, as in the real env; a rest overrides a crash, as in
-  the real env (its sleep check comes last).
+* **Flight** (both leg flags 0 in s): the fitted model (LunarLander's default is the
+  per-equation flight law, fitted on flight rows; ``conf/library/lunar_lander_flight.yaml``),
+  with the engine dispersion as noise (``surrogate.env``).
+* **Leg flags**, per leg: leg i touches when its height ``y' +- leg_tilt sin(angle')`` drops to
+  ``touch_height`` and stays down until that height rises above ``release_height``. One leg
+  usually touches a few steps before the other, as in the real env: an agent trained here sees
+  one-leg states (a surrogate that set both flags at once taught agents that fired their
+  engines on one leg and crashed: 4 of 20 real episodes of seed 0).
+* **Touchdown** (event): the first flag set from flight. Crash or survive is decided once, from
+  the *pre-impact* state s: crash iff the downward speed ``-vy / (2/15)`` exceeds
+  ``touchdown_speed`` m/s or ``|angle| > tip_angle``. Survived: the lander stands on its legs.
+* **On the legs** (either flag set in s): the settle step (``kernels.settle``), a small fitted
+  model (``SETTLE_TERMS``) with a prior Coulomb friction and stiction; it lifts off (both flags
+  0, flight again) when both legs rise above ``release_height``; tipping beyond ``tip_angle`` is
+  a crash.
+* **Rest**: Box2D's sleep rule as a per-env counter: ``rest_frames`` consecutive quiet steps
+  (on the legs, engines off, speed under 0.01 m/s and 2 deg/s) give +100 and end the episode.
+  On real episodes this rule (engines off dropped, since the real env's legs settle under
+  side-engine pulses) matched the real rest 112/112 with timing error 0 in 111
+  (``benchmarks/touchdown_set.py``).
+* ``|x'| >= 1`` ends the episode with -100, as in the real env; a rest overrides a crash.
 
-The batched functions run compiled loops (``kernels``, numba): a surrogate's
-vectorized step does all of the above in one pass over the rows. ``make_step_one`` is the same
-step for one state in plain Python (a single env's step is too short to pay for a call into
-compiled code with arrays); the tests check that the two agree.
+The batched functions run compiled loops (``kernels``, numba); ``make_step_one`` is the same
+step for one state in plain Python; the tests check that the two agree. The pure functions of
+(s, a, s') (``reward_terminated``, ``events``) see one step, so their sleep count starts at 0.
 """
 
 from __future__ import annotations
@@ -52,51 +55,82 @@ _VX_PER_MPS, _VY_PER_MPS, _W_PER_RADPS = 0.2, 2.0 / 15.0, 0.4
 _B2_LINEAR_SLEEP_TOL, _B2_ANGULAR_SLEEP_TOL = 0.01, 2.0 / 180.0 * math.pi
 
 
+# The settle model's terms (contact regime), in the order of LanderRules.settle:
+SETTLE_TERMS = ("vx: vx", "vx: sign(vx)", "vx: a_left", "vx: a_right", "vx: sin(angle)*a_main",
+                "vy: vy", "vy: a_main", "angvel: angvel", "angvel: angle", "angvel: a_left",
+                "angvel: a_right", "x: vx'", "y: vy'", "angle: angvel'")
+
+
 @dataclass(frozen=True)
 class LanderRules:
-    """Constants of the contact approximations (observation units; see the module docstring)."""
+    """Constants of the surrogate's task rules (observation units unless stated; see the
+    module docstring). *Prior*: from the real env's source or Box2D; *fitted*: on what."""
 
     leg_tilt: float = 0.15
-    """Height offset of a leg per unit sin(angle)."""
+    """Height offset of a leg per unit sin(angle) (fitted: ``benchmarks/calibrate_lunar_lander.py``)."""
     touch_height: float = -0.015
-    """A leg touches when its height drops to this."""
+    """A leg touches when its height drops to this (fitted, as leg_tilt)."""
     release_height: float = 0.075
-    """A touching leg leaves the ground when its height rises above this."""
+    """A lander on its legs lifts off when y rises above this (fitted, as leg_tilt)."""
     floor: float = -0.04
-    """Sinking through this height is a crash (the lowest y seen on the pad without one)."""
-    impact_height: float = -0.03
-    """Arriving at this height faster than ``crash_speed``, or tilted, is a crash."""
-    crash_speed: float = 0.6
-    """Downward speed (-vy of s) above which arriving at ``impact_height`` is a crash."""
-    tip_angle: float = 1.2
-    """|angle| (rad) at which a lander at ``impact_height`` has tipped over."""
+    """The lowest y on the legs (the lowest seen on the pad)."""
+    touchdown_speed: float = 3.05
+    """Touchdown event: a downward speed (m/s, pre-impact) above this crashes. Fitted for
+    accuracy on the calibration half (even seeds) of the touchdown set
+    (``benchmarks/touchdown_set.py``: 92% on the odd-seed half); the geometric gap and
+    rotation terms tried next to it fitted to zero."""
+    tip_angle: float = 1.0
+    """|angle| (rad) beyond which the lander lies on its side: a crash (prior)."""
     rest_speed: float = _B2_LINEAR_SLEEP_TOL
-    """Box2D's linear sleep tolerance (m/s)."""
-    rest_angvel: float = _B2_ANGULAR_SLEEP_TOL * _W_PER_RADPS
-    """Box2D's angular sleep tolerance, in observation units."""
+    """Box2D's linear sleep tolerance (m/s; prior)."""
+    rest_angvel: float = _B2_ANGULAR_SLEEP_TOL
+    """Box2D's angular sleep tolerance (rad/s; prior)."""
+    rest_frames: int = 25
+    """Quiet steps before Box2D puts the body to sleep: b2_timeToSleep 0.5 s x 50 FPS (prior)."""
+    coulomb: float = 0.0056
+    """Sliding friction on the legs per step, vx units: Box2D mixes frictions as sqrt(0.2 x 0.1)
+    = 0.14; 0.14 x 10 m/s^2 x 0.02 s x 0.2 (prior)."""
+    stick: float = 0.07
+    """Stiction: an idle step leaves a velocity under this at 0 (angvel: twice this); fitted
+    for rest timing on the touchdown set's calibration half."""
+    settle: tuple[float, ...] = (-0.0017801, -0.00065099, -0.0063447, 0.0083615, -0.081367,
+                                 -0.12354, 0.027154, -0.18066, -0.0016207, 0.0082128,
+                                 -0.0081153, 0.010043, 0.022367, 0.050024)
+    """The settle model's coefficients (``SETTLE_TERMS``): a per-equation model fitted on the
+    both-legs rows of survived touchdowns of the touchdown set's calibration half (6238 rows)."""
 
 
 _DISCRETE_COST = np.array([0.0, 0.03, 0.30, 0.03])  # noop, left, main, right: 0.3 main + 0.03 side
+_DISCRETE_POWER = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])
 
 
-def engine_cost(actions: np.ndarray, discrete: bool) -> np.ndarray:
-    """0.3 x main engine power + 0.03 x side engine power, as the real env computes the powers
-    from the raw action (continuous: main 0.5..1 when a0 > 0, side 0.5..1 when |a1| > 0.5)."""
+def engine_powers(actions: np.ndarray, discrete: bool) -> np.ndarray:
+    """(N, 3) engine powers (left, main, right) as the real env computes them from the raw action
+    (continuous: main 0.5..1 when a0 > 0, a side engine 0.5..1 when |a1| > 0.5)."""
     a = np.asarray(actions)
     if discrete:
-        return _DISCRETE_COST[a.reshape(len(a), -1)[:, 0].astype(np.intp)]
+        return _DISCRETE_POWER[a.reshape(len(a), -1)[:, 0].astype(np.intp)]
     a = np.clip(a.astype(float).reshape(len(a), -1), -1.0, 1.0)
     main = np.where(a[:, 0] > 0.0, (np.clip(a[:, 0], 0.0, 1.0) + 1.0) * 0.5, 0.0)
     side = np.where(np.abs(a[:, 1]) > 0.5, np.clip(np.abs(a[:, 1]), 0.5, 1.0), 0.0)
-    return main * 0.30 + side * 0.03
+    return np.column_stack([np.where(a[:, 1] < 0, side, 0.0), main, np.where(a[:, 1] > 0, side, 0.0)])
+
+
+def engine_cost(actions: np.ndarray, discrete: bool) -> np.ndarray:
+    """0.3 x main engine power + 0.03 x side engine power."""
+    p = engine_powers(actions, discrete)
+    return p[:, 1] * 0.30 + (p[:, 0] + p[:, 2]) * 0.03
 
 
 @cache
 def rules_vector(rules: LanderRules) -> np.ndarray:
     """The constants the compiled loops take (``kernels``: indices named there)."""
+    if len(rules.settle) != len(SETTLE_TERMS):
+        raise ValueError(f"LanderRules.settle: {len(SETTLE_TERMS)} coefficients needed, got {len(rules.settle)}")
     k = np.array([rules.leg_tilt, rules.touch_height, rules.release_height, rules.floor,
-                  rules.impact_height, rules.crash_speed, rules.tip_angle, rules.rest_speed**2,
-                  rules.rest_angvel, 1.0 / _VX_PER_MPS, 1.0 / _VY_PER_MPS])
+                  rules.touchdown_speed, rules.tip_angle, rules.rest_speed**2, rules.rest_angvel,
+                  1.0 / _VX_PER_MPS, 1.0 / _VY_PER_MPS, 1.0 / _W_PER_RADPS, float(rules.rest_frames),
+                  rules.coulomb, rules.stick, *rules.settle])
     k.setflags(write=False)
     return k
 
@@ -109,26 +143,51 @@ def _kernels():
     return kernels
 
 
+def _arrays(states, next_states):
+    return np.asarray(states, dtype=float), np.asarray(next_states, dtype=float)
+
+
 def leg_contacts(rules: LanderRules, states: np.ndarray, next_states: np.ndarray) -> np.ndarray:
-    """Leg flags (N, 2) of s' from its height and attitude, with hysteresis on s's flags."""
-    s, ns = np.asarray(states, dtype=float), np.asarray(next_states, dtype=float)
+    """Leg flags (N, 2) of s', per leg with hysteresis (see ``kernels._legs``)."""
+    s, ns = _arrays(states, next_states)
     out = np.empty((len(s), 2))
     _kernels().leg_contacts(s, ns, rules_vector(rules), out)
     return out
 
 
-def events(rules: LanderRules, states: np.ndarray, next_states: np.ndarray) -> tuple[np.ndarray, ...]:
-    """(crash, out of bounds, at rest) per row; leg flags of s' are read from ``next_states``."""
-    s, ns = np.asarray(states, dtype=float), np.asarray(next_states, dtype=float)
-    crash, out, rest = (np.empty(len(s), dtype=bool) for _ in range(3))
-    _kernels().events(s, ns, rules_vector(rules), crash, out, rest)
-    return crash, out, rest
+def events(rules: LanderRules, states, next_states, actions=None, discrete: bool = True) -> tuple[np.ndarray, ...]:
+    """(crash, out of bounds, quiet) per row; the leg flags of s and s' decide touchdown.
+    ``quiet`` is one step of the sleep counter (engines off needs ``actions``; None: all off)."""
+    s, ns = _arrays(states, next_states)
+    cost = np.zeros(len(s)) if actions is None else engine_cost(actions, discrete)
+    crash, out, quiet = (np.empty(len(s), dtype=bool) for _ in range(3))
+    _kernels().events(s, ns, cost, rules_vector(rules), crash, out, quiet)
+    return crash, out, quiet
+
+
+def sleep_counts(rules: LanderRules, episode, next_states, actions=None, discrete: bool = True) -> np.ndarray:
+    """Box2D's sleep count along recorded episodes (rows in order; leg flags read from s'):
+    rest comes at the first row whose count reaches ``rest_frames``."""
+    ns = np.asarray(next_states, dtype=float)
+    cost = np.zeros(len(ns)) if actions is None else engine_cost(actions, discrete)
+    out = np.empty(len(ns), dtype=np.int64)
+    _kernels().sleep_counter(np.asarray(episode, dtype=np.int64), ns, cost, rules_vector(rules), out)
+    return out
+
+
+def regime_dynamics(rules: LanderRules, discrete: bool, states, actions, pred: np.ndarray) -> np.ndarray:
+    """Predictions (6, N) with the rows of landers on their legs replaced by the settle step."""
+    s = np.asarray(states, dtype=float)
+    out = np.empty_like(pred, dtype=float)
+    _kernels().regime_dynamics(s, np.asarray(pred, dtype=float), engine_powers(actions, discrete),
+                               rules_vector(rules), out)
+    return out
 
 
 def reward_terminated(rules: LanderRules, discrete: bool, states, actions, next_states):
     """(reward, terminated): +100 at rest, else -100 on crash or |x'| >= 1, else
-    phi(s') - phi(s) - engine costs; terminated on any of the three."""
-    s, ns = np.asarray(states, dtype=float), np.asarray(next_states, dtype=float)
+    phi(s') - phi(s) - engine costs; terminated on any of the three (the sleep count of one step)."""
+    s, ns = _arrays(states, next_states)
     reward, ended = np.empty(len(s)), np.empty(len(s), dtype=bool)
     _kernels().reward_terminated(s, ns, engine_cost(actions, discrete), rules_vector(rules), reward, ended)
     return reward, ended
@@ -143,18 +202,22 @@ def terminated(rules: LanderRules, states, actions, next_states) -> np.ndarray:
 
 
 def make_step_batch(rules: LanderRules, discrete: bool, limit, obs_low, obs_high):
-    """The surrogate's batched step after the model's prediction, in one compiled loop:
-    ``step(states, actions, pred)`` with predictions (6, N) -> (next states (N, 8) in C order,
-    rewards, terminated, diverged); the same rules as the functions above, in the order
-    of ``sdrl_bench.surrogate.env.Surrogate.transition`` (see ``kernels.step``)."""
+    """The surrogate's batched step after the prediction, in one compiled loop:
+    ``step(states, actions, pred)`` with predictions (6, N) (``regime_dynamics`` applied) ->
+    (next states (N, 8) in C order, rewards, terminated, diverged). It keeps each row's sleep
+    count between calls; a row whose state is not the one it returned last starts from 0."""
     kern, k = _kernels(), rules_vector(rules)
     limit, low, high = (np.array(v, dtype=float) for v in (limit, obs_low, obs_high))
+    memory: dict[str, np.ndarray] = {}
 
     def step(states: np.ndarray, actions: np.ndarray, pred: np.ndarray):
         n = len(states)
+        if memory.get("last") is None or len(memory["last"]) != n:
+            memory["last"], memory["count"] = np.full((n, 8), np.nan), np.zeros(n, dtype=np.int64)
         nxt = np.empty((n, 8))
         reward, ended, diverged = np.empty(n), np.empty(n, dtype=bool), np.empty(n, dtype=bool)
-        kern.step(states, pred, engine_cost(actions, discrete), limit, low, high, k, nxt, reward, ended, diverged)
+        kern.step(states, pred, engine_cost(actions, discrete), limit, low, high, k, memory["last"], memory["count"],
+                  nxt, reward, ended, diverged)
         return nxt, reward, ended, diverged
 
     return step
@@ -173,19 +236,23 @@ def make_step_one(
 
     ``predictor(fixed)`` gives the model's one-state evaluator with inputs ``fixed`` held at
     given values: for discrete actions, one evaluator per action, taking the 8 state values.
+    The sleep count is kept per state returned (so copies of an env stepped by one function
+    keep theirs): a state not returned before counts from 0.
     """
     lims, lows, highs = tuple(map(float, limit)), tuple(map(float, obs_low)), tuple(map(float, obs_high))
     if discrete:  # model inputs: 6 regressed states, 2 legs, 4 one-hot actions
         per_action = [predictor({8 + i: float(i == k) for i in range(4)}) for k in range(4)]
-        costs = _DISCRETE_COST.tolist()
+        costs, powers = _DISCRETE_COST.tolist(), _DISCRETE_POWER.tolist()
     else:
         predict = predictor()
+    kv = rules_vector(rules).tolist()
+    settle_one = _kernels().settle.py_func
     f6, f32, sqrt, sin = struct.Struct("6f"), np.float32, math.sqrt, math.sin
-    tilt_k, touch, release = rules.leg_tilt, rules.touch_height, rules.release_height
-    floor, impact, crash_speed, tip = rules.floor, rules.impact_height, rules.crash_speed, rules.tip_angle
-    rest_v2, rest_w = rules.rest_speed**2, rules.rest_angvel
-    inv_vx, inv_vy = 1.0 / _VX_PER_MPS, 1.0 / _VY_PER_MPS
+    tilt_k, touch, release, v_free, tip = rules.leg_tilt, rules.touch_height, rules.release_height, rules.touchdown_speed, rules.tip_angle
+    rest_v2, rest_w, frames = rules.rest_speed**2, rules.rest_angvel, rules.rest_frames
+    inv_vx, inv_vy, inv_w = 1.0 / _VX_PER_MPS, 1.0 / _VY_PER_MPS, 1.0 / _W_PER_RADPS
     last = [None, 0.0]  # (the state returned last, its shaping potential): phi(s) is not recomputed
+    counts: dict[tuple, int] = {}  # sleep count per state returned (bounded: cleared when large)
 
     def phi(x, y, vx, vy, an, ll, lr):
         return -100 * sqrt(x * x + y * y) - 100 * sqrt(vx * vx + vy * vy) - 100 * abs(an) + 10 * ll + 10 * lr
@@ -196,31 +263,40 @@ def make_step_one(
             if not 0 <= k < 4:
                 raise ValueError(f"action {action!r} is not one of 0, 1, 2, 3")
             pred = per_action[k](state)
-            cost = costs[k]
+            cost, (pl, pm, pr) = costs[k], powers[k]
         else:
             a0, a1 = (min(max(float(v), -1.0), 1.0) for v in action)
             pred = predict((*state, a0, a1))
-            main = (min(max(a0, 0.0), 1.0) + 1.0) * 0.5 if a0 > 0.0 else 0.0
+            pm = (min(max(a0, 0.0), 1.0) + 1.0) * 0.5 if a0 > 0.0 else 0.0
             side = min(max(abs(a1), 0.5), 1.0) if abs(a1) > 0.5 else 0.0
-            cost = main * 0.30 + side * 0.03
+            pl, pr = (side, 0.0) if a1 < 0 else (0.0, side)
+            cost = pm * 0.30 + side * 0.03
+        on_legs = state[6] > 0.5 or state[7] > 0.5
+        if on_legs:  # the contact regime: the settle step replaces the flight model
+            pred = settle_one(*state[:6], pl, pm, pr, kv)
         if not all(map(le, map(abs, pred), lims)):  # non-finite or beyond the limit
             return np.array(state, dtype=f32), state, 0.0, False, True
         x, y, vx, vy, an, w = f6.unpack(f6.pack(*pred))  # float32 observation
         t = tilt_k * sin(an)
         ll = 1.0 if (y + t <= touch or (state[6] > 0.5 and y + t <= release)) else 0.0
         lr = 1.0 if (y - t <= touch or (state[7] > 0.5 and y - t <= release)) else 0.0
+        down = not on_legs and (ll > 0.5 or lr > 0.5)
         nxt = [x, y, vx, vy, an, w, ll, lr]
         if not all(map(le, lows, nxt)) or not all(map(le, nxt, highs)):
             nxt = [lo if v < lo else (hi if v > hi else v) for v, lo, hi in zip(nxt, lows, highs, strict=False)]
             x, y, vx, vy, an, w, ll, lr = nxt
-        y0 = state[1]
-        crash = (
-            (y <= floor and y0 > floor)
-            or (y <= impact and y0 > impact and state[3] <= -crash_speed)
-            or (y <= impact and abs(an) >= tip)
-        )
+        legs = ll > 0.5 or lr > 0.5
         rvx, rvy = vx * inv_vx, vy * inv_vy
-        rest = ll > 0.5 and lr > 0.5 and rvx * rvx + rvy * rvy <= rest_v2 and abs(w) <= rest_w
+        quiet = legs and cost == 0.0 and rvx * rvx + rvy * rvy <= rest_v2 and abs(w * inv_w) <= rest_w
+        if down:
+            crash = -state[3] * inv_vy > v_free or abs(state[4]) > tip
+        else:
+            crash = legs and abs(an) > tip
+        count = counts.get(tuple(state), 0) + 1 if quiet else 0
+        if len(counts) > 4096:
+            counts.clear()
+        counts[tuple(nxt)] = count
+        rest = count >= frames
         phi0 = last[1] if state is last[0] else phi(*state[:5], state[6], state[7])
         phi1 = phi(x, y, vx, vy, an, ll, lr)
         last[0], last[1] = nxt, phi1
