@@ -34,6 +34,10 @@ Optional extras, both stored in the file: ``noise_`` ({control: covariance of th
 on rows where that one-hot control is 1}: the surrogate adds it to its step, ``surrogate.env``)
 and ``members_`` (``ensemble`` > 1: coefficient matrices refitted on bootstrap resamples; their
 disagreement is the surrogate's uncertainty penalty).
+
+Over the project's ~300-line habit: the library's validation, the per-equation fit and the
+model (describe, save, load, flattening for the compiled evaluators) share one term syntax;
+splitting the library from the model is the next tidy-up.
 """
 
 from __future__ import annotations

@@ -26,6 +26,10 @@ A spec name is a spec class's or an ``env/<name>.yaml`` of the config tree (``en
 States and observations: the surrogate steps the spec's states (the model's coordinates) and
 emits the real env's observations (``EnvSpec.observe``: an angle's cos and sin, clipped to the
 observation space); angles are wrapped to [-pi, pi) after each step.
+
+Over the project's ~300-line habit: ``Surrogate`` (one step, its noise and disagreement
+penalty) and ``SurrogateEnv`` are kept with the step they wrap; moving the uncertainty hooks to
+their own module is the next tidy-up.
 """
 
 from __future__ import annotations

@@ -36,6 +36,9 @@ with where it comes from (prior: the real env's source or Box2D's; fitted: on wh
 The batched functions run compiled loops (``kernels``, numba); ``make_step_one`` is the same
 step for one state in plain Python; the tests check that the two agree. The pure functions of
 (s, a, s') (``reward_terminated``, ``events``) see one step, so their sleep count starts at 0.
+
+Slightly over ~300 lines: the rules and the plain-Python one-state step that must agree with
+the compiled kernels are kept side by side.
 """
 
 from __future__ import annotations
