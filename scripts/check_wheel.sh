@@ -9,6 +9,7 @@ PY=${PYTHON:-python3}
 WORK=$(mktemp -d)
 trap 'rm -rf "$WORK"' EXIT
 echo "check_wheel: building the wheel"
+rm -rf "$ROOT/build"  # a stale build/lib would carry deleted modules into the wheel
 "$PY" -m pip wheel --quiet --no-deps --no-build-isolation -w "$WORK/dist" "$ROOT" 2>/dev/null \
   || "$PY" -m pip wheel --quiet --no-deps -w "$WORK/dist" "$ROOT"
 WHEEL=$(ls "$WORK"/dist/sdrl_bench-*.whl)

@@ -1,5 +1,0 @@
-"""The edge: the only code that reads a DictConfig, composes configs or calls ``instantiate``.
-
-``build`` turns a composed config into typed jobs; the entry modules (``main``, ``search``,
-``report``) parse, build, call the library and print.
-"""

@@ -1,1 +1,0 @@
-"""Hydra configs shipped with the package (``pkg://sdrl_bench.conf``)."""

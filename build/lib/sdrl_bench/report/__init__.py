@@ -1,1 +1,0 @@
-"""The report: tracking store -> tables, figures, Markdown and HTML (reads runs; never trains)."""

@@ -1,1 +1,0 @@
-"""Optuna search of the SINDy hyperparameters: space, study, storage, refinement, summary."""
