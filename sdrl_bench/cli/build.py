@@ -58,7 +58,7 @@ def instantiate_key(node: Any, key: str) -> Any:
         target = node.get("_target_") if isinstance(node, (dict, DictConfig)) else None
         if target and (isinstance(exc.__cause__, ImportError) or isinstance(root, (ImportError, SyntaxError))):
             raise ConfigError(f"{key}: cannot import {target!r}: {one_line(root)}") from None
-        raise ConfigError(f"{key}: {one_line(root)}") from None
+        raise ConfigError(f"{key}: {' '.join(str(root).split()) or type(root).__name__}") from None
 
 
 def _check_resolvable(cfg: DictConfig, group: str) -> None:
