@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 # SB3's small matrices run fastest single-threaded; BLAS reads this once, at numpy's import
@@ -131,6 +132,8 @@ def main(cfg: DictConfig) -> float:
         print(f"sdrl-bench: error: {exc}", file=sys.stderr)
         sys.exit(2)
     except Terminated as exc:
+        with contextlib.suppress(Exception):  # a run whose creation the signal cut short
+            tracking.end_runs_of_this_process(tracking.resolve_uri(cfg.tracking.uri), cfg.tracking.experiment)
         print(f"sdrl-bench: stopped by {signal.Signals(exc.signum).name}; the run ended KILLED", file=sys.stderr)
         sys.exit(exc.exit_code)
 

@@ -12,6 +12,7 @@ so every trial is a fit that ``sdrl-bench`` could run, and the best one is expor
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import functools
 import json
@@ -253,6 +254,8 @@ def main(cfg: DictConfig) -> float | None:
         print(f"sdrl-bench-search: error: {exc}", file=sys.stderr)
         sys.exit(2)
     except Terminated as exc:
+        with contextlib.suppress(Exception):  # a run whose creation the signal cut short
+            tracking.end_runs_of_this_process(tracking.resolve_uri(cfg.tracking.uri), cfg.tracking.experiment)
         print(f"sdrl-bench-search: stopped by {signal.Signals(exc.signum).name}; the trial and study runs ended "
               "KILLED; rerun the same command to resume the study", file=sys.stderr)
         sys.exit(exc.exit_code)

@@ -97,3 +97,18 @@ def end_stale_runs(uri: str, experiment: str, filter_string: str, status: str = 
         client.set_tag(r["run_id"], "sdrl.ended_by", "a later process: its owner had died")
         client.set_terminated(r["run_id"], status)
     return [r["run_id"] for r in stale]
+
+
+def end_runs_of_this_process(uri: str, experiment: str, status: str = "KILLED") -> list[str]:
+    """End every RUNNING run this process owns (``sdrl.pid``/``sdrl.host``): the last word of a
+    process stopped by a signal, for a run whose creation the signal interrupted."""
+    import os
+    import socket
+
+    filt = (f"tags.`sdrl.pid` = '{os.getpid()}' and tags.`sdrl.host` = '{socket.gethostname()}' "
+            "and attributes.status = 'RUNNING'")
+    mine = find_runs(uri, experiment, filt)
+    client = mlflow_client(uri)
+    for r in mine:
+        client.set_terminated(r["run_id"], status)
+    return [r["run_id"] for r in mine]

@@ -86,7 +86,7 @@ def test_bad_storage_choice_or_mode_fail_before_any_trial(tmp_path, uri):
         ("study.storage='postgresql://me:secret@127.0.0.1:1/optuna'",
          r"^study.storage: cannot open postgresql://me:\*\*\*@127.0.0.1:1/optuna \("),
         (f"study.storage='sqlite:///{blocker}/optuna.db'", rf"^study.storage: cannot open sqlite:///{blocker}/optuna.db"),
-        ("search.space.library.choices=[polynomial,nope]", r"^search.space.library: unknown choice 'nope' \(the library group has \['poly_trig', 'polynomial'"),
+        ("search.space.library.choices=[polynomial,nope]", r"^search.space.library: unknown choice 'nope' \(the library group has \[.*'poly_trig', 'polynomial'"),
         ("search.pruner=median", r"^search.pruner: pruning needs a single objective"),
     ]
     for i, (override, match) in enumerate(cases):
