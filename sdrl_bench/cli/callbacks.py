@@ -70,7 +70,7 @@ class MlflowSweepCallback(Callback):
         (sweep_dir / PARENT_FILE).write_text(run_id)
         (sweep_dir / KEY_FILE).write_text(key)
         self._parent = (uri, run_id, experiment)
-        atexit.register(self._finish, "FAILED")
+        atexit.register(self._abort)
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self._on_stop_signal)
 
@@ -89,6 +89,18 @@ class MlflowSweepCallback(Callback):
             uri, run_id, _ = self._parent
             self._parent = None
             tracking.end_run(uri, run_id, status)
+
+    def _abort(self) -> None:
+        """The driver exits before the sweep ended (a job raised): stop the other workers, end
+        the runs they left RUNNING KILLED and the parent FAILED."""
+        if self._parent is None:
+            return
+        stop_children(WORKER_GRACE_SECONDS)
+        uri, run_id, experiment = self._parent
+        filt = f"tags.`{tracking.PARENT_TAG}` = '{run_id}' and attributes.status = 'RUNNING'"
+        for r in tracking.find_runs(uri, experiment, filt):
+            tracking.end_run(uri, r["run_id"], "KILLED")
+        self._finish("FAILED")
 
     def _on_stop_signal(self, signum: int, frame: Any) -> None:
         """Stop the workers, end what they left RUNNING and the parent KILLED, exit."""
