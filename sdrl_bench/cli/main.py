@@ -5,7 +5,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import os
 
 # SB3's small matrices run fastest single-threaded; BLAS reads this once, at numpy's import
@@ -20,7 +19,7 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, tracking
-from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job, config_key
+from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job, config_key, exit_after_stop_signal
 from sdrl_bench.cli.callbacks import CONFIG_KEY_TAG, SWEEP_KEY_TAG, sweep_context
 from sdrl_bench.pipeline import FitResult, check, fit_dynamics
 
@@ -132,10 +131,7 @@ def main(cfg: DictConfig) -> float:
         print(f"sdrl-bench: error: {exc}", file=sys.stderr)
         sys.exit(2)
     except Terminated as exc:
-        with contextlib.suppress(Exception):  # a run whose creation the signal cut short
-            tracking.end_runs_of_this_process(tracking.resolve_uri(cfg.tracking.uri), cfg.tracking.experiment)
-        print(f"sdrl-bench: stopped by {signal.Signals(exc.signum).name}; the run ended KILLED", file=sys.stderr)
-        sys.exit(exc.exit_code)
+        exit_after_stop_signal(cfg, exc, "sdrl-bench", "the run ended KILLED")
 
 
 if __name__ == "__main__":

@@ -12,7 +12,6 @@ so every trial is a fit that ``sdrl-bench`` could run, and the best one is expor
 
 from __future__ import annotations
 
-import contextlib
 import copy
 import functools
 import json
@@ -29,7 +28,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, tracking
-from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job, compose
+from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job, compose, exit_after_stop_signal
 from sdrl_bench.pipeline import FitJob
 from sdrl_bench.search.refine import run_refinement
 from sdrl_bench.search.study import BuildJob, StudySettings, run_study
@@ -254,11 +253,8 @@ def main(cfg: DictConfig) -> float | None:
         print(f"sdrl-bench-search: error: {exc}", file=sys.stderr)
         sys.exit(2)
     except Terminated as exc:
-        with contextlib.suppress(Exception):  # a run whose creation the signal cut short
-            tracking.end_runs_of_this_process(tracking.resolve_uri(cfg.tracking.uri), cfg.tracking.experiment)
-        print(f"sdrl-bench-search: stopped by {signal.Signals(exc.signum).name}; the trial and study runs ended "
-              "KILLED; rerun the same command to resume the study", file=sys.stderr)
-        sys.exit(exc.exit_code)
+        exit_after_stop_signal(cfg, exc, "sdrl-bench-search",
+                               "the trial and study runs ended KILLED; rerun the same command to resume the study")
 
 
 if __name__ == "__main__":  # python -m: run the package's copy, so joblib workers can unpickle it
