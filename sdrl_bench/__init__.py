@@ -1,5 +1,8 @@
 """sdrl-bench: sparse-dynamics (SINDy) surrogate environments for reinforcement learning."""
 
+import contextlib
+from collections.abc import Iterator
+
 __version__ = "0.1.0"
 
 
@@ -20,15 +23,58 @@ class Terminated(KeyboardInterrupt):
         return 128 + self.signum
 
 
+_stop = {"signum": None, "pending": False, "held": 0}
+
+
 def raise_on_stop_signals() -> None:
-    """In the main thread: SIGTERM and SIGINT raise ``Terminated``."""
+    """In the main thread: SIGTERM and SIGINT raise ``Terminated`` (at once, or at the end of a
+    ``stop_signals_held`` block)."""
     import signal
 
     def handler(signum, frame):
-        raise Terminated(signum)
+        _stop["signum"] = signum
+        if _stop["held"]:
+            _stop["pending"] = True
+        else:
+            raise Terminated(signum)
 
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, handler)
+
+
+def stop_signal_received() -> int | None:
+    """The stop signal this process has received, if any (an exception raised after one is
+    taken as that stop: a library's cleanup may have replaced our ``Terminated`` with its own)."""
+    return _stop["signum"]
+
+
+def raise_pending_stop() -> None:
+    """Raise ``Terminated`` for a stop signal that arrived while signals were held."""
+    if _stop["pending"]:
+        _stop["pending"] = False
+        raise Terminated(_stop["signum"])
+
+
+@contextlib.contextmanager
+def stop_signals_held(held: bool = True) -> Iterator[None]:
+    """Hold stop signals in this block (``held=False``: let them through again, inside a held one).
+
+    Why: an exception raised at an arbitrary bytecode can break a library's own bookkeeping.
+    Optuna's ``_run_trial`` tolerates an interrupted objective but not one raised while it tells
+    the storage (it then fails with UnboundLocalError and may leave the trial RUNNING). The study
+    holds signals around ``optimize`` and lets them through only while a trial does its work; a
+    signal held meanwhile is raised at the next allowed point.
+    """
+    saved = _stop["held"]
+    _stop["held"] = 1 if held else 0
+    try:
+        if not held:
+            raise_pending_stop()
+        yield
+    finally:
+        _stop["held"] = saved
+    if not saved:
+        raise_pending_stop()
 
 
 def _register_envs() -> None:

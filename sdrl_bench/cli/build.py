@@ -196,9 +196,10 @@ def config_key(cfg: DictConfig) -> str:
     return hashlib.sha256(json.dumps(body, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def exit_after_stop_signal(cfg: DictConfig, exc: Any, prog: str, what: str) -> None:
-    """The last word of a command stopped by SIGTERM/SIGINT (``Terminated``): end the runs this
-    process owns that the signal caught mid-creation, say so in one line, exit 128 + signal."""
+def exit_after_stop_signal(cfg: DictConfig, signum: int, prog: str, what: str) -> None:
+    """The last word of a command stopped by SIGTERM/SIGINT (``Terminated``, or whatever a
+    library's cleanup raised instead after the signal): end the runs this process owns that the
+    signal caught mid-creation, say so in one line, exit 128 + signal."""
     import contextlib
     import signal
     import sys
@@ -207,5 +208,5 @@ def exit_after_stop_signal(cfg: DictConfig, exc: Any, prog: str, what: str) -> N
 
     with contextlib.suppress(Exception):
         tracking.end_runs_of_this_process(tracking.resolve_uri(cfg.tracking.uri), cfg.tracking.experiment)
-    print(f"{prog}: stopped by {signal.Signals(exc.signum).name}; {what}", file=sys.stderr)
-    sys.exit(exc.exit_code)
+    print(f"{prog}: stopped by {signal.Signals(signum).name}; {what}", file=sys.stderr)
+    sys.exit(128 + signum)

@@ -18,7 +18,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
-from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, tracking
+from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, stop_signal_received, tracking
 from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job, config_key, exit_after_stop_signal
 from sdrl_bench.cli.callbacks import CONFIG_KEY_TAG, SWEEP_KEY_TAG, sweep_context
 from sdrl_bench.pipeline import FitResult, check, fit_dynamics
@@ -131,7 +131,11 @@ def main(cfg: DictConfig) -> float:
         print(f"sdrl-bench: error: {exc}", file=sys.stderr)
         sys.exit(2)
     except Terminated as exc:
-        exit_after_stop_signal(cfg, exc, "sdrl-bench", "the run ended KILLED")
+        exit_after_stop_signal(cfg, exc.signum, "sdrl-bench", "the run ended KILLED")
+    except Exception:
+        if stop_signal_received() is None:
+            raise
+        exit_after_stop_signal(cfg, stop_signal_received(), "sdrl-bench", "the run ended KILLED")
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, tracking
+from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, stop_signal_received, tracking
 from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job, compose, exit_after_stop_signal
 from sdrl_bench.pipeline import FitJob
 from sdrl_bench.search.refine import run_refinement
@@ -252,8 +252,11 @@ def main(cfg: DictConfig) -> float | None:
     except ConfigError as exc:
         print(f"sdrl-bench-search: error: {exc}", file=sys.stderr)
         sys.exit(2)
-    except Terminated as exc:
-        exit_after_stop_signal(cfg, exc, "sdrl-bench-search",
+    except (Terminated, Exception) as exc:
+        signum = exc.signum if isinstance(exc, Terminated) else stop_signal_received()
+        if signum is None:
+            raise
+        exit_after_stop_signal(cfg, signum, "sdrl-bench-search",
                                "the trial and study runs ended KILLED; rerun the same command to resume the study")
 
 

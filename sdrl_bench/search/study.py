@@ -24,7 +24,7 @@ from collections.abc import Callable, Mapping
 import numpy as np
 import optuna
 
-from sdrl_bench import ConfigError, tracking
+from sdrl_bench import ConfigError, raise_pending_stop, stop_signal_received, stop_signals_held, tracking
 from sdrl_bench.data import Transitions, collect, random_policy
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.models.libraries import build_library
@@ -273,12 +273,16 @@ def run_study(
             progress(trial)
         if n_counted(study) >= settings.n_trials:
             study.stop()
+        raise_pending_stop()  # Optuna has stored the trial: a safe point to stop
 
     objective = _objective(settings, build_job, sd, uri, parent)
     try:
-        study.optimize(objective, n_trials=remaining, callbacks=[budget], catch=TRIAL_ERRORS, gc_after_trial=False)
+        with stop_signals_held():  # raised only inside a trial's work or between trials
+            study.optimize(objective, n_trials=remaining, callbacks=[budget], catch=TRIAL_ERRORS,
+                           gc_after_trial=False)
     except BaseException as exc:  # the parent shows it; a later summarize (resume) finishes it
-        tracking.end_run(uri, parent, "KILLED" if isinstance(exc, KeyboardInterrupt) else "FAILED")
+        stopped = isinstance(exc, KeyboardInterrupt) or stop_signal_received()
+        tracking.end_run(uri, parent, "KILLED" if stopped else "FAILED")
         raise
     return result
 
@@ -300,7 +304,8 @@ def _objective(s: StudySettings, build_job: BuildJob, sd: StudyData, uri: str, p
             trial.set_user_attr("mlflow_run_id", run.run_id)
             run.log_params({**{k: v for k, v in s.context.items()}, **params})
             try:
-                out = evaluate_params(params, build_job, sd, report if prune else None)
+                with stop_signals_held(False):
+                    out = evaluate_params(params, build_job, sd, report if prune else None)
             except TRIAL_ERRORS as exc:
                 msg = f"{type(exc).__name__}: {str(exc).strip()}".splitlines()[0][:500]
                 trial.set_user_attr("error", msg)

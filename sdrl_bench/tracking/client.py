@@ -16,7 +16,7 @@ from pathlib import Path
 from typing import Any
 from collections.abc import Iterator, Mapping
 
-from sdrl_bench import ConfigError
+from sdrl_bench import ConfigError, stop_signal_received
 
 DEFAULT_DB = Path("mlruns") / "mlflow.db"
 PARENT_TAG = "mlflow.parentRunId"
@@ -260,11 +260,8 @@ def start_run(
     run = Run(uri, run_info.info.run_id)
     try:
         yield run
-    except KeyboardInterrupt:
-        run.end("KILLED")
-        raise
-    except BaseException:
-        run.end("FAILED")
+    except BaseException as exc:
+        run.end("KILLED" if isinstance(exc, KeyboardInterrupt) or stop_signal_received() else "FAILED")
         raise
     run.end("FINISHED")
 

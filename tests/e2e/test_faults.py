@@ -153,6 +153,35 @@ def test_sigterm_to_a_study_ends_its_runs_killed_and_the_rerun_resumes(tmp_path)
     assert optuna.trial.TrialState.RUNNING not in {t.state for t in study.trials}
 
 
+def test_a_held_stop_signal_is_raised_at_the_next_allowed_point():
+    """A real SIGTERM inside ``stop_signals_held`` waits; a nested ``held=False`` block, or the
+    end of the held block, raises it (this is how Optuna's bookkeeping is kept whole)."""
+    import sdrl_bench
+    from sdrl_bench import Terminated, raise_on_stop_signals, stop_signals_held
+
+    saved = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGINT)}
+    raise_on_stop_signals()
+    reached = []
+    try:
+        with pytest.raises(Terminated) as caught, stop_signals_held():
+            os.kill(os.getpid(), signal.SIGTERM)
+            reached.append("after the signal")  # held: the body goes on
+            with stop_signals_held(False):
+                reached.append("never")  # the held signal is raised on entry
+        assert reached == ["after the signal"] and caught.value.signum == signal.SIGTERM
+        with pytest.raises(Terminated), stop_signals_held():  # no allowed point: raised at the end
+            os.kill(os.getpid(), signal.SIGINT)
+            reached.append("held to the end")
+        assert reached[-1] == "held to the end" and sdrl_bench.stop_signal_received() == signal.SIGINT
+        with pytest.raises(Terminated):  # not held: at once
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)
+    finally:
+        for s, h in saved.items():
+            signal.signal(s, h)
+        sdrl_bench._stop.update(signum=None, pending=False, held=0)
+
+
 # ------------------------------------------------------------------ damaged stores
 @pytest.fixture(scope="module")
 def one_fit_store(tmp_path_factory) -> Path:
