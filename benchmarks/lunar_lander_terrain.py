@@ -1,0 +1,123 @@
+"""What limits the LunarLander surrogate arm: the same agents, the same 20 final real episodes
+(reset seeds FINAL_EVAL_SEED + 1000 seed + i), once on the real env's random terrain and once on
+a flat one (the real env, every random draw identical, only the terrain heights replaced by the
+pad's height). The surrogate's world is flat; if the flat real env scores far higher, the terrain
+off the pad (not the dynamics model) is what the agents were never taught.
+
+Per seed: mean return, crashes (and how many of them touched down off the pad, |x| > 0.2) and
+rests, on both terrains; across seeds the IQM with a 95% bootstrap CI.
+
+    .venv/bin/python benchmarks/lunar_lander_terrain.py --uri sqlite:///path/mlruns/mlflow.db
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.envs.box2d.lunar_lander import VIEWPORT_H, LunarLander, SCALE
+from stable_baselines3 import PPO
+
+from sdrl_bench.rl.transfer import FINAL_EVAL_SEED
+from sdrl_bench.tracking.read import find_runs
+
+_PAD_HEIGHT = VIEWPORT_H / SCALE / 4  # the real env's helipad_y
+_N_HEIGHTS = 12  # CHUNKS + 1 heights drawn in reset
+
+
+class _FlatTerrain:
+    """The env's generator, except that the terrain heights (the draw of 12 uniforms in reset)
+    come back as the pad's height; the numbers are still drawn, so every later draw (initial
+    push, engine dispersion) is what it is on the real terrain."""
+
+    def __init__(self, rng: np.random.Generator):
+        self._rng, self._done = rng, False
+
+    def uniform(self, low=0.0, high=1.0, size=None):
+        v = self._rng.uniform(low, high, size)
+        if not self._done and size == (_N_HEIGHTS,):
+            self._done = True
+            return np.full_like(v, _PAD_HEIGHT)
+        return v
+
+    def __getattr__(self, name):
+        return getattr(self._rng, name)
+
+
+class FlatLunarLander(LunarLander):
+    """LunarLander-v3 on flat ground at the pad's height (a diagnostic, not a benchmark env)."""
+
+    def reset(self, *, seed=None, options=None):
+        gym.Env.reset(self, seed=seed)
+        self._np_random = _FlatTerrain(self.np_random)
+        try:
+            return super().reset(options=options)
+        finally:
+            self._np_random = self._np_random._rng
+
+
+def play(agent, env, seed: int) -> tuple[float, str, float | None]:
+    """(return, end: rest / crash / out / truncated, x at the first touchdown)."""
+    obs, _ = env.reset(seed=seed)
+    total, done, x_td, r, term = 0.0, False, None, 0.0, False
+    while not done:
+        action = int(agent.predict(obs, deterministic=True)[0])
+        obs, r, term, trunc, _ = env.step(action)
+        total += float(r)
+        done = term or trunc
+        if x_td is None and (obs[6] > 0.5 or obs[7] > 0.5):
+            x_td = float(obs[0])
+    end = "truncated" if not term else ("rest" if r == 100 else ("out" if abs(obs[0]) >= 1 else "crash"))
+    return total, end, x_td
+
+
+def iqm_ci(v: np.ndarray) -> str:
+    from scipy import stats
+
+    iqm = lambda a, axis=-1: stats.trim_mean(a, 0.25, axis=axis)  # noqa: E731
+    if len(v) < 2:
+        return f"n={len(v)}"
+    ci = stats.bootstrap((v,), iqm, n_resamples=10_000, method="percentile",
+                         random_state=np.random.default_rng(0)).confidence_interval
+    return f"IQM {iqm(v):.1f} [95% CI {ci.low:.1f}, {ci.high:.1f}], n={len(v)}"
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--uri", default="sqlite:///mlruns/mlflow.db")
+    ap.add_argument("--experiment", default="sdrl-bench")
+    ap.add_argument("--episodes", type=int, default=20)
+    args = ap.parse_args()
+    store = Path(args.uri.removeprefix("sqlite:///")).parent
+    runs = [r for r in find_runs(args.uri, args.experiment) if r["tags"].get("env") == "lunar_lander"
+            and r["status"] == "FINISHED" and "surrogate/final_return_mean" in r["metrics"]]
+    # both with the registered env's 1000-step limit, as the logged final evaluation
+    envs = {"real terrain": gym.make("LunarLander-v3"),
+            "flat terrain": gym.wrappers.TimeLimit(FlatLunarLander(), max_episode_steps=1000)}
+    means: dict[str, list[float]] = {k: [] for k in envs}
+    print(f"{'seed':>4} {'terrain':>13} {'mean':>7} {'crash':>6} {'off pad':>8} {'rest':>5} {'(logged)':>9}")
+    for r in sorted(runs, key=lambda r: int(r["tags"]["seed"])):
+        seed = int(r["tags"]["seed"])
+        zips = list((store / "artifacts").rglob(f"{r['run_id']}/artifacts/agents/surrogate.zip"))
+        if not zips:
+            print(f"{seed:>4} no agents/surrogate.zip under {store / 'artifacts'}")
+            continue
+        agent = PPO.load(zips[0], device="cpu")
+        for name, env in envs.items():
+            res = [play(agent, env, FINAL_EVAL_SEED + 1000 * seed + i) for i in range(args.episodes)]
+            rets = np.array([t for t, _, _ in res])
+            crashes = [x for _, e, x in res if e == "crash"]
+            means[name].append(float(rets.mean()))
+            logged = r["metrics"]["surrogate/final_return_mean"] if name == "real terrain" else float("nan")
+            print(f"{seed:>4} {name:>13} {rets.mean():>7.1f} {len(crashes):>6} "
+                  f"{sum(x is not None and abs(x) > 0.2 for x in crashes):>8} "
+                  f"{sum(e == 'rest' for _, e, _ in res):>5} {logged:>9.1f}")
+    for name, v in means.items():
+        arr = np.asarray(v)
+        print(f"{name}: {iqm_ci(arr)}; seeds >= 200: {int((arr >= 200).sum())} of {len(arr)}")
+
+
+if __name__ == "__main__":
+    main()
