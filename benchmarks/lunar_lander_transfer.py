@@ -3,7 +3,10 @@ mean real return (20 final episodes), its return in its own surrogate and the op
 real arm's mean; across seeds the IQM with a 95% bootstrap CI (scipy.stats.bootstrap,
 percentile, 10,000 resamples, seed 0) and how many seeds reach 200.
 
-    .venv/bin/python benchmarks/lunar_lander_transfer.py [--uri sqlite:///mlruns/mlflow.db]
+    .venv/bin/python benchmarks/lunar_lander_transfer.py [--uri sqlite:///mlruns/mlflow.db ...]
+
+Several ``--uri``: the arms may come from different stores (e.g. the real arm run once and kept
+in its own store); a seed's arm is taken from the first store that holds it.
 """
 
 from __future__ import annotations
@@ -31,19 +34,19 @@ def summary(values: list[float]) -> str:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--uri", default="sqlite:///mlruns/mlflow.db")
+    ap.add_argument("--uri", action="append", help="a store (repeatable; default sqlite:///mlruns/mlflow.db)")
     ap.add_argument("--experiment", default="sdrl-bench")
     args = ap.parse_args()
-    runs = [r for r in find_runs(args.uri, args.experiment) if r["tags"].get("env") == "lunar_lander"
-            and r["status"] == "FINISHED"]
+    runs = [r for uri in (args.uri or ["sqlite:///mlruns/mlflow.db"]) for r in find_runs(uri, args.experiment)
+            if r["tags"].get("env") == "lunar_lander" and r["status"] == "FINISHED"]
     per_seed: dict[int, dict[str, float]] = {}
     for r in runs:
         m, seed = r["metrics"], int(r["tags"].get("seed", -1))
         row = per_seed.setdefault(seed, {})
         for arm in ("surrogate", "real"):
-            if f"{arm}/final_return_mean" in m:
+            if f"{arm}/final_return_mean" in m and arm not in row:
                 row[arm] = m[f"{arm}/final_return_mean"]
-        if "surrogate/surrogate_optimism_gap" in m:
+        if "surrogate/surrogate_optimism_gap" in m and "gap" not in row:
             row["own"] = m["surrogate/surrogate_return_mean"]
             row["gap"] = m["surrogate/surrogate_optimism_gap"]
     print(f"{'seed':>4} {'surrogate arm (real)':>21} {'in own surrogate':>17} {'optimism gap':>13} {'real arm':>9}")

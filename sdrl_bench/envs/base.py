@@ -492,9 +492,10 @@ class EnvSpec:
         same order. Must agree with the batched functions; the tests check it."""
         return None
 
-    def make_step_batch(self, limit, obs_low, obs_high) -> Callable | None:
+    def make_step_batch(self, limit, obs_low, obs_high, rng=None) -> Callable | None:
         """A fused batched step after the model's prediction (or None: the surrogate composes
         ``apply_bounds``, ``exogenous``, clipping and ``reward_terminated`` with numpy).
+        ``rng()`` gives the surrogate's seeded generator, for what a spec draws per episode.
         ``step(states (N, n_state), raw actions (N, w), predictions (n_target, N))`` returns
         (next states (N, n_state), rewards, terminated, diverged), following
         ``sdrl_bench.surrogate.env.Surrogate.transition`` with divergence ``limit`` and observation

@@ -132,7 +132,8 @@ class Surrogate:
             self._pool = observed_initial_states(spec)
         self._setup_uncertainty(noise, penalty)
         self.step_one = spec.make_step_one(self.predictor, self.obs_low, self.obs_high) or self._generic_step_one
-        self._step_batch = spec.make_step_batch(self.limit, self.obs_low, self.obs_high) if fused else None
+        self._step_batch = (spec.make_step_batch(self.limit, self.obs_low, self.obs_high, rng=lambda: self.noise_rng)
+                            if fused else None)
         self.state_order = "F" if self._step_batch is None else "C"
         """Memory layout of the states ``transition`` returns (and steps fastest): a spec's fused
         step reads states row by row ("C"); the numpy composition works column by column ("F")."""

@@ -132,3 +132,66 @@ def test_one_state_step_agrees_with_the_batched_step_with_the_penalty(flight_mod
     plain = Surrogate(flight_model, LunarLanderSpec(), noise=False).transition(states, actions)[1]
     flight = (states[:, 6] == 0) & ~terminated
     assert np.all(rewards[flight] < plain[flight]) and np.array_equal(rewards[~flight], plain[~flight])
+
+
+# ------------------------------------------------------------------ terrain
+@pytest.mark.parametrize("seed", [0, 1, 7])
+def test_terrain_is_drawn_as_the_real_env_draws_it(seed):
+    """``draw_terrain`` from the generator the real env is seeded with gives the real env's
+    ground: its terrain polygons' edge heights, converted to observation units."""
+    import gymnasium as gym
+
+    env = gym.make("LunarLander-v3").unwrapped
+    env.reset(seed=seed)
+    h = 400 / 30
+    real = np.array([p[0][1] for p in env.sky_polys] + [env.sky_polys[-1][1][1]])  # 11 edge heights (m)
+    ours = task.draw_terrain(np.random.default_rng(seed), 1)[0]
+    assert np.allclose(ours * (h / 2) + 0.99 * h / 4, real, rtol=0, atol=1e-9)
+    assert np.all(ours[4:7] == 0.0) and np.ptp(ours) > 0.05  # flat on the pad, hills off it
+    env.close()
+
+
+def test_with_terrain_a_lander_touches_down_on_the_ground_under_its_legs(flight_model):
+    """A lander sinking slowly at x = -0.6 (off the pad) touches down at the ground's height
+    there, stands on it (the floor follows the ground), and a new episode draws new ground;
+    the same seed draws the same ground."""
+    from sdrl_bench.envs.lunar_lander.kernels import LEG_X, ground_at
+    from sdrl_bench.surrogate.env import Surrogate
+
+    spec = LunarLanderSpec(fit_regime="flight", terrain=True)
+
+    def ground(seed):  # a surrogate seeded like an env reset, one step to draw the row's terrain
+        sur = Surrogate(flight_model, spec)
+        sur.seed_noise(seed)
+        s = np.array([[-0.6, 1.0, 0, 0, 0, 0, 0, 0]])
+        nxt = sur._step_batch(s, np.zeros((1, 1)), s[:, :6].T.copy())[0]
+        return sur, sur._step_batch.memory["ground"][0].copy(), nxt
+
+    seed = next(sd for sd in range(50) if ground(sd)[1][2] > 0.15)  # a hill at x = -0.6
+    sur, g, s = ground(seed)
+    assert np.array_equal(g, ground(seed)[1]) and not np.array_equal(g, ground(seed + 1)[1])
+    gl, gr = ground_at(g, -0.6 - LEG_X), ground_at(g, -0.6 + LEG_X)
+    under = 0.5 * (gl + gr)
+    pred = s[:, :6].T.copy()
+    pred[1] = max(gl, gr) + 0.03  # down to just above the hill (the episode goes on: same terrain)
+    s = sur._step_batch(s, np.zeros((1, 1)), pred)[0]
+    assert np.array_equal(sur._step_batch.memory["ground"][0], g)
+    heights = []
+    for _ in range(20):  # sink 0.004 per step (a soft touchdown), legs up
+        pred = s[:, :6].T.copy()
+        pred[1] -= 0.004
+        s, r, term, _ = sur._step_batch(s, np.zeros((1, 1)), pred)
+        heights.append(s[0, 1])
+        if s[0, 6] or s[0, 7]:
+            break
+    assert max(s[0, 6], s[0, 7]) == 1.0 and not term[0] and heights[-1] > 0.1  # far above the pad's height
+    g_leg = gl if s[0, 6] else gr  # the leg that touched, on the ground under it
+    assert heights[-1] - g_leg <= spec.rules.touch_height < heights[-2] - g_leg
+    legs = s.copy()
+    pred = legs[:, :6].T.copy()
+    pred[1] = -0.3  # the model sinks it: the ground holds it up
+    s, _, _, _ = sur._step_batch(legs, np.zeros((1, 1)), pred)
+    assert s[0, 1] == pytest.approx(under + spec.rules.floor, abs=1e-6)
+    fresh = np.array([[0.3, 1.2, 0, 0, 0, 0, 0, 0]])  # a state the step did not return: a new episode
+    sur._step_batch(fresh, np.zeros((1, 1)), fresh[:, :6].T.copy())
+    assert not np.array_equal(sur._step_batch.memory["ground"][0], g)

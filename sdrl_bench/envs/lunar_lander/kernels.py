@@ -26,6 +26,10 @@ from numba import njit
  FRAMES, COULOMB, STICK) = range(14)
 SETTLE = 14  # 14 settle coefficients follow (task.SETTLE_TERMS)
 
+# Terrain (``task.draw_terrain``): ground heights at 11 chunk edges x = -1, -0.8, ..., 1
+# (observation units, relative to the pad); the legs stand LEG_X either side of the centre.
+CHUNK_X0, CHUNK_DX, LEG_X = -1.0, 0.2, 20.0 / 30.0 / 10.0
+
 
 @njit(cache=True)
 def _phi(x, y, vx, vy, angle, leg_left, leg_right):
@@ -68,14 +72,27 @@ def settle(x, y, vx, vy, an, w, left, main, right, k):
 
 
 @njit(cache=True)
-def _legs(s, y, an, k):
+def ground_at(g, x):
+    """Ground height at x on a terrain row g (heights at the chunk edges, linear between; 0
+    everywhere for an empty row: the flat world)."""
+    n = g.shape[0]
+    if n == 0:
+        return 0.0
+    u = min(max((x - CHUNK_X0) / CHUNK_DX, 0.0), n - 1.0)
+    i = min(int(u), n - 2)
+    return g[i] + (u - i) * (g[i + 1] - g[i])
+
+
+@njit(cache=True)
+def _legs(s, y, an, k, gl=0.0, gr=0.0):
     """(left flag, right flag, touchdown) after a step to height y, attitude an. Leg i touches
-    when its height ``y +- leg_tilt sin(an)`` (the left leg is lower at positive angles) drops to
-    ``touch_height`` and, once down, stays down until that height rises above
-    ``release_height``; flags set in s mean the lander stands on its legs (contact regime). A
-    touchdown is the first flag set from flight (both flags 0 in s)."""
+    when its height ``y +- leg_tilt sin(an)`` (the left leg is lower at positive angles) above
+    the ground under it (``gl``, ``gr``: 0 in the flat world) drops to ``touch_height`` and,
+    once down, stays down until that height rises above ``release_height``; flags set in s mean
+    the lander stands on its legs (contact regime). A touchdown is the first flag set from
+    flight (both flags 0 in s)."""
     t = k[TILT] * math.sin(an)
-    hl, hr = y + t, y - t
+    hl, hr = y + t - gl, y - t - gr
     ll = 1.0 if (hl <= k[TOUCH] or (s[6] > 0.5 and hl <= k[RELEASE])) else 0.0
     lr = 1.0 if (hr <= k[TOUCH] or (s[7] > 0.5 and hr <= k[RELEASE])) else 0.0
     flight = s[6] <= 0.5 and s[7] <= 0.5
@@ -183,13 +200,16 @@ def _bound(v, j, low, high):
 
 
 @njit(cache=True)
-def step(states, pred, cost, limit, low, high, k, last, count, nxt, reward, terminated, diverged):
+def step(states, pred, cost, limit, low, high, k, last, count, nxt, reward, terminated, diverged, ground):
     """Everything of a surrogate step after the prediction ``pred`` (6, N; the model's in
     flight, the settle step's on the legs: ``regime_dynamics``): divergence guard, float32 rounding,
     leg flags and the touchdown event, clipping to [low, high], the sleep counter, reward and
     termination. ``last`` (N, 8) holds each row's state returned last and ``count`` its sleep
     count: a row whose state is not the one returned last (a reset) counts from 0. Diverged
-    rows keep their state, reward 0, not terminated."""
+    rows keep their state, reward 0, not terminated. ``ground`` (N, chunks): each row's terrain
+    (``ground_at``); with 0 columns the world is flat and the settle step's floor holds, else a
+    lander on its legs stands at least ``floor`` above the ground under its legs."""
+    terrain = ground.shape[1] > 0
     for i in range(states.shape[0]):
         s = states[i]
         fresh = False
@@ -213,7 +233,13 @@ def step(states, pred, cost, limit, low, high, k, last, count, nxt, reward, term
         # the real env's float32 observation
         x, y, vx, vy = float(np.float32(pred[0, i])), float(np.float32(pred[1, i])), float(np.float32(pred[2, i])), float(np.float32(pred[3, i]))
         an, w = float(np.float32(pred[4, i])), float(np.float32(pred[5, i]))
-        ll, lr, down = _legs(s, y, an, k)
+        gl = gr = 0.0
+        if terrain:
+            c = math.cos(an)
+            gl, gr = ground_at(ground[i], x - LEG_X * c), ground_at(ground[i], x + LEG_X * c)
+            if s[6] > 0.5 or s[7] > 0.5:
+                y = max(y, k[FLOOR] + 0.5 * (gl + gr))
+        ll, lr, down = _legs(s, y, an, k, gl, gr)
         x, y, vx, vy = _bound(x, 0, low, high), _bound(y, 1, low, high), _bound(vx, 2, low, high), _bound(vy, 3, low, high)
         an, w, ll, lr = _bound(an, 4, low, high), _bound(w, 5, low, high), _bound(ll, 6, low, high), _bound(lr, 7, low, high)
         legs = ll > 0.5 or lr > 0.5

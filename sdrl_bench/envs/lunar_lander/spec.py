@@ -10,7 +10,7 @@ prediction has a noise floor no deterministic model beats (measured by replay: R
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import ClassVar
 from collections.abc import Callable
@@ -63,6 +63,9 @@ class LunarLanderSpec(EnvSpec):
     flight rows of seed 0's fit: 0.33)."""
     uncertainty_limit: float = float("inf")
     """Disagreement beyond which a flight step ends the episode as a crash (-100)."""
+    terrain: bool = False
+    """Random terrain off the pad in the surrogate, drawn per episode as the real env draws it
+    (``task.draw_terrain``); off: the flat world at the pad's height."""
     touchdown_set: str | None = None
     """Path of a saved touchdown test set (``touchdowns.TouchdownSet``, made by
     ``benchmarks/touchdown_set.py``): when it exists, every fit scores the touchdown event and
@@ -112,7 +115,9 @@ class LunarLanderSpec(EnvSpec):
         """Leg contacts derived from height and attitude (never regressed)."""
         return task.leg_contacts(self.rules, states, next_states)
 
-    def make_step_one(self, predictor: Callable[..., Callable], obs_low=None, obs_high=None) -> StepOne:
+    def make_step_one(self, predictor: Callable[..., Callable], obs_low=None, obs_high=None) -> StepOne | None:
+        if self.terrain:  # per-episode terrain lives in the batched step (the surrogate uses it with N = 1)
+            return None
         n = len(self.state_names)
         low = obs_low if obs_low is not None else [-np.inf] * n
         high = obs_high if obs_high is not None else [np.inf] * n
@@ -120,8 +125,9 @@ class LunarLanderSpec(EnvSpec):
             self.rules, bool(self.n_discrete_actions), predictor, self.divergence_limit(), low, high
         )
 
-    def make_step_batch(self, limit, obs_low, obs_high) -> Callable:
-        return task.make_step_batch(self.rules, bool(self.n_discrete_actions), limit, obs_low, obs_high)
+    def make_step_batch(self, limit, obs_low, obs_high, rng=None) -> Callable:
+        return task.make_step_batch(self.rules, bool(self.n_discrete_actions), limit, obs_low, obs_high,
+                                    terrain=self.terrain, rng=rng)
 
     def test_set_recipe(self) -> TestSetRecipe:
         """Twelve full episodes: the heuristic at eps 0 / 0.2 / 0.5 and uniform random actions,
@@ -152,8 +158,10 @@ class LunarLanderSpec(EnvSpec):
         return masks[self.fit_regime]
 
     def regime_dynamics(self, states, actions, predicted) -> np.ndarray:
-        """Landers on their legs take the settle step (``task``); in flight, the model's prediction."""
-        return task.regime_dynamics(self.rules, bool(self.n_discrete_actions), states, actions, predicted)
+        """Landers on their legs take the settle step (``task``); in flight, the model's prediction.
+        With terrain the floor is the ground's, applied in the batched step."""
+        rules = replace(self.rules, floor=-np.inf) if self.terrain else self.rules
+        return task.regime_dynamics(rules, bool(self.n_discrete_actions), states, actions, predicted)
 
     def noise_floor(self, test_name: str) -> dict | None:
         return HELDOUT_NOISE_FLOOR if test_name == self.test_set_recipe().name else None

@@ -32,6 +32,13 @@ with where it comes from (prior: the real env's source or Box2D's; fitted: on wh
   side-engine pulses) matched the real rest 112/112 with timing error 0 in 111
   (``benchmarks/touchdown_set.py``).
 * ``|x'| >= 1`` ends the episode with -100, as in the real env; a rest overrides a crash.
+* **Terrain** (``LunarLanderSpec.terrain``, off by default): the real env's ground is random per
+  episode off the pad (``draw_terrain``: its recipe, a prior). With it on, each surrogate
+  episode draws its own terrain from the surrogate's seeded generator, and the leg flags, the
+  touchdown and the floor are measured from the ground under the legs. The flat world taught
+  agents that land well on the pad but crash where real hills rise off it
+  (``benchmarks/lunar_lander_terrain.py``). The agent does not observe the terrain (nor does it
+  in the real env). Terrain needs the fused batched step (``make_step_batch``).
 
 The batched functions run compiled loops (``kernels``, numba); ``make_step_one`` is the same
 step for one state in plain Python; the tests check that the two agree. The pure functions of
@@ -204,25 +211,49 @@ def terminated(rules: LanderRules, states, actions, next_states) -> np.ndarray:
     return reward_terminated(rules, False, states, np.zeros((len(states), 2)), next_states)[1]
 
 
-def make_step_batch(rules: LanderRules, discrete: bool, limit, obs_low, obs_high):
+# The real env's terrain recipe (gymnasium LunarLander.reset), in its world units: 11 chunks over
+# W = 20 m, heights uniform in [0, H/2] (H = 400/30 m), the five around the pad at H/4, each
+# edge the mean of three neighbours times 0.99 (the source's 0.33).
+_H, _CHUNKS = 400.0 / 30.0, 11
+
+
+def draw_terrain(rng: np.random.Generator, n: int) -> np.ndarray:
+    """(n, 11) ground heights at the chunk edges x = -1, -0.8, ..., 1 in observation units,
+    relative to the pad (0 on the pad), drawn as the real env draws its terrain (a prior)."""
+    h = rng.uniform(0.0, _H / 2, size=(n, _CHUNKS + 1))
+    h[:, _CHUNKS // 2 - 2:_CHUNKS // 2 + 3] = _H / 4
+    smooth = 0.33 * (np.roll(h, 1, axis=1) + h + np.roll(h, -1, axis=1))[:, :_CHUNKS]
+    return (smooth - 0.99 * _H / 4) / (_H / 2)
+
+
+def make_step_batch(rules: LanderRules, discrete: bool, limit, obs_low, obs_high, terrain: bool = False,
+                    rng: Callable[[], np.random.Generator] | None = None):
     """The surrogate's batched step after the prediction, in one compiled loop:
     ``step(states, actions, pred)`` with predictions (6, N) (``regime_dynamics`` applied) ->
     (next states (N, 8) in C order, rewards, terminated, diverged). It keeps each row's sleep
-    count between calls; a row whose state is not the one it returned last starts from 0."""
+    count between calls; a row whose state is not the one it returned last starts from 0 (an
+    episode starts: with ``terrain``, it also draws that row's terrain from ``rng()``)."""
     kern, k = _kernels(), rules_vector(rules)
     limit, low, high = (np.array(v, dtype=float) for v in (limit, obs_low, obs_high))
     memory: dict[str, np.ndarray] = {}
+    draw = rng if rng is not None else (lambda: np.random.default_rng())
 
     def step(states: np.ndarray, actions: np.ndarray, pred: np.ndarray):
         n = len(states)
         if memory.get("last") is None or len(memory["last"]) != n:
             memory["last"], memory["count"] = np.full((n, 8), np.nan), np.zeros(n, dtype=np.int64)
+            memory["ground"] = np.zeros((n, _CHUNKS if terrain else 0))
+        if terrain:
+            fresh = np.flatnonzero((states != memory["last"]).any(axis=1))
+            if len(fresh):
+                memory["ground"][fresh] = draw_terrain(draw(), len(fresh))
         nxt = np.empty((n, 8))
         reward, ended, diverged = np.empty(n), np.empty(n, dtype=bool), np.empty(n, dtype=bool)
         kern.step(states, pred, engine_cost(actions, discrete), limit, low, high, k, memory["last"], memory["count"],
-                  nxt, reward, ended, diverged)
+                  nxt, reward, ended, diverged, memory["ground"])
         return nxt, reward, ended, diverged
 
+    step.memory = memory  # the terrain of each row (tests, diagnostics)
     return step
 
 
