@@ -5,7 +5,10 @@ pad's height). The surrogate's world is flat; if the flat real env scores far hi
 off the pad (not the dynamics model) is what the agents were never taught.
 
 Per seed: mean return, crashes (and how many of them touched down off the pad, |x| > 0.2) and
-rests, on both terrains; across seeds the IQM with a 95% bootstrap CI.
+rests, on both terrains; on the real terrain, the median downward speed (m/s) in the step before
+the first touchdown and the median |slope| of the ground there, for crashed and for survived
+touchdowns (a crash below the surrogate's touchdown speed, 3.05 m/s, on a slope is one the
+surrogate cannot teach). Across seeds the IQM with a 95% bootstrap CI.
 
     .venv/bin/python benchmarks/lunar_lander_terrain.py --uri sqlite:///path/mlruns/mlflow.db
 """
@@ -58,19 +61,32 @@ class FlatLunarLander(LunarLander):
             self._np_random = self._np_random._rng
 
 
-def play(agent, env, seed: int) -> tuple[float, str, float | None]:
-    """(return, end: rest / crash / out / truncated, x at the first touchdown)."""
+def _slope(env, x_obs: float) -> float:
+    """The real ground's slope under x (observation units; world x = 10 x + 10 m)."""
+    polys = env.unwrapped.sky_polys  # one per chunk: [(x1, y1), (x2, y2), ...]
+    wx = 10.0 * x_obs + 10.0
+    for p in polys:
+        if p[0][0] <= wx <= p[1][0]:
+            return (p[1][1] - p[0][1]) / (p[1][0] - p[0][0])
+    return float("nan")
+
+
+def play(agent, env, seed: int) -> tuple[float, str, float | None, float, float]:
+    """(return, end: rest / crash / out / truncated, x at the first touchdown, downward speed
+    (m/s) the step before it, |slope| of the ground there)."""
     obs, _ = env.reset(seed=seed)
-    total, done, x_td, r, term = 0.0, False, None, 0.0, False
+    total, done, x_td, r, term, speed, slope = 0.0, False, None, 0.0, False, float("nan"), float("nan")
     while not done:
         action = int(agent.predict(obs, deterministic=True)[0])
+        before = obs
         obs, r, term, trunc, _ = env.step(action)
         total += float(r)
         done = term or trunc
-        if x_td is None and (obs[6] > 0.5 or obs[7] > 0.5):
-            x_td = float(obs[0])
+        hit = obs[6] > 0.5 or obs[7] > 0.5 or (term and r == -100 and abs(obs[0]) < 1)
+        if x_td is None and hit:
+            x_td, speed, slope = float(obs[0]), -float(before[3]) * 7.5, abs(_slope(env, float(obs[0])))
     end = "truncated" if not term else ("rest" if r == 100 else ("out" if abs(obs[0]) >= 1 else "crash"))
-    return total, end, x_td
+    return total, end, x_td, speed, slope
 
 
 def iqm_ci(v: np.ndarray) -> str:
@@ -97,7 +113,9 @@ def main() -> None:
     envs = {"real terrain": gym.make("LunarLander-v3"),
             "flat terrain": gym.wrappers.TimeLimit(FlatLunarLander(), max_episode_steps=1000)}
     means: dict[str, list[float]] = {k: [] for k in envs}
-    print(f"{'seed':>4} {'terrain':>13} {'mean':>7} {'crash':>6} {'off pad':>8} {'rest':>5} {'(logged)':>9}")
+    print(f"{'seed':>4} {'terrain':>13} {'mean':>7} {'crash':>6} {'off pad':>8} {'rest':>5} {'(logged)':>9}"
+          f"  {'crashed: speed, |slope|':>24}  {'survived: speed, |slope|':>25}")
+    pooled: dict[str, list] = {"crash": [], "survived": []}
     for r in sorted(runs, key=lambda r: int(r["tags"]["seed"])):
         seed = int(r["tags"]["seed"])
         zips = list((store / "artifacts").rglob(f"{r['run_id']}/artifacts/agents/surrogate.zip"))
@@ -107,13 +125,27 @@ def main() -> None:
         agent = PPO.load(zips[0], device="cpu")
         for name, env in envs.items():
             res = [play(agent, env, FINAL_EVAL_SEED + 1000 * seed + i) for i in range(args.episodes)]
-            rets = np.array([t for t, _, _ in res])
-            crashes = [x for _, e, x in res if e == "crash"]
+            rets = np.array([t[0] for t in res])
+            crashes = [t[2] for t in res if t[1] == "crash"]
+            touch = {"crash": [t[3:] for t in res if t[1] == "crash" and t[2] is not None],
+                     "survived": [t[3:] for t in res if t[1] != "crash" and t[2] is not None]}
+            cells = ["" if name != "real terrain" else
+                     (f"{np.median([v for v, _ in touch[k]]):.2f}, {np.median([g for _, g in touch[k]]):.2f} (n={len(touch[k])})"
+                      if touch[k] else "-") for k in ("crash", "survived")]
+            if name == "real terrain":
+                for k in pooled:
+                    pooled[k] += touch[k]
             means[name].append(float(rets.mean()))
             logged = r["metrics"]["surrogate/final_return_mean"] if name == "real terrain" else float("nan")
             print(f"{seed:>4} {name:>13} {rets.mean():>7.1f} {len(crashes):>6} "
                   f"{sum(x is not None and abs(x) > 0.2 for x in crashes):>8} "
-                  f"{sum(e == 'rest' for _, e, _ in res):>5} {logged:>9.1f}")
+                  f"{sum(t[1] == 'rest' for t in res):>5} {logged:>9.1f}  {cells[0]:>24}  {cells[1]:>25}")
+    for k, rows in pooled.items():
+        if rows:
+            v, g = np.array(rows).T
+            print(f"real terrain, {k} touchdowns (all seeds): n={len(rows)}, downward speed median {np.median(v):.2f} m/s "
+                  f"[{v.min():.2f}, {v.max():.2f}], |slope| median {np.median(g):.2f}; on flat ground (|slope| < 0.05): "
+                  f"{int((g < 0.05).sum())}")
     for name, v in means.items():
         arr = np.asarray(v)
         print(f"{name}: {iqm_ci(arr)}; seeds >= 200: {int((arr >= 200).sum())} of {len(arr)}")
