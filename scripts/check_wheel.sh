@@ -13,7 +13,10 @@ rm -rf "$ROOT/build"  # a stale build/lib would carry deleted modules into the w
 "$PY" -m pip wheel --quiet --no-deps --no-build-isolation -w "$WORK/dist" "$ROOT" 2>/dev/null \
   || "$PY" -m pip wheel --quiet --no-deps -w "$WORK/dist" "$ROOT"
 WHEEL=$(ls "$WORK"/dist/sdrl_bench-*.whl)
-unzip -l "$WHEEL" | grep -q "sdrl_bench/conf/config.yaml" || { echo "check_wheel: the wheel holds no configs" >&2; exit 1; }
+# listed to a file first: `unzip -l | grep -q` under pipefail fails when grep exits before unzip
+# has written the rest (SIGPIPE), which a clean-clone CI run hit once
+unzip -l "$WHEEL" > "$WORK/wheel-files.txt"
+grep -q "sdrl_bench/conf/config.yaml" "$WORK/wheel-files.txt" || { echo "check_wheel: the wheel holds no configs" >&2; exit 1; }
 echo "check_wheel: installing $(basename "$WHEEL") into a fresh venv"
 "$PY" -m venv "$WORK/venv"
 V="$WORK/venv/bin"
