@@ -58,6 +58,14 @@ def read_model_json(path: str | Path) -> dict:
     return data
 
 
+def write_model_json(path: str | Path, data: dict) -> Path:
+    """Write a model file (``read_model_json``'s counterpart), creating its folder."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(data, indent=1))
+    return path
+
+
 _LOADERS: dict[str, Any] = {
     "sindy": "sdrl_bench.models.sindy:SindyModel",
     "nn": "sdrl_bench.models.nn:MLPDynamics",

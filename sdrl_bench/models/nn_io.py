@@ -13,7 +13,6 @@ cast and copy them silently), the sha256, and one-line ``ConfigError``s naming t
 from __future__ import annotations
 
 import hashlib
-import json
 import re
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,7 @@ import numpy as np
 import torch
 
 from sdrl_bench import ConfigError
+from sdrl_bench.models.base import write_model_json
 
 FORMAT = "sdrl-bench/nn-model-v1"
 TRAINING_KEYS = ("epochs_run", "steps_run", "n_train_rows", "n_val_rows", "val_member_std", "n_fit_samples")
@@ -55,8 +55,7 @@ def save(model: Any, path: Path) -> Path:
     weights = path.with_suffix(".pt")
     torch.save(dict(model.net_.state_dict()), weights)  # a plain dict of tensors
     sha = hashlib.sha256(weights.read_bytes()).hexdigest()
-    path.write_text(json.dumps(to_dict(model, weights.name, sha), indent=1))
-    return path
+    return write_model_json(path, to_dict(model, weights.name, sha))
 
 
 def _vector(d: dict, key: str, n: int, positive: bool = False) -> np.ndarray:

@@ -55,7 +55,7 @@ import pysindy as ps
 from pysindy.feature_library.base import BaseFeatureLibrary, x_sequence_or_item
 
 from sdrl_bench import ConfigError
-from sdrl_bench.models.base import read_model_json
+from sdrl_bench.models.base import read_model_json, write_model_json
 from sdrl_bench.models.blas import matmul_rows
 from sdrl_bench.models.snap import snap_equation
 from sdrl_bench.models.terms import TABLE, Term, evaluate_terms
@@ -432,10 +432,7 @@ class PerEquationModel:
         }
 
     def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), indent=1))
-        return path
+        return write_model_json(path, self.to_dict())
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "model") -> PerEquationModel:

@@ -13,7 +13,6 @@ saves as JSON data.
 from __future__ import annotations
 
 import copy
-import json
 import time
 from pathlib import Path
 from collections.abc import Sequence
@@ -23,7 +22,7 @@ import pysindy as ps
 from pysindy.feature_library.base import BaseFeatureLibrary
 
 from sdrl_bench import ConfigError
-from sdrl_bench.models.base import read_model_json
+from sdrl_bench.models.base import read_model_json, write_model_json
 from sdrl_bench.models.blas import matmul_rows
 from sdrl_bench.models.libraries import compile_terms
 from sdrl_bench.models.snap import snap_equation
@@ -213,10 +212,7 @@ class SindyModel:
         }
 
     def save(self, path: str | Path) -> Path:
-        path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(json.dumps(self.to_dict(), indent=1))
-        return path
+        return write_model_json(path, self.to_dict())
 
     @classmethod
     def from_dict(cls, d: dict, source: str = "model") -> SindyModel:
