@@ -172,8 +172,11 @@ def build_transfer_job(cfg: DictConfig, fit_job) -> TransferJob:
     arms = tuple(str(a) for a in rl.arms)
     steps = {k: int_key(cfg, f"rl.{k}") for k in ("surrogate_steps", "real_steps", "eval_every", "eval_episodes",
                                                    "final_episodes")}
+    stop = rl.get("stop_when_solved", False)
+    if not isinstance(stop, bool):
+        raise ConfigError(f"rl.stop_when_solved: true or false, got {stop!r}")
     return TransferJob(fit=fit_job, agent=agent, arms=arms, seed=int_key(cfg, "seed", minimum=0),
-                       progress_bar=bool(cfg.progress_bar), **steps)
+                       progress_bar=bool(cfg.progress_bar), stop_when_solved=stop, **steps)
 
 
 def real_arm_key(cfg: DictConfig) -> str:
@@ -184,6 +187,8 @@ def real_arm_key(cfg: DictConfig) -> str:
         "rl": {k: cfg.rl[k] for k in ("real_steps", "eval_every", "eval_episodes", "final_episodes")},
         "seed": cfg.seed,
     }
+    if cfg.rl.get("stop_when_solved", False):  # only when set: keys of earlier runs stay as they were
+        parts["rl"]["stop_when_solved"] = True
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

@@ -34,6 +34,10 @@ class AgentConfig:
     """Parallel env copies the algorithm trains on."""
     action_space: str = "any"
     """"continuous", "discrete" or "any": what the algorithm can act in."""
+    normalize_reward: bool = False
+    """Train on rewards scaled by a running std of the discounted return (SB3's ``VecNormalize``
+    with ``norm_obs=False``). Observations stay raw, so the trained policy acts in the real env
+    as it is; the agent's gamma is the return's discount."""
 
     def check(self, spec: EnvSpec) -> None:
         """Fail at config time when the algorithm cannot act in the env."""
@@ -111,26 +115,37 @@ def evaluate_real(
     policy: Any, spec: EnvSpec, n_episodes: int, seed: int, counts: Counter | None = None,
     phase: str = "evaluate", deterministic: bool = True,
 ) -> EvalResult:
-    """Play ``n_episodes`` in the real env (reset seeds ``seed + i``) with ``policy.predict``."""
+    """Play ``n_episodes`` in the real env (reset seeds ``seed + i``) with ``policy.predict``.
+
+    The episodes run side by side, one env each, stepped in lockstep with one batched
+    ``predict`` per step: a predict call costs more than a real MountainCar or LunarLander step,
+    so one call per episode per step made evaluation ~10x dearer than training between two
+    learning-curve points of a fast recipe. Each episode is the one played alone, up to the
+    float rounding of a batched forward pass (returns agreed to 1e-12 on MountainCar).
+    """
     counts = counts if counts is not None else Counter()
-    env = StepCounter(spec.make_env(), counts, phase)
-    rets, lens, succ = [], [], []
+    envs = [StepCounter(spec.make_env(), counts, phase) for _ in range(n_episodes)]
+    rets, lens = np.zeros(n_episodes), np.zeros(n_episodes, dtype=int)
+    succ = np.zeros(n_episodes, dtype=bool)
     try:
-        for i in range(n_episodes):
-            obs, _ = env.reset(seed=seed + i)
-            total, steps, done, term = 0.0, 0, False, False
-            while not done:
-                action, _ = policy.predict(obs, deterministic=deterministic)
-                obs, r, term, trunc, _ = env.step(action)
-                total += float(r)
-                steps += 1
-                done = term or trunc
-            rets.append(total)
-            lens.append(steps)
-            succ.append(spec.is_success(total, term))
+        obs = [env.reset(seed=seed + i)[0] for i, env in enumerate(envs)]
+        live = list(range(n_episodes))
+        while live:
+            actions, _ = policy.predict(np.stack([obs[i] for i in live]), deterministic=deterministic)
+            running = []
+            for i, action in zip(live, actions):
+                obs[i], r, term, trunc, _ = envs[i].step(action)
+                rets[i] += float(r)
+                lens[i] += 1
+                if term or trunc:
+                    succ[i] = spec.is_success(float(rets[i]), bool(term))
+                else:
+                    running.append(i)
+            live = running
     finally:
-        env.close()
-    return EvalResult(np.asarray(rets), np.asarray(lens), np.asarray(succ, dtype=bool))
+        for env in envs:
+            env.close()
+    return EvalResult(rets, lens, succ)
 
 
 @dataclass
@@ -145,42 +160,54 @@ class Curve:
     """Training wall seconds (evaluation time excluded) at each evaluation."""
     first_solved_step: int | None = None
     first_solved_wall: float | None = None
+    first_solved_cpu: float | None = None
+    """Training CPU seconds of this process (evaluations excluded) at the first solved point."""
 
 
 class RealEvalCallback(BaseCallback):
-    """Every ``every`` training steps, evaluate the current policy in the real env."""
+    """Every ``every`` training steps, evaluate the current policy in the real env.
+
+    ``stop_when_solved``: end training at the first evaluation whose mean reaches the env's
+    solved threshold (time-to-solve runs). ``clock`` and ``cpu_clock`` read wall and CPU
+    seconds (``time.perf_counter`` and ``time.process_time``; a test passes clocks that count
+    env steps, to check that evaluation time is kept out of the training time).
+    """
 
     def __init__(self, spec: EnvSpec, every: int, episodes: int, seed: int, counts: Counter,
-                 on_point: Callable[[int, float, float], None] | None = None):
+                 on_point: Callable[[int, float, float], None] | None = None, stop_when_solved: bool = False,
+                 clock: Callable[[], float] = time.perf_counter, cpu_clock: Callable[[], float] = time.process_time):
         super().__init__()
         self.spec, self.every, self.episodes, self.seed = spec, every, episodes, seed
-        self.counts, self.on_point = counts, on_point
+        self.counts, self.on_point, self.stop_when_solved = counts, on_point, stop_when_solved
+        self.clock, self.cpu_clock = clock, cpu_clock
         self.curve = Curve()
         self._next = every
         self.eval_wall_seconds = 0.0
         self.eval_cpu_seconds = 0.0
-        self._t0 = 0.0
+        self._t0 = self._c0 = 0.0
 
     def _on_training_start(self) -> None:
-        self._t0 = time.perf_counter()
+        self._t0, self._c0 = self.clock(), self.cpu_clock()
         self._point()
 
     def _on_step(self) -> bool:
         if self.num_timesteps >= self._next:
             self._next += self.every
             self._point()
-        return True
+        return not (self.stop_when_solved and self.curve.first_solved_step is not None)
 
     def _on_training_end(self) -> None:
         if not self.curve.steps or self.curve.steps[-1] != self.num_timesteps:
             self._point()
 
     def _point(self) -> None:
-        t, c = time.perf_counter(), time.process_time()
+        t, c = self.clock(), self.cpu_clock()
         res = evaluate_real(self.model, self.spec, self.episodes, self.seed, self.counts, "evaluate")
-        self.eval_wall_seconds += time.perf_counter() - t
-        self.eval_cpu_seconds += time.process_time() - c
-        wall = time.perf_counter() - self._t0 - self.eval_wall_seconds
+        t1, c1 = self.clock(), self.cpu_clock()
+        self.eval_wall_seconds += t1 - t
+        self.eval_cpu_seconds += c1 - c
+        wall = t1 - self._t0 - self.eval_wall_seconds
+        cpu = c1 - self._c0 - self.eval_cpu_seconds
         c = self.curve
         c.steps.append(int(self.num_timesteps))
         c.means.append(res.mean)
@@ -188,7 +215,7 @@ class RealEvalCallback(BaseCallback):
         c.wall.append(wall)
         solved = self.spec.solved_threshold
         if c.first_solved_step is None and solved is not None and res.mean >= solved:
-            c.first_solved_step, c.first_solved_wall = int(self.num_timesteps), wall
+            c.first_solved_step, c.first_solved_wall, c.first_solved_cpu = int(self.num_timesteps), wall, cpu
         if self.on_point is not None:
             self.on_point(int(self.num_timesteps), res.mean, res.std)
 
@@ -210,6 +237,11 @@ def train(
 ) -> TrainResult:
     """Build the agent around ``env`` and train it for ``steps`` env steps. ``progress_bar``:
     a string shows a progress bar named by it (e.g. "surrogate arm, SAC")."""
+    if agent.normalize_reward:
+        from stable_baselines3.common.vec_env import VecNormalize
+
+        keywords = getattr(agent.algo, "keywords", {})
+        env = VecNormalize(env, norm_obs=False, norm_reward=True, gamma=float(keywords.get("gamma", 0.99)))
     model = agent.algo(env=env, seed=seed, verbose=0)
     if logger is not None:
         model.set_logger(logger)
@@ -217,9 +249,11 @@ def train(
     if isinstance(progress_bar, str) and progress_bar:
         callbacks = [c for c in (callback, named_progress_bar(progress_bar)) if c is not None]
         progress_bar = False
-    t0, c0 = time.perf_counter(), time.process_time()
+    clock = callback.clock if callback is not None else time.perf_counter
+    cpu_clock = callback.cpu_clock if callback is not None else time.process_time
+    t0, c0 = clock(), cpu_clock()
     model.learn(total_timesteps=int(steps), callback=callbacks, progress_bar=bool(progress_bar))
-    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+    wall, cpu = clock() - t0, cpu_clock() - c0
     eval_wall = callback.eval_wall_seconds if callback is not None else 0.0
     eval_cpu = callback.eval_cpu_seconds if callback is not None else 0.0
     curve = callback.curve if callback is not None else Curve()

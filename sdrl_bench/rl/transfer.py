@@ -50,6 +50,9 @@ class TransferJob:
     """Real-env episodes per learning-curve point."""
     final_episodes: int = 20
     """Real-env episodes of the final, deterministic evaluation."""
+    stop_when_solved: bool = False
+    """End an arm's training at its first learning-curve evaluation at the solved threshold
+    (time-to-solve runs; the final evaluation still follows)."""
     seed: int = 0
     """Seed of agents and evaluations (the fit has its own, usually the same)."""
     progress_bar: bool = False
@@ -116,6 +119,10 @@ class ArmResult:
             m["solved_real_steps"] = real_model + (c.first_solved_step if self.arm == "real" else 0)
             m["solved_train_steps"] = c.first_solved_step
             m["solved_wall_seconds"] = c.first_solved_wall + self.seconds.get("collect_wall", 0.0) + self.seconds.get("fit_wall", 0.0)
+            if c.first_solved_cpu is not None:
+                m["solved_cpu_seconds"] = c.first_solved_cpu + self.seconds.get("collect_cpu", 0.0) + self.seconds.get("fit_cpu", 0.0)
+            if self.arm == "surrogate":
+                m["solved_surrogate_steps"] = c.first_solved_step
         return {k: float(v) for k, v in m.items()}
 
 
@@ -171,6 +178,7 @@ def run_arm(
     callback = RealEvalCallback(
         spec, job.eval_every, job.eval_episodes, seed=CURVE_EVAL_SEED + job.seed * 1000, counts=counts,
         on_point=(lambda s, m, sd: on_point(arm, s, m, sd)) if on_point else None,
+        stop_when_solved=job.stop_when_solved,
     )
     logger = logger_factory(arm) if logger_factory else None
     bar = f"{arm} arm, {job.agent.name.upper()}" if job.progress_bar else False

@@ -100,6 +100,8 @@ def used_params(config: Mapping[str, Any], uri: str, task: str = "fit") -> dict[
         agent = config.get("agent", {}) or {}
         p["agent.name"] = str(agent.get("name"))
         p["agent.n_envs"] = str(agent.get("n_envs"))
+        if agent.get("normalize_reward"):
+            p["agent.normalize_reward"] = "True"
         p.update({f"agent.{k}": v for k, v in _group(agent, "algo", skip=("algo.device",)).items()})
         p.update(_group(config, "rl", skip=("rl.reuse_real_arm",)))
     return {k: v for k, v in p.items() if v not in ("None", "null")}

@@ -1,0 +1,189 @@
+"""Time to solve: what a surrogate buys in wall-clock time, beside the controls that say why.
+
+Per env and seed, four arms, each trained until its first real evaluation at the env's solved
+threshold (``rl.stop_when_solved=true``, 10 real episodes per evaluation):
+
+  (a) the zoo recipe in the real env           (the paper's real arm)
+  (b) the fast recipe in real envs             (the control: same algorithm, same env count)
+  (c) the zoo recipe in the surrogate          (the paper's surrogate arm)
+  (d) the fast recipe in the surrogate
+
+For each: training wall and CPU seconds to the first solved evaluation (the surrogate arms'
+collection and fit included, every evaluation's time excluded and reported apart), real
+transitions used (model data, or real training steps), surrogate steps; medians over the seeds
+and the ratios (d)/(a), (d)/(b) (wall) and (d)/(b) (real transitions). An arm that never solves
+within its budget counts as infinitely slow.
+
+Every arm is an ordinary ``sdrl-bench -m`` sweep into one MLflow store (the packs
+``experiment=paper_<env>`` and ``experiment=fast_<env>``), so a rerun adopts finished jobs and
+resumes where a stopped one left off; ``--report-only`` prints the table from the store.
+
+    .venv/bin/python benchmarks/time_to_solve.py --env mountain_car --seeds 0-4 --workdir /tmp/tts
+
+The surrogate arms' expert collector is trained (and timed) once, before any arm, and cached
+under ``<workdir>/mlruns/experts``: its one-time cost is printed apart, not added to (c) or (d).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from tabulate import tabulate
+
+from sdrl_bench.tracking.read import find_runs
+
+PACKS = {"mountain_car": {"zoo": "paper_mountain_car", "fast": "fast_mountain_car"},
+         "lunar_lander": {"zoo": "paper_lunar_lander", "fast": "fast_lunar_lander"}}
+AGENTS = {"mountain_car": {"zoo": "sac", "fast": "ppo_fast"}, "lunar_lander": {"zoo": "ppo", "fast": "ppo_fast"}}
+"""The packs' agent names: how the runs of each recipe are told apart in the store."""
+ARMS = {"a": ("zoo", "real"), "b": ("fast", "real"), "c": ("zoo", "surrogate"), "d": ("fast", "surrogate")}
+LABELS = {"a": "(a) zoo recipe, real env", "b": "(b) fast recipe, real envs (control)",
+          "c": "(c) zoo recipe, surrogate (paper)", "d": "(d) fast recipe, surrogate"}
+# learning-curve cadence of the zoo recipes here (the fast packs set their own: one rollout):
+# finer than the paper packs' so the first solved point is not rounded up by a coarse grid
+ZOO_EVAL_EVERY = {"mountain_car": 1000, "lunar_lander": 16384}
+EVAL_EPISODES = 10
+
+
+def parse_seeds(text: str) -> list[int]:
+    if "-" in text:
+        lo, hi = text.split("-")
+        return list(range(int(lo), int(hi) + 1))
+    return [int(s) for s in text.split(",")]
+
+
+def cli(workdir: Path, overrides: list[str]) -> None:
+    """One ``sdrl-bench`` command in ``workdir`` (its experts cache and hydra folders live there)."""
+    cmd = [sys.executable, "-m", "sdrl_bench.cli.main", *overrides]
+    print("+ sdrl-bench " + " ".join(overrides), flush=True)
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+    subprocess.run(cmd, cwd=workdir, env=env, check=True, stdout=subprocess.DEVNULL)
+
+
+def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int) -> list[str]:
+    recipe, where = ARMS[arm]
+    out = [f"experiment={PACKS[env][recipe]}", f"rl.arms=[{where}]", f"seed={','.join(map(str, seeds))}",
+           "rl.stop_when_solved=true", "rl.reuse_real_arm=false", f"rl.eval_episodes={EVAL_EPISODES}",
+           f"tracking.uri={uri}", f"hydra.launcher.n_jobs={jobs}"]
+    if recipe == "zoo":
+        out.append(f"rl.eval_every={ZOO_EVAL_EVERY[env]}")
+    return out
+
+
+def pretrain_expert(env: str, workdir: Path, uri: str) -> float | None:
+    """Train the surrogate arms' expert once (``task=fit`` collects with it); its wall seconds,
+    or None when it was cached already."""
+    cached = list((workdir / "mlruns" / "experts").glob(f"{env}-*.zip"))
+    if cached:
+        return None
+    t0 = time.perf_counter()
+    cli(workdir, [f"experiment={PACKS[env]['zoo']}", "task=fit", f"tracking.uri={uri}", "progress_bar=false"])
+    return time.perf_counter() - t0
+
+
+def collect(uri: str, env: str) -> dict[str, dict[int, dict[str, float]]]:
+    """{arm letter: {seed: metrics of that arm}} from the finished time-to-solve runs (stopped
+    when solved, 10 episodes per evaluation) of ``env``; the latest run of a seed wins."""
+    out: dict[str, dict[int, dict[str, float]]] = {k: {} for k in ARMS}
+    for r in find_runs(uri, "sdrl-bench", "tags.`sdrl.kind` = 'transfer'"):
+        p, t = r["params"], r["tags"]
+        if (r["status"] != "FINISHED" or t.get("env") != env or p.get("rl.stop_when_solved") != "True"
+                or p.get("rl.eval_episodes") != str(EVAL_EPISODES)):
+            continue
+        recipe = next((k for k, v in AGENTS[env].items() if v == t.get("agent")), None)
+        where = t.get("arms")
+        letter = next((k for k, v in ARMS.items() if v == (recipe, where)), None)
+        if letter is None:
+            continue
+        m = {k.split("/", 1)[1]: v for k, v in r["metrics"].items() if k.startswith(f"{where}/")}
+        m["run_id"] = r["run_id"]
+        out[letter][int(t["seed"])] = m
+    return out
+
+
+def arm_row(metrics: dict[int, dict[str, float]], seeds: list[int]) -> dict[str, float]:
+    """Medians over the seeds (unsolved: infinite time and transitions)."""
+    rows = [metrics[s] for s in seeds if s in metrics]
+    solved = [m for m in rows if "solved_wall_seconds" in m]
+
+    def med(key: str, default: float = math.inf) -> float:
+        vals = [m.get(key, default) for m in rows]
+        return float(np.median(vals)) if vals else math.nan
+
+    return {
+        "seeds": len(rows), "solved": len(solved),
+        "wall": med("solved_wall_seconds"), "cpu": med("solved_cpu_seconds"),
+        "real": med("solved_real_steps"), "surrogate": med("solved_surrogate_steps", 0.0) if solved else math.nan,
+        "eval_wall": med("curve_eval_wall_seconds", math.nan), "final": med("final_return_mean", math.nan),
+    }
+
+
+def fmt(v: float, spec: str = ".3g") -> str:
+    if isinstance(v, float) and math.isinf(v):
+        return "not solved"
+    if isinstance(v, float) and math.isnan(v):
+        return "-"
+    return format(v, spec)
+
+
+def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None) -> None:
+    data = collect(uri, env)
+    print(f"\n{env}: time to a first real evaluation at the solved threshold ({EVAL_EPISODES} episodes), "
+          f"seeds {seeds}")
+    per_seed = []
+    for s in seeds:
+        per_seed.append([s] + [fmt(data[k].get(s, {}).get("solved_wall_seconds", math.inf)) if s in data[k] else "-"
+                                for k in ARMS])
+    print(tabulate(per_seed, headers=["seed", *(f"({k}) wall s" for k in ARMS)], stralign="right"))
+    rows = {k: arm_row(data[k], seeds) for k in ARMS}
+    table = [[LABELS[k], f"{r['solved']}/{r['seeds']}", fmt(r["wall"]), fmt(r["cpu"]), fmt(r["real"], ",.0f"),
+              fmt(r["surrogate"], ",.0f"), fmt(r["eval_wall"]), fmt(r["final"], ".1f")] for k, r in rows.items()]
+    print(tabulate(table, headers=["arm", "solved", "median wall s", "median CPU s", "real transitions",
+                                   "surrogate steps", "eval wall s (apart)", "final real return"],
+                   stralign="right"))
+
+    def ratio(num: str, den: str, key: str) -> str:
+        a, b = rows[num][key], rows[den][key]
+        if not (math.isfinite(a) and math.isfinite(b)) or b == 0:
+            return "n/a (an arm did not solve in most seeds)"
+        return f"{a / b:.3g}"
+
+    print(f"wall (d)/(a) = {ratio('d', 'a', 'wall')}, (d)/(b) = {ratio('d', 'b', 'wall')}, "
+          f"(b)/(a) = {ratio('b', 'a', 'wall')}; real transitions (d)/(b) = {ratio('d', 'b', 'real')}")
+    if expert_seconds is not None:
+        print(f"expert collector trained once before the arms: {expert_seconds:.0f} s wall (not in (c) or (d))")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--env", choices=sorted(PACKS), required=True)
+    ap.add_argument("--seeds", default="0-4", help="e.g. 0-4 or 0,2")
+    ap.add_argument("--workdir", default=".", help="where mlruns/ (store, experts cache) lives")
+    ap.add_argument("--uri", default=None, help="tracking URI (default: <workdir>/mlruns/mlflow.db)")
+    ap.add_argument("--arms", default="abcd", help="which arms to run, e.g. bd")
+    ap.add_argument("--jobs", type=int, default=2, help="jobs in parallel within an arm's sweep")
+    ap.add_argument("--report-only", action="store_true")
+    args = ap.parse_args()
+    workdir = Path(args.workdir).resolve()
+    workdir.mkdir(parents=True, exist_ok=True)
+    uri = args.uri or f"sqlite:///{workdir / 'mlruns' / 'mlflow.db'}"
+    (workdir / "mlruns").mkdir(exist_ok=True)
+    seeds = parse_seeds(args.seeds)
+    expert = None
+    if not args.report_only:
+        if any(ARMS[k][1] == "surrogate" for k in args.arms):
+            expert = pretrain_expert(args.env, workdir, uri)
+        for k in args.arms:
+            cli(workdir, arm_overrides(args.env, k, seeds, uri, args.jobs))
+    report(uri, args.env, seeds, expert)
+
+
+if __name__ == "__main__":
+    main()

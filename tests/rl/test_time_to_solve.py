@@ -1,0 +1,100 @@
+"""Time-to-solve runs: the fast recipes on tiny budgets, stop-when-solved, and the accounting that
+keeps evaluation time out of the training time (checked with clocks that count env steps)."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections import Counter
+from functools import partial
+
+import pytest
+from mlflow.tracking import MlflowClient
+from stable_baselines3 import PPO
+from stable_baselines3.common.vec_env import VecNormalize
+
+from helpers import compose_cfg, search
+from sdrl_bench import ConfigError
+from sdrl_bench.cli.build import build_fit_job
+from sdrl_bench.cli.train import run_train
+from sdrl_bench.envs import MountainCarSpec
+from sdrl_bench.rl.agents import AgentConfig, RealEvalCallback, real_vec_env, train
+
+TINY_FAST = [
+    "collector=heuristic", "agent.n_envs=4", "agent.algo.n_steps=16", "agent.algo.batch_size=32",
+    "agent.algo.n_epochs=1", "rl.surrogate_steps=64", "rl.real_steps=64", "rl.eval_every=64",
+    "rl.eval_episodes=1", "rl.final_episodes=2", "progress_bar=false",
+]
+
+
+def tiny_ppo(n_envs: int = 2) -> AgentConfig:
+    algo = partial(PPO, policy="MlpPolicy", n_steps=16, batch_size=32, n_epochs=1, gamma=0.95,
+                   policy_kwargs={"net_arch": [8]}, device="cpu")
+    return AgentConfig(name="ppo", algo=algo, n_envs=n_envs, normalize_reward=True)
+
+
+@pytest.mark.parametrize("pack,sde", [("fast_mountain_car", "True"), ("fast_lunar_lander", None)])
+def test_fast_recipes_compose_and_train_both_arms_on_tiny_budgets(store, pack, sde):
+    cfg = compose_cfg(f"experiment={pack}", f"tracking.uri={store}", *TINY_FAST)
+    summary = run_train(cfg, build_fit_job(cfg), None)
+    run = search(store).iloc[0]
+    assert run["status"] == "FINISHED" and run["tags.agent"] == "ppo_fast"
+    assert run["params.agent.normalize_reward"] == "True" and run["params.rl.stop_when_solved"] == "True"
+    assert run.get("params.agent.algo.use_sde") == sde  # gSDE for continuous actions only
+    # 4 envs x 16 steps: the budgets are whole rollouts, counted by the real env's own counter
+    assert run["metrics.real/real_transitions_train"] == 64 and run["metrics.surrogate/surrogate_steps"] == 64
+    assert run["metrics.surrogate/real_transitions_train"] == 0
+    assert run["metrics.surrogate/real_transitions_model"] == cfg.n_transitions
+    threshold = 90 if "mountain" in pack else 200
+    for arm in ("surrogate", "real"):
+        assert summary[f"{arm}/final_eval_episodes"] == 2
+        curve = [m.value for m in MlflowClient(store).get_metric_history(run["run_id"], f"{arm}/curve_return_mean")]
+        assert len(curve) >= 2  # before training and at its end
+        # solved figures exist exactly when a learning-curve point reached the threshold
+        assert (f"{arm}/solved_wall_seconds" in summary) == any(v >= threshold for v in curve)
+
+
+def test_training_time_excludes_evaluation_time():
+    """Clocks that count env steps: a training step costs 1 ms, an evaluation step 1 s of wall
+    (2 ms and 3 s of CPU). Every training-time figure must be the training steps' share alone."""
+    spec = MountainCarSpec()
+    counts: Counter = Counter()
+    wall = lambda: 0.001 * counts["train"] + 1.0 * counts["evaluate"]  # noqa: E731
+    cpu = lambda: 0.002 * counts["train"] + 3.0 * counts["evaluate"]  # noqa: E731
+    venv = real_vec_env(spec, 2, 0, counts, "train")
+    callback = RealEvalCallback(spec, every=32, episodes=2, seed=0, counts=counts, clock=wall, cpu_clock=cpu)
+    result = train(tiny_ppo(), venv, 96, 0, callback)
+    curve = callback.curve
+    assert curve.steps == [0, 32, 64, 96] and counts["train"] == 96
+    assert counts["evaluate"] >= 4 * 2  # 4 evaluations of 2 episodes were played and counted apart
+    assert result.wall_seconds == pytest.approx(0.001 * 96)
+    assert result.cpu_seconds == pytest.approx(0.002 * 96)
+    assert result.eval_wall_seconds == pytest.approx(1.0 * counts["evaluate"])
+    assert curve.wall == pytest.approx([0.001 * s for s in curve.steps])
+    # the agent trained on normalized rewards, the policy acts on raw observations
+    env = result.model.get_env()
+    assert isinstance(env, VecNormalize) and env.norm_reward and not env.norm_obs
+
+
+def test_stop_when_solved_ends_training_at_the_first_solved_evaluation():
+    spec = dataclasses.replace(MountainCarSpec(), solved_threshold=-1e9)  # any policy "solves" it
+    counts: Counter = Counter()
+    wall = lambda: 0.001 * counts["train"] + 1.0 * counts["evaluate"]  # noqa: E731
+    callback = RealEvalCallback(spec, every=32, episodes=2, seed=0, counts=counts, stop_when_solved=True,
+                                clock=wall, cpu_clock=wall)
+    result = train(tiny_ppo(), real_vec_env(spec, 2, 0, counts, "train"), 10_000, 0, callback)
+    assert callback.curve.first_solved_step == 0 and callback.curve.first_solved_wall == 0.0
+    assert result.model.num_timesteps == 2  # one vector step, then stopped (budget: 10,000)
+    assert counts["train"] == 2
+
+    # and without the switch the same run trains on
+    counts.clear()
+    callback = RealEvalCallback(spec, every=32, episodes=1, seed=0, counts=counts, clock=wall, cpu_clock=wall)
+    result = train(tiny_ppo(), real_vec_env(spec, 2, 0, counts, "train"), 64, 0, callback)
+    assert result.model.num_timesteps == 64 and callback.curve.first_solved_step == 0
+
+
+@pytest.mark.parametrize("value", ["maybe", "1"])
+def test_a_bad_stop_when_solved_is_one_line_naming_the_key(store, value):
+    cfg = compose_cfg("task=train", f"tracking.uri={store}", f"rl.stop_when_solved={value}")
+    with pytest.raises(ConfigError, match=r"^rl\.stop_when_solved: true or false, got"):
+        run_train(cfg, build_fit_job(cfg), None)
