@@ -133,7 +133,7 @@ def evaluate_real(
         while live:
             actions, _ = policy.predict(np.stack([obs[i] for i in live]), deterministic=deterministic)
             running = []
-            for i, action in zip(live, actions):
+            for i, action in zip(live, actions, strict=True):
                 obs[i], r, term, trunc, _ = envs[i].step(action)
                 rets[i] += float(r)
                 lens[i] += 1
