@@ -59,10 +59,10 @@ def parse_seeds(text: str) -> list[int]:
     return [int(s) for s in text.split(",")]
 
 
-def cli(workdir: Path, overrides: list[str]) -> None:
+def cli(workdir: Path, overrides: list[str], multirun: bool = True) -> None:
     """One ``sdrl-bench`` command in ``workdir`` (its experts cache and hydra folders live there)."""
-    cmd = [sys.executable, "-m", "sdrl_bench.cli.main", *overrides]
-    print("+ sdrl-bench " + " ".join(overrides), flush=True)
+    cmd = [sys.executable, "-m", "sdrl_bench.cli.main", *(["-m"] if multirun else []), *overrides]
+    print("+ " + " ".join(["sdrl-bench", *(["-m"] if multirun else []), *overrides]), flush=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
     subprocess.run(cmd, cwd=workdir, env=env, check=True, stdout=subprocess.DEVNULL)
 
@@ -84,7 +84,7 @@ def pretrain_expert(env: str, workdir: Path, uri: str) -> float | None:
     if cached:
         return None
     t0 = time.perf_counter()
-    cli(workdir, [f"experiment={PACKS[env]['zoo']}", "task=fit", f"tracking.uri={uri}", "progress_bar=false"])
+    cli(workdir, [f"experiment={PACKS[env]['zoo']}", "task=fit", f"tracking.uri={uri}", "progress_bar=false"], multirun=False)
     return time.perf_counter() - t0
 
 
@@ -104,6 +104,8 @@ def collect(uri: str, env: str) -> dict[str, dict[int, dict[str, float]]]:
             continue
         m = {k.split("/", 1)[1]: v for k, v in r["metrics"].items() if k.startswith(f"{where}/")}
         m["run_id"] = r["run_id"]
+        if "solved_wall_seconds" in m:  # training alone (the surrogate arms' collection and fit taken out)
+            m["solved_train_wall"] = m["solved_wall_seconds"] - m.get("collect_wall_seconds", 0.0) - m.get("fit_wall_seconds", 0.0)
         out[letter][int(t["seed"])] = m
     return out
 
@@ -122,6 +124,9 @@ def arm_row(metrics: dict[int, dict[str, float]], seeds: list[int]) -> dict[str,
         "wall": med("solved_wall_seconds"), "cpu": med("solved_cpu_seconds"),
         "real": med("solved_real_steps"), "surrogate": med("solved_surrogate_steps", 0.0) if solved else math.nan,
         "eval_wall": med("curve_eval_wall_seconds", math.nan), "final": med("final_return_mean", math.nan),
+        "rollout_share": float(np.median([m["solved_rollout_wall_seconds"] / m["solved_train_wall"]
+                                          for m in solved if "solved_rollout_wall_seconds" in m and m["solved_train_wall"] > 0]))
+        if any("solved_rollout_wall_seconds" in m for m in solved) else math.nan,
     }
 
 
@@ -144,9 +149,11 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None) -
     print(tabulate(per_seed, headers=["seed", *(f"({k}) wall s" for k in ARMS)], stralign="right"))
     rows = {k: arm_row(data[k], seeds) for k in ARMS}
     table = [[LABELS[k], f"{r['solved']}/{r['seeds']}", fmt(r["wall"]), fmt(r["cpu"]), fmt(r["real"], ",.0f"),
-              fmt(r["surrogate"], ",.0f"), fmt(r["eval_wall"]), fmt(r["final"], ".1f")] for k, r in rows.items()]
+              fmt(r["surrogate"], ",.0f"), fmt(r["rollout_share"], ".0%"), fmt(r["eval_wall"]), fmt(r["final"], ".1f")]
+             for k, r in rows.items()]
     print(tabulate(table, headers=["arm", "solved", "median wall s", "median CPU s", "real transitions",
-                                   "surrogate steps", "eval wall s (apart)", "final real return"],
+                                   "surrogate steps", "rollouts' share of training", "eval wall s (apart)",
+                                   "final real return"],
                    stralign="right"))
 
     def ratio(num: str, den: str, key: str) -> str:

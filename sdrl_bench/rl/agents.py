@@ -162,6 +162,9 @@ class Curve:
     first_solved_wall: float | None = None
     first_solved_cpu: float | None = None
     """Training CPU seconds of this process (evaluations excluded) at the first solved point."""
+    first_solved_rollout_wall: float | None = None
+    """Of ``first_solved_wall``, the seconds spent collecting rollouts (env steps and the policy's
+    actions); the rest went to gradient updates."""
 
 
 class RealEvalCallback(BaseCallback):
@@ -184,11 +187,29 @@ class RealEvalCallback(BaseCallback):
         self._next = every
         self.eval_wall_seconds = 0.0
         self.eval_cpu_seconds = 0.0
+        self.rollout_wall_seconds = 0.0
+        """Training wall seconds inside SB3's rollout collection (evaluations excluded): the env
+        steps and action sampling; the rest of the training time is gradient updates."""
         self._t0 = self._c0 = 0.0
+        self._rollout: tuple[float, float] | None = None  # (start, eval seconds at start)
 
     def _on_training_start(self) -> None:
         self._t0, self._c0 = self.clock(), self.cpu_clock()
         self._point()
+
+    def _on_rollout_start(self) -> None:
+        self._rollout = (self.clock(), self.eval_wall_seconds)
+
+    def _on_rollout_end(self) -> None:
+        self.rollout_wall_seconds += self._open_rollout(self.clock())
+        self._rollout = None
+
+    def _open_rollout(self, now: float) -> float:
+        """Rollout seconds of the collection under way (its evaluations excluded), 0 if none."""
+        if self._rollout is None:
+            return 0.0
+        start, eval_at_start = self._rollout
+        return now - start - (self.eval_wall_seconds - eval_at_start)
 
     def _on_step(self) -> bool:
         if self.num_timesteps >= self._next:
@@ -216,6 +237,7 @@ class RealEvalCallback(BaseCallback):
         solved = self.spec.solved_threshold
         if c.first_solved_step is None and solved is not None and res.mean >= solved:
             c.first_solved_step, c.first_solved_wall, c.first_solved_cpu = int(self.num_timesteps), wall, cpu
+            c.first_solved_rollout_wall = self.rollout_wall_seconds + self._open_rollout(t1)
         if self.on_point is not None:
             self.on_point(int(self.num_timesteps), res.mean, res.std)
 
@@ -229,6 +251,8 @@ class TrainResult:
     cpu_seconds: float
     """Training CPU seconds of this process, the learning-curve evaluations excluded."""
     eval_wall_seconds: float
+    rollout_wall_seconds: float = 0.0
+    """Of ``wall_seconds``, the time in rollout collection (env steps, actions); the rest is updates."""
 
 
 def train(
@@ -257,7 +281,8 @@ def train(
     eval_wall = callback.eval_wall_seconds if callback is not None else 0.0
     eval_cpu = callback.eval_cpu_seconds if callback is not None else 0.0
     curve = callback.curve if callback is not None else Curve()
-    return TrainResult(model, curve, wall - eval_wall, cpu - eval_cpu, eval_wall)
+    rollout = callback.rollout_wall_seconds if callback is not None else 0.0
+    return TrainResult(model, curve, wall - eval_wall, cpu - eval_cpu, eval_wall, rollout)
 
 
 def named_progress_bar(name: str):

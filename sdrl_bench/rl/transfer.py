@@ -121,6 +121,8 @@ class ArmResult:
             m["solved_wall_seconds"] = c.first_solved_wall + self.seconds.get("collect_wall", 0.0) + self.seconds.get("fit_wall", 0.0)
             if c.first_solved_cpu is not None:
                 m["solved_cpu_seconds"] = c.first_solved_cpu + self.seconds.get("collect_cpu", 0.0) + self.seconds.get("fit_cpu", 0.0)
+            if c.first_solved_rollout_wall is not None:
+                m["solved_rollout_wall_seconds"] = c.first_solved_rollout_wall
             if self.arm == "surrogate":
                 m["solved_surrogate_steps"] = c.first_solved_step
         return {k: float(v) for k, v in m.items()}
@@ -184,7 +186,8 @@ def run_arm(
     bar = f"{arm} arm, {job.agent.name.upper()}" if job.progress_bar else False
     result = train(job.agent, venv, steps, job.seed, callback, logger, bar)
     counts["eval_episodes"] = job.eval_episodes * len(result.curve.steps)
-    seconds.update(train_wall=result.wall_seconds, train_cpu=result.cpu_seconds, curve_eval_wall=result.eval_wall_seconds)
+    seconds.update(train_wall=result.wall_seconds, train_cpu=result.cpu_seconds, curve_eval_wall=result.eval_wall_seconds,
+                   train_rollout_wall=result.rollout_wall_seconds)
     if arm == "surrogate" and hasattr(venv, "n_diverged"):
         stats = {"diverged_episodes": float(sum(venv.n_diverged))}
     venv.close()

@@ -70,6 +70,8 @@ def test_training_time_excludes_evaluation_time():
     assert result.cpu_seconds == pytest.approx(0.002 * 96)
     assert result.eval_wall_seconds == pytest.approx(1.0 * counts["evaluate"])
     assert curve.wall == pytest.approx([0.001 * s for s in curve.steps])
+    # the fake clock moves only on env steps, so all training time is rollout time (updates: 0 s)
+    assert result.rollout_wall_seconds == pytest.approx(0.001 * 96)
     # the agent trained on normalized rewards, the policy acts on raw observations
     env = result.model.get_env()
     assert isinstance(env, VecNormalize) and env.norm_reward and not env.norm_obs
