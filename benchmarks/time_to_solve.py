@@ -1,12 +1,13 @@
 """Time to solve: what a surrogate buys in wall-clock time, beside the controls that say why.
 
-Per env and seed, four arms, each trained until its first real evaluation at the env's solved
+Per env and seed, four arms (and a fifth), each trained until its first real evaluation at the env's solved
 threshold (``rl.stop_when_solved=true``, 10 real episodes per evaluation):
 
   (a) the zoo recipe in the real env           (the paper's real arm)
   (b) the fast recipe in real envs             (the control: same algorithm, same env count)
   (c) the zoo recipe in the surrogate          (the paper's surrogate arm)
   (d) the fast recipe in the surrogate
+  (e) (d) with the surrogate fitted on the env's heuristic controller's data (no expert needed)
 
 For each: training wall and CPU seconds to the first solved evaluation (the surrogate arms'
 collection and fit included, every evaluation's time excluded and reported apart), real
@@ -21,7 +22,8 @@ resumes where a stopped one left off; ``--report-only`` prints the table from th
     .venv/bin/python benchmarks/time_to_solve.py --env mountain_car --seeds 0-4 --workdir /tmp/tts
 
 The surrogate arms' expert collector is trained (and timed) once, before any arm, and cached
-under ``<workdir>/mlruns/experts``: its one-time cost is printed apart, not added to (c) or (d).
+under ``<workdir>/mlruns/experts``: its one-time cost is printed apart, not added to (c) or (d); (e) shows the surrogate arm
+without an expert to train first.
 """
 
 from __future__ import annotations
@@ -43,9 +45,14 @@ PACKS = {"mountain_car": {"zoo": "paper_mountain_car", "fast": "fast_mountain_ca
          "lunar_lander": {"zoo": "paper_lunar_lander", "fast": "fast_lunar_lander"}}
 AGENTS = {"mountain_car": {"zoo": "sac", "fast": "ppo_fast"}, "lunar_lander": {"zoo": "ppo", "fast": "ppo_fast"}}
 """The packs' agent names: how the runs of each recipe are told apart in the store."""
-ARMS = {"a": ("zoo", "real"), "b": ("fast", "real"), "c": ("zoo", "surrogate"), "d": ("fast", "surrogate")}
+ARMS = {"a": ("zoo", "real"), "b": ("fast", "real"), "c": ("zoo", "surrogate"), "d": ("fast", "surrogate"),
+        "e": ("fast", "surrogate")}
+COLLECTOR = {"c": "expert", "d": "expert", "e": "heuristic"}
+"""The surrogate arms' data: the paper's (the pack's expert, eps = 0.2), or (e) the env's
+hand-written controller with the same eps, which needs no trained expert at all."""
 LABELS = {"a": "(a) zoo recipe, real env", "b": "(b) fast recipe, real envs (control)",
-          "c": "(c) zoo recipe, surrogate (paper)", "d": "(d) fast recipe, surrogate"}
+          "c": "(c) zoo recipe, surrogate (paper)", "d": "(d) fast recipe, surrogate",
+          "e": "(e) = (d), heuristic data"}
 # learning-curve cadence of the zoo recipes here (the fast packs set their own: one rollout):
 # finer than the paper packs' so the first solved point is not rounded up by a coarse grid
 ZOO_EVAL_EVERY = {"mountain_car": 1000, "lunar_lander": 16384}
@@ -74,6 +81,8 @@ def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int) -> 
            f"tracking.uri={uri}", f"hydra.launcher.n_jobs={jobs}"]
     if recipe == "zoo":
         out.append(f"rl.eval_every={ZOO_EVAL_EVERY[env]}")
+    if arm in COLLECTOR:
+        out.append(f"collector={COLLECTOR[arm]}")
     return out
 
 
@@ -99,7 +108,8 @@ def collect(uri: str, env: str) -> dict[str, dict[int, dict[str, float]]]:
             continue
         recipe = next((k for k, v in AGENTS[env].items() if v == t.get("agent")), None)
         where = t.get("arms")
-        letter = next((k for k, v in ARMS.items() if v == (recipe, where)), None)
+        collector = p.get("collector.name")
+        letter = next((k for k, v in ARMS.items() if v == (recipe, where) and COLLECTOR.get(k) == collector), None)
         if letter is None:
             continue
         m = {k.split("/", 1)[1]: v for k, v in r["metrics"].items() if k.startswith(f"{where}/")}
@@ -174,7 +184,7 @@ def main() -> None:
     ap.add_argument("--seeds", default="0-4", help="e.g. 0-4 or 0,2")
     ap.add_argument("--workdir", default=".", help="where mlruns/ (store, experts cache) lives")
     ap.add_argument("--uri", default=None, help="tracking URI (default: <workdir>/mlruns/mlflow.db)")
-    ap.add_argument("--arms", default="abcd", help="which arms to run, e.g. bd")
+    ap.add_argument("--arms", default="abcde", help="which arms to run, e.g. bd")
     ap.add_argument("--jobs", type=int, default=2, help="jobs in parallel within an arm's sweep")
     ap.add_argument("--report-only", action="store_true")
     args = ap.parse_args()
@@ -185,7 +195,7 @@ def main() -> None:
     seeds = parse_seeds(args.seeds)
     expert = None
     if not args.report_only:
-        if any(ARMS[k][1] == "surrogate" for k in args.arms):
+        if any(COLLECTOR.get(k) == "expert" for k in args.arms):
             expert = pretrain_expert(args.env, workdir, uri)
         for k in args.arms:
             cli(workdir, arm_overrides(args.env, k, seeds, uri, args.jobs))
