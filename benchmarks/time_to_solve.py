@@ -74,11 +74,11 @@ def cli(workdir: Path, overrides: list[str], multirun: bool = True) -> None:
     subprocess.run(cmd, cwd=workdir, env=env, check=True, stdout=subprocess.DEVNULL)
 
 
-def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int) -> list[str]:
+def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int, rerun: bool = False) -> list[str]:
     recipe, where = ARMS[arm]
     out = [f"experiment={PACKS[env][recipe]}", f"rl.arms=[{where}]", f"seed={','.join(map(str, seeds))}",
            "rl.stop_when_solved=true", "rl.reuse_real_arm=false", f"rl.eval_episodes={EVAL_EPISODES}",
-           f"tracking.uri={uri}", f"hydra.launcher.n_jobs={jobs}"]
+           f"tracking.uri={uri}", f"hydra.launcher.n_jobs={jobs}", *(["resume=false"] if rerun else [])]
     if recipe == "zoo":
         out.append(f"rl.eval_every={ZOO_EVAL_EVERY[env]}")
     if arm in COLLECTOR:
@@ -187,6 +187,8 @@ def main() -> None:
     ap.add_argument("--arms", default="abcde", help="which arms to run, e.g. bd")
     ap.add_argument("--jobs", type=int, default=2, help="jobs in parallel within an arm's sweep")
     ap.add_argument("--report-only", action="store_true")
+    ap.add_argument("--rerun", action="store_true", help="run the arms again (resume=false); the table takes "
+                    "each seed's latest run (e.g. after a code change the config does not show)")
     args = ap.parse_args()
     workdir = Path(args.workdir).resolve()
     workdir.mkdir(parents=True, exist_ok=True)
@@ -198,7 +200,7 @@ def main() -> None:
         if any(COLLECTOR.get(k) == "expert" for k in args.arms):
             expert = pretrain_expert(args.env, workdir, uri)
         for k in args.arms:
-            cli(workdir, arm_overrides(args.env, k, seeds, uri, args.jobs))
+            cli(workdir, arm_overrides(args.env, k, seeds, uri, args.jobs, args.rerun))
     report(uri, args.env, seeds, expert)
 
 

@@ -25,7 +25,7 @@ from sdrl_bench import ConfigError
 from sdrl_bench.models.base import read_model_json, write_model_json
 from sdrl_bench.models.blas import matmul_rows
 from sdrl_bench.models.libraries import compile_terms
-from sdrl_bench.models.snap import snap_equation
+from sdrl_bench.models.snap import prune_exact, snap_equation
 from sdrl_bench.models.terms import evaluate_terms, validate_terms
 
 FORMAT = "sdrl-bench/sindy-model-v1"
@@ -109,17 +109,25 @@ class SindyModel:
         return self
 
     def _snap(self, z: np.ndarray, x_next: np.ndarray) -> None:
-        """Round each exact equation's coefficients (see ``models.snap``); ``snap_digits_`` holds
+        """Prune each exact equation to its smallest exact support, then round its coefficients (see
+        ``models.snap``); ``snap_digits_`` holds
         the significant digits kept per equation (0: left as fitted)."""
         self.snap_digits_ = [0] * len(self.state_names_)
         if self.snap_alpha is None:
             return
+        changed = False
         for i, row in enumerate(self.coef_):
             active = np.flatnonzero(row)
             theta = evaluate_terms([self.terms_[k] for k in active], z)
+            kept, coef = prune_exact(theta, x_next[:, i], self.snap_rtol)
+            if len(kept) < len(active):  # an exact law on fewer terms: refitted on them
+                changed = True
+                row[active] = 0.0
+                active, theta = active[kept], theta[:, kept]
+                row[active] = coef
             row[active], self.snap_digits_[i] = snap_equation(
                 theta, x_next[:, i], row[active], self.snap_alpha, self.snap_rtol)
-        if any(self.snap_digits_):
+        if changed or any(self.snap_digits_):
             self._compile()
 
     def _check_columns(self, x: np.ndarray, u: np.ndarray, names: list[str]) -> None:

@@ -7,6 +7,14 @@ error, but enough to change the rounding of a float32 step now and then, so a su
 drifts a few ulps away from the real env over an episode. Occam's answer: of the coefficient
 vectors the data cannot reject, take the one with the fewest significant digits.
 
+``prune_exact`` comes first, for the same reason with terms instead of digits: of the supports
+the data cannot reject, take the smallest. Over a narrow band of positions (75 expert
+transitions of MountainCar seed 3) x, x^2, sin 3x, cos 3x and the bias are collinear to float32
+precision, and STLSQ keeps a seven-term x equation that fits those rows exactly but is wrong
+outside them (held-out MSE 2.8e-3, normalized 9.0). Backward elimination, each step dropping the
+term whose removal leaves the smallest residual while the equation stays exact, recovers the
+four-term law there (the next removal raises the residual from 2.7e-8 to 2.0e-4, relative).
+
 ``snap_equation`` does that for one equation, in two gates:
 
 1. **Exact regime.** The equation's residual RMS must be within ``rtol`` of its target's RMS
@@ -31,6 +39,32 @@ MAX_DIGITS = 15
 def round_significant(values: np.ndarray, digits: int) -> np.ndarray:
     """Each value rounded to ``digits`` significant decimal digits (then to the nearest double)."""
     return np.array([float(f"{float(v):.{digits - 1}e}") for v in np.ravel(values)])
+
+
+def _relative_residual(theta: np.ndarray, y: np.ndarray) -> tuple[float, np.ndarray]:
+    coef, *_ = np.linalg.lstsq(theta, y, rcond=None)
+    resid = y - theta @ coef
+    return float(np.sqrt(resid @ resid / max(float(y @ y), np.finfo(float).tiny))), coef
+
+
+def prune_exact(theta: np.ndarray, y: np.ndarray, rtol: float = 1e-6) -> tuple[np.ndarray, np.ndarray]:
+    """(kept column indices, their least-squares coefficients) for an exact equation
+    ``y ~ theta @ coef``: backward elimination of terms while the residual RMS stays within
+    ``rtol`` of the target's RMS. An equation that is not exact to begin with keeps every column
+    (its least-squares coefficients are returned; callers keep their own fit then)."""
+    theta, y = np.asarray(theta, dtype=float), np.asarray(y, dtype=float)
+    keep = list(range(theta.shape[1]))
+    res, coef = _relative_residual(theta, y) if keep else (np.inf, np.zeros(0))
+    if not res <= rtol:
+        return np.asarray(keep, dtype=int), coef
+    while len(keep) > 1:
+        trials = [(_relative_residual(theta[:, [j for j in keep if j != k]], y), k) for k in keep]
+        (best_res, best_coef), drop = min(trials, key=lambda t: t[0][0])
+        if not best_res <= rtol:
+            break
+        keep.remove(drop)
+        coef = best_coef
+    return np.asarray(keep, dtype=int), coef
 
 
 def snap_equation(theta: np.ndarray, y: np.ndarray, coef: np.ndarray, alpha: float = 0.01,
