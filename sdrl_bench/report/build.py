@@ -190,9 +190,9 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
         vals = [fmt(r["real_transitions"], "int", e), fmt(r["surrogate_steps"], "int", e), fmt(r["total_steps"], "int", e),
                 fmt(r["paper_total_steps"], "int", "-"), _ci_text(r), fmt(r["success_rate"], "pct", e),
                 fmt(r["train_wall_seconds"], "f1", e), solved]
-        rows.append([Cell(r["env"]), Cell(r["surrogate"]), Cell(r["arm"]), Cell(str(r["n_seeds"]))]
+        rows.append([Cell(r["env"]), Cell(r["surrogate"]), Cell(r["arm"]), Cell(r["agent"]), Cell(str(r["n_seeds"]))]
                     + [link.cell(v, ids) for v in vals] + [link.ids(ids)])
-    out.append(Table(["env", "surrogate", "arm", "seeds", "real transitions", "surrogate steps", "total steps",
+    out.append(Table(["env", "surrogate", "arm", "agent", "seeds", "real transitions", "surrogate steps", "total steps",
                       "paper total steps", "final real return [95% CI]", "success", "train wall s",
                       "real steps to solved", "runs"], rows,
                      "Finished transfer runs only (one per seed). Total steps as the paper counts them: surrogate "

@@ -198,7 +198,7 @@ TRANSFER_METRICS = ("real_transitions_model", "real_transitions_train", "surroga
 
 
 def transfer_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
-    """RL transfer per env, surrogate kind and arm (seeds pooled): real transitions used
+    """RL transfer per env, surrogate kind, agent and arm (seeds pooled): real transitions used
     (model + training), surrogate steps, total steps as the paper counts them, final real
     return (IQM or mean) with a 95% bootstrap CI over seeds, success rate, training wall
     seconds, real steps (and wall seconds) to first reach the solved threshold (mean over the
@@ -206,13 +206,16 @@ def transfer_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
     done = finished(runs, "transfer")
     rows = []
     for env in envs_of({"env": r["tags"].get("env")} for r in done):
-        for kind in ("sindy", "nn"):
-            group = [r for r in done if r["tags"].get("env") == env and r["tags"].get("surrogate", "sindy") == kind]
+        agents = sorted({r["tags"].get("agent", "?") for r in done if r["tags"].get("env") == env}) or ["-"]
+        for kind, agent in ((k, a) for k in ("sindy", "nn") for a in agents):
+            # one row group per agent: a store with the zoo recipe and a fast one keeps them apart
+            group = [r for r in done if r["tags"].get("env") == env and r["tags"].get("surrogate", "sindy") == kind
+                     and r["tags"].get("agent", "?") == agent]
             for arm in ARMS:
                 have = [r for r in group if f"{arm}/final_return_mean" in r["metrics"]]
                 returns = [r["metrics"][f"{arm}/final_return_mean"] for r in have]
                 point, lo, hi, stat = bootstrap_ci(returns, seed=seed)
-                row: dict[str, Any] = {"env": env, "surrogate": kind, "arm": arm, "n_seeds": len(have),
+                row: dict[str, Any] = {"env": env, "surrogate": kind, "arm": arm, "agent": agent, "n_seeds": len(have),
                                        "return": point, "ci_low": lo, "ci_high": hi, "statistic": stat}
                 for m in TRANSFER_METRICS:
                     row[m] = _mean(r["metrics"].get(f"{arm}/{m}") for r in have)
@@ -221,7 +224,7 @@ def transfer_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                 row["paper_total_steps"] = PAPER_TOTAL_STEPS.get(env, {}).get(arm, math.nan)
                 row["runs"] = [r["run_id"] for r in have]
                 rows.append(row)
-    cols = ["env", "surrogate", "arm", "n_seeds", "real_transitions", "surrogate_steps", "total_steps", "paper_total_steps",
+    cols = ["env", "surrogate", "arm", "agent", "n_seeds", "real_transitions", "surrogate_steps", "total_steps", "paper_total_steps",
             "return", "ci_low", "ci_high", "statistic", "success_rate", "train_wall_seconds", "solved_real_steps",
             "solved_wall_seconds", "n_solved", "real_transitions_model", "real_transitions_train", "runs"]
     return pd.DataFrame(rows, columns=cols)

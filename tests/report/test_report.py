@@ -29,8 +29,9 @@ def _fit(uri: str, env: str, library: str, surrogate: str, seed: int, mse: dict[
     return run.run_id
 
 
-def _transfer(uri: str, seed: int, surrogate_return: float, real_return: float, parent: str | None = None) -> str:
-    tags = {"sdrl.kind": "transfer", "env": "mountain_car", "agent": "sac", "surrogate": "sindy",
+def _transfer(uri: str, seed: int, surrogate_return: float, real_return: float, parent: str | None = None,
+              agent: str = "sac") -> str:
+    tags = {"sdrl.kind": "transfer", "env": "mountain_car", "agent": agent, "surrogate": "sindy",
             "library": "poly_trig", "seed": seed, "test_set": "mountain_car-heldout-v1"}
     with tracking.start_run(uri, EXP, f"train-s{seed}", tags, parent) as run:
         run.log_metrics({"surrogate/final_return_mean": surrogate_return, "real/final_return_mean": real_return,
@@ -104,6 +105,17 @@ def test_bootstrap_ci_matches_a_hand_computation() -> None:
     one = rt.bootstrap_ci([5.0])
     assert one[0] == 5.0 and math.isnan(one[1]) and math.isnan(one[2])  # no CI from one seed
     assert math.isnan(rt.bootstrap_ci([])[0])
+
+
+def test_runs_of_two_agents_get_rows_of_their_own(store: str) -> None:
+    """The zoo recipe and a fast one (agent=ppo_fast) in one store are not pooled."""
+    zoo = [_transfer(store, s, 94.0 + s, 95.0) for s in range(2)]
+    fast = [_transfer(store, s, 80.0 + s, 90.0, agent="ppo_fast") for s in range(3)]
+    tr = rt.transfer_table(tracking.find_runs(store, EXP)).set_index(["env", "surrogate", "agent", "arm"])
+    sac, ppo = tr.loc[("mountain_car", "sindy", "sac", "surrogate")], tr.loc[("mountain_car", "sindy", "ppo_fast", "surrogate")]
+    assert sorted(sac["runs"]) == sorted(zoo) and sac["return"] == pytest.approx(94.5)
+    assert sorted(ppo["runs"]) == sorted(fast) and ppo["return"] == pytest.approx(81.0)
+    assert tr.loc[("mountain_car", "nn", "ppo_fast", "real"), "n_seeds"] == 0
 
 
 def test_transfer_table_and_report_from_a_sweep(store: str, tmp_path) -> None:
