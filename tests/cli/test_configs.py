@@ -87,7 +87,7 @@ def test_every_experiment_pack_composes_and_validates(pack):
     assert cfg.task == "train"
     job = build_transfer_job(cfg, build_fit_job(cfg))
     job.check()  # agent fits the action space, budgets positive; no expert is trained here
-    assert job.agent.name in {"sac", "ppo"} and set(job.arms) == {"surrogate", "real"}
+    assert job.agent.name in {"sac", "ppo", "ppo_fast"} and set(job.arms) == {"surrogate", "real"}
 
 
 def test_paper_packs_use_the_papers_budgets():
