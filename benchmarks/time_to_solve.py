@@ -114,6 +114,8 @@ def collect(uri: str, env: str) -> dict[str, dict[int, dict[str, float]]]:
             continue
         m = {k.split("/", 1)[1]: v for k, v in r["metrics"].items() if k.startswith(f"{where}/")}
         m["run_id"] = r["run_id"]
+        if "solved_wall_seconds" in m and where == "real":
+            m["solved_surrogate_steps"] = 0.0
         if "solved_wall_seconds" in m:  # training alone (the surrogate arms' collection and fit taken out)
             m["solved_train_wall"] = m["solved_wall_seconds"] - m.get("collect_wall_seconds", 0.0) - m.get("fit_wall_seconds", 0.0)
         out[letter][int(t["seed"])] = m
@@ -132,7 +134,7 @@ def arm_row(metrics: dict[int, dict[str, float]], seeds: list[int]) -> dict[str,
     return {
         "seeds": len(rows), "solved": len(solved),
         "wall": med("solved_wall_seconds"), "cpu": med("solved_cpu_seconds"),
-        "real": med("solved_real_steps"), "surrogate": med("solved_surrogate_steps", 0.0) if solved else math.nan,
+        "real": med("solved_real_steps"), "surrogate": med("solved_surrogate_steps") if solved else math.nan,
         "eval_wall": med("curve_eval_wall_seconds", math.nan), "final": med("final_return_mean", math.nan),
         "rollout_share": float(np.median([m["solved_rollout_wall_seconds"] / m["solved_train_wall"]
                                           for m in solved if "solved_rollout_wall_seconds" in m and m["solved_train_wall"] > 0]))
