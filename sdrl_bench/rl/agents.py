@@ -118,10 +118,10 @@ def evaluate_real(
     """Play ``n_episodes`` in the real env (reset seeds ``seed + i``) with ``policy.predict``.
 
     The episodes run side by side, one env each, stepped in lockstep with one batched
-    ``predict`` per step: a predict call costs more than a real MountainCar or LunarLander step,
-    so one call per episode per step made evaluation ~10x dearer than training between two
-    learning-curve points of a fast recipe. Each episode is the one played alone, up to the
-    float rounding of a batched forward pass (returns agreed to 1e-12 on MountainCar).
+    ``predict`` per step: a predict call costs more than a real MountainCar step, and a fast
+    recipe evaluates every few seconds of training. Measured: 10 MountainCar episodes of 999
+    steps took 1.39 s batched against 3.87 s one episode at a time. Each episode is the one
+    played alone, up to the float rounding of a batched forward pass (returns agreed to 9e-13).
     """
     counts = counts if counts is not None else Counter()
     envs = [StepCounter(spec.make_env(), counts, phase) for _ in range(n_episodes)]
