@@ -273,16 +273,14 @@ def train(
     if isinstance(progress_bar, str) and progress_bar:
         callbacks = [c for c in (callback, named_progress_bar(progress_bar)) if c is not None]
         progress_bar = False
-    clock = callback.clock if callback is not None else time.perf_counter
-    cpu_clock = callback.cpu_clock if callback is not None else time.process_time
+    clock, cpu_clock = (callback.clock, callback.cpu_clock) if callback is not None else (time.perf_counter, time.process_time)
     t0, c0 = clock(), cpu_clock()
     model.learn(total_timesteps=int(steps), callback=callbacks, progress_bar=bool(progress_bar))
     wall, cpu = clock() - t0, cpu_clock() - c0
-    eval_wall = callback.eval_wall_seconds if callback is not None else 0.0
-    eval_cpu = callback.eval_cpu_seconds if callback is not None else 0.0
-    curve = callback.curve if callback is not None else Curve()
-    rollout = callback.rollout_wall_seconds if callback is not None else 0.0
-    return TrainResult(model, curve, wall - eval_wall, cpu - eval_cpu, eval_wall, rollout)
+    if callback is None:
+        return TrainResult(model, Curve(), wall, cpu, 0.0)
+    return TrainResult(model, callback.curve, wall - callback.eval_wall_seconds, cpu - callback.eval_cpu_seconds,
+                       callback.eval_wall_seconds, callback.rollout_wall_seconds)
 
 
 def named_progress_bar(name: str):
