@@ -72,6 +72,14 @@ class Transitions:
 _FIELDS = ("states", "actions", "rewards", "next_states", "terminated", "truncated", "episode", "step")
 
 
+def concat(parts: list[Transitions]) -> Transitions:
+    """The rows of ``parts`` one after the other (episode ids kept as they are)."""
+    parts = [p for p in parts if p is not None and len(p)]
+    if not parts:
+        raise ValueError("concat: no rows")
+    return Transitions(**{k: np.concatenate([getattr(p, k) for p in parts]) for k in _FIELDS})
+
+
 def columns(spec: EnvSpec) -> list[str]:
     """Dataset CSV columns for ``spec``, in file order."""
     return (
@@ -200,6 +208,40 @@ def _play_episode(spec, policy_factory, epsilon, seed, episode, limit, wrap_env=
         return rows
     finally:
         env.close()
+
+
+class TransitionRecorder(gym.Wrapper):
+    """Records every step of a real env as a dataset row (``Transitions`` layout), under the
+    episode id ``episode`` (the next reset starts episode ``episode + 1``): real transitions
+    spent on something else (an evaluation) become model data without being counted twice."""
+
+    def __init__(self, env: gym.Env, spec: EnvSpec, episode: int):
+        super().__init__(env)
+        self.env_spec, self.rows, self.episode, self._t = spec, [], episode - 1, 0
+        self._state = None
+
+    def _coords(self, obs, reference=None):
+        spec = self.env_spec
+        return spec.coordinates(obs, reference=reference) if spec.maps_observations else np.asarray(obs)
+
+    def reset(self, **kwargs):
+        obs, info = self.env.reset(**kwargs)
+        self.episode, self._t, self._state = self.episode + 1, 0, self._coords(obs)
+        return obs, info
+
+    def step(self, action):
+        nxt, reward, term, trunc, info = self.env.step(action)
+        next_state = self._coords(nxt, self._state)
+        self.rows.append((self._state, np.atleast_1d(np.asarray(action, dtype=float)), reward, next_state, term, trunc,
+                          self.episode, self._t))
+        self._t, self._state = self._t + 1, self._coords(nxt)
+        return nxt, reward, term, trunc, info
+
+
+def recorded(recorders: list[TransitionRecorder]) -> Transitions | None:
+    """The rows the recorders hold, in recorder order (None: no rows)."""
+    rows = [r for rec in recorders for r in rec.rows]
+    return _stack(rows) if rows else None
 
 
 def _stack(rows: list[tuple]) -> Transitions:

@@ -123,7 +123,16 @@ def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = N
                        max_steps_per_episode=job.max_steps_per_episode, wrap_env=job.wrap_env)
     seconds["collect_wall"] = time.perf_counter() - t0
     seconds["collect_cpu"] = time.process_time() - c0
+    return fit_transitions(job, library, data, seconds=seconds)
 
+
+def fit_transitions(job: FitJob, library: Any, data: Transitions, test: tuple[str, Transitions] | None = None,
+                    seconds: dict[str, float] | None = None) -> FitResult:
+    """Fit the job's model on ``data`` (the rows of its regime, off the known bounds) and score
+    it on the env's held-out test set (``test``: that set, when the caller holds it already).
+    Dyna refits every round through here, on all the real data so far."""
+    spec = job.spec
+    seconds = dict(seconds or {})
     x, u = spec.model_inputs(data.states, data.actions)
     x_next = data.next_states[:, spec.target_index]
     keep = ~spec.at_bound(data.next_states) if job.exclude_bound_transitions else np.ones(len(data), bool)
@@ -139,7 +148,7 @@ def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = N
     seconds["fit_cpu"] = model.fit_cpu_seconds_
 
     t0, c0 = time.perf_counter(), time.process_time()
-    test_name, test = held_out_test_set(spec)
+    test_name, test = test if test is not None else held_out_test_set(spec)
     norm = {n: s["std"] for n, s in data.normalization(spec).items()}
     report = evaluate(model, spec, test, norm_std=norm, test_name=test_name)
     if spec.defines_task:  # reward, termination and derived-flag fidelity of the surrogate built on it

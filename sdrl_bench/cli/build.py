@@ -26,6 +26,7 @@ from sdrl_bench import ConfigError
 from sdrl_bench.envs.functional import one_line
 from sdrl_bench.models.libraries import LibraryPart
 from sdrl_bench.pipeline import FitJob
+from sdrl_bench.rl.dyna import DynaConfig, DynaJob
 from sdrl_bench.rl.transfer import TransferJob
 
 CONFIG_MODULE = "sdrl_bench.conf"
@@ -177,6 +178,24 @@ def build_transfer_job(cfg: DictConfig, fit_job) -> TransferJob:
         raise ConfigError(f"rl.stop_when_solved: true or false, got {stop!r}")
     return TransferJob(fit=fit_job, agent=agent, arms=arms, seed=int_key(cfg, "seed", minimum=0),
                        progress_bar=bool(cfg.progress_bar), stop_when_solved=stop, **steps)
+
+
+def build_dyna_job(cfg: DictConfig, fit_job: FitJob) -> DynaJob:
+    """The typed Dyna job (``rl.dyna.*``: unknown keys and bad values are one-line errors naming the key)."""
+    import dataclasses
+
+    node = cfg.rl.get("dyna")
+    if node is None:
+        raise ConfigError("rl.dyna: missing (task=dyna needs the rl.dyna block of config.yaml)")
+    values = OmegaConf.to_container(node, resolve=True)
+    known = {f.name for f in dataclasses.fields(DynaConfig)}
+    unknown = sorted(set(values) - known)
+    if unknown:
+        raise ConfigError(f"rl.dyna.{unknown[0]}: unknown key; known: {', '.join(sorted(known))}")
+    dyna = DynaConfig(**values)
+    dyna.check()
+    agent = instantiate_key(cfg.agent, "agent")
+    return DynaJob(fit=fit_job, agent=agent, dyna=dyna, seed=int_key(cfg, "seed", minimum=0))
 
 
 def real_arm_key(cfg: DictConfig) -> str:

@@ -47,7 +47,7 @@ def adopt_finished_job(cfg: DictConfig, parent: str, tags: dict[str, str]) -> fl
     print(f"sdrl-bench: this job FINISHED in run {run['run_id']} of an earlier run of this sweep: adopted, not "
           "rerun (resume=false reruns it)", file=sys.stderr)
     m = run["metrics"]
-    value = m.get("mse_norm/mean", m.get("surrogate/final_return_mean", m.get("real/final_return_mean", 0.0)))
+    value = m.get("mse_norm/mean", m.get("surrogate/final_return_mean", m.get("real/final_return_mean", m.get("audit_return_mean", 0.0))))
     return float(value)
 
 
@@ -102,7 +102,8 @@ def _print_summary(result: FitResult, uri: str, run_id: str, experiment_id: str 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")
 def main(cfg: DictConfig) -> float:
     """Entry point of ``sdrl-bench``. ``task=fit`` returns the mean normalized one-step MSE,
-    ``task=train`` the surrogate arm's final real return (values for sweepers)."""
+    ``task=train`` the surrogate arm's final real return, ``task=dyna`` the final agent's
+    audit return (values for sweepers)."""
     # SIGTERM (a cluster scheduler, kill) and SIGINT unwind like an exception: the open MLflow
     # run ends KILLED instead of staying RUNNING. A sweep driver running jobs in-process keeps
     # its own handler (cli.callbacks), which also ends the parent run.
@@ -114,8 +115,8 @@ def main(cfg: DictConfig) -> float:
         if parent is not None:  # no progress bars inside multiruns
             OmegaConf.update(cfg, "progress_bar", False)
             tags = {SWEEP_KEY_TAG: key or "", CONFIG_KEY_TAG: config_key(cfg)}
-        if cfg.task not in ("fit", "train"):
-            raise ConfigError(f"task: {cfg.task!r} is not one of 'fit', 'train'")
+        if cfg.task not in ("fit", "train", "dyna"):
+            raise ConfigError(f"task: {cfg.task!r} is not one of 'fit', 'train', 'dyna'")
         fit_job = build_fit_job(cfg)  # validates the config before anything else
         if parent is not None and key and cfg.get("resume", True):
             done = adopt_finished_job(cfg, parent, tags)
@@ -123,6 +124,11 @@ def main(cfg: DictConfig) -> float:
                 return done
         if cfg.task == "fit":
             return float(run_fit(cfg, parent=parent, extra_tags=tags).fidelity.metrics["mse_norm/mean"])
+        if cfg.task == "dyna":
+            from sdrl_bench.cli.dyna import run_dyna_task
+
+            summary = run_dyna_task(cfg, fit_job, parent, extra_tags=tags)
+            return float(summary.get("audit_return_mean", summary.get("final_return_mean", 0.0)))
         from sdrl_bench.cli.train import run_train
 
         summary = run_train(cfg, fit_job, parent, extra_tags=tags)

@@ -537,6 +537,28 @@ class EnvSpec:
         (``fidelity.replay_noise_floor`` measures it; ``benchmarks/noise_floor.py``)."""
         return None
 
+    # ------------------------------------------------------------------ learned events (Dyna; hooks, neutral defaults)
+    event_feature_names: ClassVar[tuple[str, ...]] = ()
+    """Names of ``event_features``' columns (empty: the env has no learned events)."""
+
+    def event_data(self, data: Any) -> tuple[np.ndarray, np.ndarray] | None:
+        """(features (K, F), crashed (K,)) of the real events in ``data`` (a ``data.Transitions``
+        of whole or cut episodes) whose outcome the surrogate's rules leave open, for the learned
+        event model (``surrogate.events``); None: the env has no such events."""
+        return None
+
+    def event_rows(self, states: np.ndarray, next_states: np.ndarray, terminated: np.ndarray) -> np.ndarray | None:
+        """Mask (N,) of a surrogate step's rows where such an event happens and the rules did
+        not end the episode; None: no events."""
+        return None
+
+    def event_features(self, states: np.ndarray) -> np.ndarray:
+        """The learned event model's features of pre-event states (N, n_state)."""
+        raise NotImplementedError(f"env '{self.name}' has no learned events")
+
+    event_reward: ClassVar[float] = -100.0
+    """The reward of a step whose event the learned model ends in a crash."""
+
     def task_fidelity(self, test: Any) -> dict[str, float]:
         """Extra task-fidelity metrics of the surrogate's rules on real episodes (``test``: a
         ``data.Transitions`` of whole episodes); default: none."""

@@ -113,7 +113,7 @@ class EvalResult:
 
 def evaluate_real(
     policy: Any, spec: EnvSpec, n_episodes: int, seed: int, counts: Counter | None = None,
-    phase: str = "evaluate", deterministic: bool = True,
+    phase: str = "evaluate", deterministic: bool = True, wrap_env: Callable[[gym.Env, int], gym.Env] | None = None,
 ) -> EvalResult:
     """Play ``n_episodes`` in the real env (reset seeds ``seed + i``) with ``policy.predict``.
 
@@ -122,9 +122,12 @@ def evaluate_real(
     recipe evaluates every few seconds of training. Measured: 10 MountainCar episodes of 999
     steps took 1.39 s batched against 3.87 s one episode at a time. Each episode is the one
     played alone, up to the float rounding of a batched forward pass (returns agreed to 9e-13).
+    ``wrap_env(env, i)`` wraps episode i's counted env (Dyna records the episodes as model data).
     """
     counts = counts if counts is not None else Counter()
     envs = [StepCounter(spec.make_env(), counts, phase) for _ in range(n_episodes)]
+    if wrap_env is not None:
+        envs = [wrap_env(env, i) for i, env in enumerate(envs)]
     rets, lens = np.zeros(n_episodes), np.zeros(n_episodes, dtype=int)
     succ = np.zeros(n_episodes, dtype=bool)
     try:
@@ -261,14 +264,7 @@ def train(
 ) -> TrainResult:
     """Build the agent around ``env`` and train it for ``steps`` env steps. ``progress_bar``:
     a string shows a progress bar named by it (e.g. "surrogate arm, SAC")."""
-    if agent.normalize_reward:
-        from stable_baselines3.common.vec_env import VecNormalize
-
-        keywords = getattr(agent.algo, "keywords", {})
-        env = VecNormalize(env, norm_obs=False, norm_reward=True, gamma=float(keywords.get("gamma", 0.99)))
-    model = agent.algo(env=env, seed=seed, verbose=0)
-    if logger is not None:
-        model.set_logger(logger)
+    model = make_agent(agent, env, seed, logger)
     callbacks: Any = callback
     if isinstance(progress_bar, str) and progress_bar:
         callbacks = [c for c in (callback, named_progress_bar(progress_bar)) if c is not None]
@@ -281,6 +277,19 @@ def train(
         return TrainResult(model, Curve(), wall, cpu, 0.0)
     return TrainResult(model, callback.curve, wall - callback.eval_wall_seconds, cpu - callback.eval_cpu_seconds,
                        callback.eval_wall_seconds, callback.rollout_wall_seconds)
+
+
+def make_agent(agent: AgentConfig, env: VecEnv, seed: int, logger: Any = None) -> BaseAlgorithm:
+    """The untrained SB3 agent around ``env`` (inside ``VecNormalize`` when the config normalizes rewards)."""
+    if agent.normalize_reward:
+        from stable_baselines3.common.vec_env import VecNormalize
+
+        keywords = getattr(agent.algo, "keywords", {})
+        env = VecNormalize(env, norm_obs=False, norm_reward=True, gamma=float(keywords.get("gamma", 0.99)))
+    model = agent.algo(env=env, seed=seed, verbose=0)
+    if logger is not None:
+        model.set_logger(logger)
+    return model
 
 
 def named_progress_bar(name: str):

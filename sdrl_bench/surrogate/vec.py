@@ -100,7 +100,7 @@ class SurrogateVecEnv(VecEnv):
     """
 
     def __init__(self, model: Any, spec: EnvSpec | str | None = None, n_envs: int = 1, *,
-                 seed: int | None = None, initial_states: np.ndarray | None = None):
+                 seed: int | None = None, initial_states: np.ndarray | None = None, event_model: Any = None):
         if isinstance(model, Surrogate) and spec is None:
             self.surrogate = model
         else:
@@ -121,6 +121,33 @@ class SurrogateVecEnv(VecEnv):
         """Episodes ended by the divergence guard, per copy."""
         self._actions: np.ndarray | None = None
         self.closed = False
+        self.event_model = event_model
+        """A learned event model (``surrogate.events.EventModel``) or None: the spec's rules alone."""
+        self._event_rng = np.random.default_rng(None if seed is None else [seed, 2])
+        self.n_learned_crashes = 0
+        """Events the learned event model ended in a crash (all copies)."""
+
+    def swap_model(self, model: Any, event_model: Any = None, seed: int | None = None) -> None:
+        """Step on with a refitted ``model`` (and event model): Dyna swaps the surrogate under an
+        agent that keeps training. Episodes under way go on from their current states; ``seed``
+        seeds the new surrogate's step noise."""
+        old = self.surrogate
+        self.surrogate = Surrogate(model, old.spec, old._initial)
+        if seed is not None:
+            self.surrogate.seed_noise([seed, 1])
+        self._states = np.asarray(self._states, order=self.surrogate.state_order)
+        self.event_model = event_model
+
+    def _learned_events(self, nxt: np.ndarray, rewards: np.ndarray, terminated: np.ndarray) -> None:
+        """Ends, in place, the events the learned model draws as crashes (see ``surrogate.events``)."""
+        spec = self.surrogate.spec
+        rows = spec.event_rows(self._states, nxt, terminated)
+        idx = np.flatnonzero(rows) if rows is not None else ()
+        if len(idx):
+            p = self.event_model.probability(spec.event_features(self._states[idx]))
+            hit = idx[self._event_rng.random(len(idx)) < p]
+            rewards[hit], terminated[hit] = spec.event_reward, True
+            self.n_learned_crashes += len(hit)
 
     @property
     def env_spec(self) -> EnvSpec:
@@ -161,6 +188,9 @@ class SurrogateVecEnv(VecEnv):
         else:
             nxt, rewards, terminated, diverged = self.surrogate.transition(self._states, self._actions)
         self._actions = None
+        if self.event_model is not None:
+            rewards, terminated = np.array(rewards, dtype=float), np.array(terminated, dtype=bool)
+            self._learned_events(nxt, rewards, terminated)
         self._t += 1
         truncated = (self._t >= self._max_steps) | diverged
         dones = terminated | truncated

@@ -27,12 +27,14 @@ def fit_metrics(result) -> dict[str, float]:
 
 
 def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: str = "", *,
-            config: Mapping[str, Any] | None = None, task: str = "fit", model: bool = True) -> None:
+            config: Mapping[str, Any] | None = None, task: str = "fit", model: bool = True, rows=None) -> None:
     """Record a fit: lean params and ``config.yaml`` (from ``config``, the resolved config as a
     plain dict; or ``params`` as given), metrics (unprefixed: the same names in fit and transfer
     runs), data and test-set hashes, the datasets (inputs with digests), the model (the saved
     ``model.json`` and an MLflow pyfunc model logged from code), the equations as the run's
-    description, per-state fidelity as a table, and the predicted-vs-true figure."""
+    description, per-state fidelity as a table, and the predicted-vs-true figure. ``rows``: the
+    transitions to store as the run's data (default: all of ``result.data``; a Dyna round
+    stores the rows it added, so the rounds' files together are the model's data)."""
     from sdrl_bench.data import save_csv
     from sdrl_bench.plots import predicted_vs_true
     from sdrl_bench.tracking.meta import describe_experiment, experiment_id_of, log_config, set_description
@@ -49,7 +51,7 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
     )
     set_description(run, fit_description(result))
     with tempfile.TemporaryDirectory() as tmp:
-        csv = save_csv(result.data, spec, Path(tmp) / f"{spec.name}_transitions.csv")
+        csv = save_csv(result.data if rows is None else rows, spec, Path(tmp) / f"{spec.name}_transitions.csv")
         run.log_artifact(csv, "data")
         run.log_artifact(f"{csv}.stats.json", "data")
         model_dir = Path(tmp) / "model"
@@ -57,7 +59,7 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
         for path in sorted(model_dir.iterdir()):
             run.log_artifact(path, "model")
     run.log_text(model_.describe(), f"model/{model_.summary_file}")
-    log_datasets(run, result, f"data/{spec.name}_transitions.csv")
+    log_datasets(run, result, f"data/{spec.name}_transitions.csv", rows)
     if model:
         log_surrogate_model(run, result)
     _log_table(run, per_state_table(result), "fidelity/per_state.json")

@@ -75,7 +75,7 @@ def _group(cfg: Mapping[str, Any], key: str, *, skip: Sequence[str] = ()) -> dic
 def used_params(config: Mapping[str, Any], uri: str, task: str = "fit") -> dict[str, str]:
     """The parameters a run used, from the resolved config (a plain dict): seed and data,
     collector, model (SINDy: library and optimizer; else the surrogate's hyperparameters), and
-    for ``task="train"`` the agent and the RL budgets. Values that are None are left out;
+    for ``task="train"`` the agent and the RL budgets (``task="dyna"``: the agent and ``rl.dyna``). Values that are None are left out;
     ``tracking.uri`` is the store the run went to. The whole config goes in as ``config.yaml``."""
     arms = config.get("rl", {}).get("arms", []) if task == "train" else ["surrogate"]
     p: dict[str, str] = {"seed": str(config.get("seed")), "tracking.uri": uri}
@@ -96,14 +96,17 @@ def used_params(config: Mapping[str, Any], uri: str, task: str = "fit") -> dict[
         if surrogate.get("kind", "sindy") == "sindy":
             p.update(_group(config, "library"))
             p.update(_group(config, "optimizer"))
-    if task == "train":
+    if task in ("train", "dyna"):
         agent = config.get("agent", {}) or {}
         p["agent.name"] = str(agent.get("name"))
         p["agent.n_envs"] = str(agent.get("n_envs"))
         if agent.get("normalize_reward"):
             p["agent.normalize_reward"] = "True"
         p.update({f"agent.{k}": v for k, v in _group(agent, "algo", skip=("algo.device",)).items()})
-        p.update(_group(config, "rl", skip=("rl.reuse_real_arm",)))
+        if task == "train":
+            p.update(_group(config, "rl", skip=("rl.reuse_real_arm", "rl.dyna")))
+        else:
+            p.update({f"rl.{k}": v for k, v in _group(config.get("rl", {}) or {}, "dyna").items()})
     return {k: v for k, v in p.items() if v not in ("None", "null")}
 
 

@@ -61,9 +61,11 @@ def _csv_source(run: Run, artifact: str):
     return f"{base}/{artifact}"
 
 
-def log_datasets(run: Run, result, csv_artifact: str) -> None:
+def log_datasets(run: Run, result, csv_artifact: str, rows=None) -> None:
     """The training transitions (source: the run's CSV artifact) and the held-out test set
-    (source: the code that generates it) as the run's dataset inputs, with MLflow's digests."""
+    (source: the code that generates it) as the run's dataset inputs, with MLflow's digests.
+    ``rows``: the transitions the CSV holds instead of all of ``result.data`` (context
+    "training-new-rows": a Dyna round's additions)."""
     import mlflow.data
     from mlflow.data.code_dataset_source import CodeDatasetSource
     from mlflow.entities import DatasetInput, InputTag
@@ -75,7 +77,9 @@ def log_datasets(run: Run, result, csv_artifact: str) -> None:
     test_source = CodeDatasetSource({"sdrl.test_set": result.test_name, "sdrl.test_set_sha256": result.test_hash,
                                      "generator": "sdrl_bench.data.held_out_test_set"})
     inputs = []
-    for data, name, context, src in ((result.data, f"{spec.name}-transitions", "training", _csv_source(run, csv_artifact)),
+    train = (result.data, f"{spec.name}-transitions", "training") if rows is None else \
+        (rows, f"{spec.name}-new-transitions", "training-new-rows")
+    for data, name, context, src in ((*train, _csv_source(run, csv_artifact)),
                                      (result.test, result.test_name, "testing", test_source)):
         with warnings.catch_warnings():  # MLflow's hints on source ambiguity and integer columns
             warnings.simplefilter("ignore", UserWarning)

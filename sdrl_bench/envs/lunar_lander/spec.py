@@ -157,6 +157,51 @@ class LunarLanderSpec(EnvSpec):
             raise ConfigError(f"env.spec.fit_regime: {self.fit_regime!r} is not one of {sorted(masks)}")
         return masks[self.fit_regime]
 
+    # The learned touchdown event (Dyna, ``surrogate.events``): where off the pad a touchdown the
+    # rules let survive ends in a crash is learned from the agent's own real touchdowns.
+    event_feature_names: ClassVar[tuple[str, ...]] = ("x", "|x|", "x^2", "y", "vx", "vy", "angle", "angvel")
+    EVENT_WINDOW: ClassVar[int] = 30
+    """A real touchdown crashed when its episode ends with -100 within this many steps of it
+    (``touchdowns.CRASH_WINDOW``)."""
+
+    def event_features(self, states: np.ndarray) -> np.ndarray:
+        s = np.asarray(states, dtype=float)
+        x = s[:, 0]
+        return np.column_stack([x, np.abs(x), x * x, s[:, 1], s[:, 2], s[:, 3], s[:, 4], s[:, 5]])
+
+    def event_rows(self, states, next_states, terminated) -> np.ndarray:
+        """Touchdowns: s in flight (no leg flag), s' with a leg flag, not ended by the rules."""
+        s, ns = np.asarray(states), np.asarray(next_states)
+        return (s[:, 6] < 0.5) & (s[:, 7] < 0.5) & ((ns[:, 6] > 0.5) | (ns[:, 7] > 0.5)) & ~np.asarray(terminated, dtype=bool)
+
+    def event_data(self, data) -> tuple[np.ndarray, np.ndarray]:
+        """Each recorded episode's first touchdown (the first contact row, ``regimes``) that the
+        rules' touchdown event lets survive; crashed when the episode ends with -100 within
+        ``EVENT_WINDOW`` steps. A touchdown whose recorded episode stops sooner without ending
+        (a cut collection) has no known outcome and is left out."""
+        from sdrl_bench.envs.lunar_lander.touchdowns import event_crash
+
+        flight = self.regimes(data.episode, data.states, data.rewards, data.next_states)["flight"]
+        ep = np.asarray(data.episode)
+        starts = np.flatnonzero(np.r_[True, ep[1:] != ep[:-1]])
+        pre, crashed = [], []
+        for a, b in zip(starts, np.r_[starts[1:], len(ep)], strict=True):
+            hit = np.flatnonzero(~flight[a:b])
+            if not len(hit):
+                continue
+            i = a + hit[0]
+            ended = np.flatnonzero(data.terminated[i:b] | data.truncated[i:b])
+            end = i + ended[0] if len(ended) else None
+            if end is None and b - i < self.EVENT_WINDOW:
+                continue
+            crash = end is not None and end - i < self.EVENT_WINDOW and data.rewards[end] == -100 and data.terminated[end]
+            pre.append(data.states[i]), crashed.append(bool(crash))
+        if not pre:
+            return np.empty((0, len(self.event_feature_names))), np.empty(0, dtype=bool)
+        pre_arr, out = np.asarray(pre, dtype=float), np.asarray(crashed)
+        open_ = ~event_crash(self.rules, pre_arr)
+        return self.event_features(pre_arr[open_]), out[open_]
+
     def regime_dynamics(self, states, actions, predicted) -> np.ndarray:
         """Landers on their legs take the settle step (``task``); in flight, the model's prediction.
         With terrain the floor is the ground's, applied in the batched step."""

@@ -1,0 +1,331 @@
+"""Dyna-style refits: collect with the current agent, refit the surrogate, train on in it, repeat.
+
+The paper fits its surrogate once, from one collection. Here (after Sutton's Dyna, and the
+refit loops of MBPO and SINDy-RL) the agent's own behaviour brings back the real transitions
+its surrogate lacks:
+
+* round 0: collect ``fit.n_transitions`` with the job's collector (eps-greedy), fit the model
+  (and the learned event model, ``surrogate.events``), build the agent inside the surrogate;
+* round k >= 1: train the *same* agent ``surrogate_steps_per_round`` more steps in the
+  surrogate (round 1: ``first_round_steps``); screen it on ``eval_episodes`` real episodes; when
+  the screen reaches the solved threshold, confirm on ``final_episodes`` fresh real episodes:
+  solved when their mean does; otherwise collect ``collect_per_round`` real transitions with
+  the agent (deterministic action, eps-greedy), refit everything on all real data so far and
+  swap the new surrogate under the agent;
+* the loop ends solved, at ``max_real_transitions`` real steps, or after ``max_rounds``.
+
+Accounting that cannot flatter: every real step is counted by a wrapper on the real env, by
+phase: ``collect`` (model data), ``evaluate`` (screens), ``final`` (confirmations). With
+``data_from_evaluations`` the evaluation episodes join the model data too (recorded, never
+counted twice). The headline ``real_transitions_total`` is every real step the loop took,
+including those that decided it was done. After the loop, an ``audit`` of ``audit_episodes``
+more real episodes (fresh reset seeds) measures the final agent without selection: a loop that
+stops at its first lucky confirmation shows it there. The audit is outside the loop's count
+and reported apart.
+
+Plain functions over typed arguments; ``run_dyna`` hands each round to a ``DynaRecorder``
+(``tracking.dyna.DynaRunRecorder``: a parent run with a child run per round).
+"""
+
+from __future__ import annotations
+
+import time
+from collections import Counter
+from dataclasses import dataclass, field, replace
+from typing import Any, Protocol
+
+import numpy as np
+
+from sdrl_bench import ConfigError
+from sdrl_bench.data import TransitionRecorder, Transitions, concat, held_out_test_set, recorded
+from sdrl_bench.pipeline import FitJob, FitResult, check, fit_dynamics, fit_transitions
+from sdrl_bench.rl.agents import AgentConfig, EvalResult, StepCounter, evaluate_real, make_agent
+from sdrl_bench.surrogate.events import EventModel, fit_event_model
+
+# reset seeds of the loop's real episodes, per phase, far from the initial collection (seed + i)
+SCREEN_SEED, FINAL_SEED, COLLECT_SEED, AUDIT_SEED = 3_000_000, 4_000_000, 5_000_000, 6_000_000
+LOOP_PHASES = ("collect", "evaluate", "final")
+"""The phases whose real steps the loop counts (the audit is reported apart)."""
+
+
+@dataclass(frozen=True)
+class DynaConfig:
+    """The loop's budgets (``rl.dyna.*``)."""
+
+    collect_per_round: int = 2000
+    """Real transitions collected with the agent (eps-greedy) after each unsolved round."""
+    surrogate_steps_per_round: int = 100_000
+    """Surrogate training steps of rounds 2, 3, ..."""
+    first_round_steps: int = 300_000
+    """Surrogate training steps of round 1 (from an untrained agent)."""
+    max_real_transitions: int = 50_000
+    """The loop stops once it has taken this many real steps (collect + evaluate + final)."""
+    max_rounds: int = 20
+    eval_episodes: int = 5
+    """Real episodes of each round's screen."""
+    final_episodes: int = 20
+    """Real episodes of a confirmation (solved: their mean reaches the env's threshold)."""
+    epsilon: float = 0.2
+    """Exploration of the agent's collection: a uniform random action with this probability."""
+    data_from_evaluations: bool = True
+    """The screens' and confirmations' episodes join the model data."""
+    learn_events: bool = True
+    """Fit the learned event model (``surrogate.events``) every round; False: the rules alone."""
+    min_events: int = 8
+    """Real events needed before an event model is fitted."""
+    audit_episodes: int = 100
+    """Real episodes of the post-loop audit (0: none)."""
+
+    def check(self) -> None:
+        for key in ("collect_per_round", "surrogate_steps_per_round", "first_round_steps", "max_real_transitions",
+                    "max_rounds", "eval_episodes", "final_episodes", "min_events"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+                raise ConfigError(f"rl.dyna.{key}: a positive integer is required, got {value!r}")
+        if isinstance(self.audit_episodes, bool) or not isinstance(self.audit_episodes, (int, np.integer)) \
+                or self.audit_episodes < 0:
+            raise ConfigError(f"rl.dyna.audit_episodes: an integer >= 0 is required, got {self.audit_episodes!r}")
+        if isinstance(self.epsilon, bool) or not isinstance(self.epsilon, (int, float)) or not 0.0 <= self.epsilon <= 1.0:
+            raise ConfigError(f"rl.dyna.epsilon must be within [0, 1], got {self.epsilon!r}")
+        for key in ("data_from_evaluations", "learn_events"):
+            if not isinstance(getattr(self, key), bool):
+                raise ConfigError(f"rl.dyna.{key}: true or false, got {getattr(self, key)!r}")
+
+
+@dataclass(frozen=True)
+class DynaJob:
+    fit: FitJob
+    """The initial collection and the model recipe every round refits."""
+    agent: AgentConfig
+    dyna: DynaConfig = DynaConfig()
+    seed: int = 0
+
+    def check(self) -> tuple[Any, Any]:
+        """Config-time validation, before any env step."""
+        self.dyna.check()
+        spec = self.fit.spec
+        if not spec.defines_task:
+            raise ConfigError(f"env.spec.reward_fn: env '{spec.name}' defines no reward (nor termination): "
+                              "task=dyna trains in the surrogate")
+        if spec.solved_threshold is None:
+            raise ConfigError(f"env.spec.solved_threshold: env '{spec.name}' has none; task=dyna stops when solved")
+        self.agent.check(spec)
+        if self.fit.dataset_path:
+            raise ConfigError("dataset.path: task=dyna collects its own data (the loop counts every real step)")
+        return check(self.fit)
+
+
+@dataclass
+class RoundResult:
+    """One round: its refit (round 0: the first fit), the agent's real returns, the running account."""
+
+    round: int
+    fit: FitResult
+    events: EventModel | None
+    new_data: Transitions
+    """The real rows this round added to the model data."""
+    counts: dict[str, int]
+    """Real steps per phase, cumulative (collect, evaluate, final)."""
+    surrogate_steps: int
+    """Surrogate training steps, cumulative."""
+    seconds: dict[str, float]
+    """This round's wall and CPU seconds per phase (``<phase>_wall``, ``<phase>_cpu``)."""
+    screen: EvalResult | None = None
+    final: EvalResult | None = None
+    solved: bool = False
+    learned_crashes: int = 0
+    """Surrogate events the learned model ended in a crash during this round's training."""
+
+    @property
+    def real_transitions(self) -> int:
+        return int(sum(self.counts.get(p, 0) for p in LOOP_PHASES))
+
+    def metrics(self) -> dict[str, float]:
+        m: dict[str, float] = {
+            "round": self.round, "real_transitions_total": self.real_transitions,
+            "real_transitions_model": len(self.fit.data), "surrogate_steps": self.surrogate_steps,
+            **{f"real_steps_{p}": self.counts.get(p, 0) for p in LOOP_PHASES},
+            "new_rows": len(self.new_data), "learned_crashes": self.learned_crashes, "solved": float(self.solved),
+            **{f"{k}_seconds": v for k, v in self.seconds.items()},
+        }
+        if self.events is not None:
+            m.update({f"events/{k}": v for k, v in self.events.metrics().items()})
+        for name, res in (("screen", self.screen), ("final", self.final)):
+            if res is not None:
+                m.update({f"{name}_return_mean": res.mean, f"{name}_return_std": res.std,
+                          f"{name}_success_rate": res.success_rate, f"{name}_steps": res.steps})
+        return {k: float(v) for k, v in m.items()}
+
+
+class DynaRecorder(Protocol):
+    """Where ``run_dyna`` puts each round the moment it ends."""
+
+    def round_done(self, result: RoundResult, agent: Any) -> None: ...
+
+
+@dataclass
+class DynaOutcome:
+    rounds: list[RoundResult]
+    agent: Any
+    summary: dict[str, float]
+    audit: EvalResult | None = None
+    curve: list[tuple[int, float, float]] = field(default_factory=list)
+    """(real transitions so far, screen mean, screen std) per round: the learning curve."""
+
+
+class _Clock:
+    """Wall and CPU seconds of named phases."""
+
+    def __init__(self):
+        self.seconds: dict[str, float] = {}
+
+    def run(self, phase: str, fn, *args, **kwargs):
+        t0, c0 = time.perf_counter(), time.process_time()
+        try:
+            return fn(*args, **kwargs)
+        finally:
+            self.seconds[f"{phase}_wall"] = self.seconds.get(f"{phase}_wall", 0.0) + time.perf_counter() - t0
+            self.seconds[f"{phase}_cpu"] = self.seconds.get(f"{phase}_cpu", 0.0) + time.process_time() - c0
+
+
+def agent_policy(agent: Any):
+    """A collector policy factory (``data.collect``) acting with the agent's deterministic action."""
+    def factory(spec, env):
+        return lambda obs: agent.predict(obs, deterministic=True)[0]
+
+    return factory
+
+
+class _Loop:
+    """The state one Dyna run carries between rounds."""
+
+    def __init__(self, job: DynaJob, checked: tuple[Any, Any]):
+        self.job, self.library = job, checked[0]
+        self.counts: Counter = Counter()
+        self.data: Transitions | None = None
+        self.next_episode = 0
+        self.test = held_out_test_set(job.fit.spec)
+
+    def counted(self, phase: str):
+        return lambda env: StepCounter(env, self.counts, phase)
+
+    def evaluate(self, agent: Any, n: int, seed: int, phase: str) -> tuple[EvalResult, Transitions | None]:
+        spec, recorders = self.job.fit.spec, []
+
+        def wrap(env, i):
+            rec = TransitionRecorder(env, spec, self.next_episode + i)
+            recorders.append(rec)
+            return rec
+
+        res = evaluate_real(agent, spec, n, seed, self.counts, phase, wrap_env=wrap)
+        self.next_episode += n
+        return res, recorded(recorders)
+
+    def refit(self, clock: _Clock) -> tuple[FitResult, EventModel | None]:
+        job = self.job
+        fit = clock.run("fit", fit_transitions, job.fit, self.library, self.data, test=self.test)
+        events = (clock.run("events", fit_event_model, job.fit.spec, self.data, job.dyna.min_events)
+                  if job.dyna.learn_events else None)
+        return fit, events
+
+
+def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | None = None) -> DynaOutcome:
+    """The loop of the module docstring; every round goes to ``recorder`` as it ends."""
+    from sdrl_bench.surrogate.vec import SurrogateVecEnv
+
+    cfg, spec, seed = job.dyna, job.fit.spec, job.seed
+    loop = _Loop(job, checked)
+    clock = _Clock()
+    first = clock.run("collect", fit_dynamics, replace(job.fit, wrap_env=loop.counted("collect")), checked)
+    loop.data = first.data
+    loop.next_episode = int(first.data.episode.max()) + 1
+    clock.seconds.update({k: v for k, v in first.seconds.items() if k.startswith("fit")})
+    events = clock.run("events", fit_event_model, spec, loop.data, cfg.min_events) if cfg.learn_events else None
+    venv = SurrogateVecEnv(first.model, spec, job.agent.n_envs, seed=seed, event_model=events)
+    agent = make_agent(job.agent, venv, seed)
+    rounds = [RoundResult(0, first, events, first.data, dict(loop.counts), 0, clock.seconds)]
+    if recorder is not None:
+        recorder.round_done(rounds[0], agent)
+    curve: list[tuple[int, float, float]] = []
+    for k in range(1, cfg.max_rounds + 1):
+        clock = _Clock()
+        crashes0 = venv.n_learned_crashes
+        steps = cfg.first_round_steps if k == 1 else cfg.surrogate_steps_per_round
+        clock.run("train", agent.learn, total_timesteps=int(steps), reset_num_timesteps=False)
+        screen, new = clock.run("evaluate", loop.evaluate, agent, cfg.eval_episodes,
+                                SCREEN_SEED + seed * 10_000 + k * cfg.eval_episodes, "evaluate")
+        new_parts = [new] if cfg.data_from_evaluations else []
+        curve.append((sum(loop.counts[p] for p in LOOP_PHASES), screen.mean, screen.std))
+        final, solved = None, False
+        if screen.mean >= spec.solved_threshold:
+            final, new = clock.run("final", loop.evaluate, agent, cfg.final_episodes,
+                                   FINAL_SEED + seed * 10_000 + k * cfg.final_episodes, "final")
+            new_parts += [new] if cfg.data_from_evaluations else []
+            total = sum(loop.counts[p] for p in LOOP_PHASES)
+            solved = final.mean >= spec.solved_threshold and total <= cfg.max_real_transitions
+        total = sum(loop.counts[p] for p in LOOP_PHASES)
+        left = cfg.max_real_transitions - total
+        last = solved or left <= 0 or k == cfg.max_rounds
+        if not last:
+            got = clock.run("collect", _collect, loop, agent, min(cfg.collect_per_round, left),
+                            COLLECT_SEED + seed * 10_000 + k * 100)
+            new_parts.append(got)
+        new_rows = concat(new_parts) if any(p is not None and len(p) for p in new_parts) else loop.data.subset(slice(0, 0))
+        if len(new_rows):
+            loop.data = concat([loop.data, new_rows])
+        fit, events = (rounds[-1].fit, rounds[-1].events) if last else loop.refit(clock)
+        if not last:
+            venv.swap_model(fit.model, events, seed=seed * 1000 + k)
+        result = RoundResult(k, fit, events, new_rows, dict(loop.counts), int(agent.num_timesteps), clock.seconds,
+                             screen, final, solved, venv.n_learned_crashes - crashes0)
+        rounds.append(result)
+        if recorder is not None:
+            recorder.round_done(result, agent)
+        if last:
+            break
+    audit = None
+    if cfg.audit_episodes:
+        audit = evaluate_real(agent, spec, cfg.audit_episodes, AUDIT_SEED + seed * 10_000, loop.counts, "audit")
+    return DynaOutcome(rounds, agent, summarize(rounds, audit, spec.solved_threshold, cfg), audit, curve)
+
+
+def _collect(loop: _Loop, agent: Any, n: int, seed: int) -> Transitions:
+    from sdrl_bench.data import collect
+
+    job = loop.job
+    got = collect(job.fit.spec, agent_policy(agent), n, job.dyna.epsilon, seed, first_episode=loop.next_episode,
+                  wrap_env=loop.counted("collect"))
+    loop.next_episode = int(got.episode.max()) + 1
+    return got
+
+
+def summarize(rounds: list[RoundResult], audit: EvalResult | None, threshold: float, cfg: DynaConfig) -> dict[str, float]:
+    """The run's headline metrics: solved or not, what it cost in real steps (by phase),
+    surrogate steps and seconds, the last confirmation and the audit."""
+    last = rounds[-1]
+    seconds: Counter = Counter()
+    for r in rounds:
+        seconds.update(r.seconds)
+    m: dict[str, float] = {
+        "solved": float(last.solved), "rounds": float(last.round),
+        "real_transitions_total": last.real_transitions, "real_transitions_model": len(last.fit.data),
+        **{f"real_steps_{p}": last.counts.get(p, 0) for p in LOOP_PHASES},
+        "surrogate_steps": last.surrogate_steps, "budget_real_transitions": cfg.max_real_transitions,
+        **{f"{k}_seconds": v for k, v in seconds.items()},
+    }
+    m["wall_seconds"] = sum(v for k, v in seconds.items() if k.endswith("_wall"))
+    m["cpu_seconds"] = sum(v for k, v in seconds.items() if k.endswith("_cpu"))
+    if last.solved:
+        m["solved_real_transitions"] = last.real_transitions
+    screens = [r.screen.mean for r in rounds if r.screen is not None]
+    if screens:
+        m["best_screen_return"] = max(screens)
+    finals = [r for r in rounds if r.final is not None]
+    if finals:
+        m.update(final_return_mean=finals[-1].final.mean, final_return_std=finals[-1].final.std,
+                 final_success_rate=finals[-1].final.success_rate)
+    if audit is not None:
+        m.update(audit_return_mean=audit.mean, audit_return_std=audit.std, audit_success_rate=audit.success_rate,
+                 audit_episodes=len(audit.returns), audit_steps=audit.steps,
+                 audit_solved=float(audit.mean >= threshold))
+    return {k: float(v) for k, v in m.items()}
