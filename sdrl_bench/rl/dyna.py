@@ -31,14 +31,14 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any, Protocol
 
 import numpy as np
 
 from sdrl_bench import ConfigError
-from sdrl_bench.data import TransitionRecorder, Transitions, concat, held_out_test_set, recorded
-from sdrl_bench.pipeline import FitJob, FitResult, check, fit_dynamics, fit_transitions
+from sdrl_bench.data import TransitionRecorder, Transitions, collect, concat, held_out_test_set, random_policy, recorded
+from sdrl_bench.pipeline import FitJob, FitResult, check, fit_transitions
 from sdrl_bench.rl.agents import AgentConfig, EvalResult, StepCounter, evaluate_real, make_agent
 from sdrl_bench.surrogate.events import EventModel, fit_event_model
 
@@ -135,6 +135,10 @@ class RoundResult:
     solved: bool = False
     learned_crashes: int = 0
     """Surrogate events the learned model ended in a crash during this round's training."""
+    screened_at: int = 0
+    """Real steps of the loop when this round's screen ended (the learning curve's x)."""
+    refit: bool = True
+    """Whether this round refitted (the last round does not: ``fit`` is the previous round's)."""
 
     @property
     def real_transitions(self) -> int:
@@ -236,11 +240,11 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
     cfg, spec, seed = job.dyna, job.fit.spec, job.seed
     loop = _Loop(job, checked)
     clock = _Clock()
-    first = clock.run("collect", fit_dynamics, replace(job.fit, wrap_env=loop.counted("collect")), checked)
-    loop.data = first.data
-    loop.next_episode = int(first.data.episode.max()) + 1
-    clock.seconds.update({k: v for k, v in first.seconds.items() if k.startswith("fit")})
-    events = clock.run("events", fit_event_model, spec, loop.data, cfg.min_events) if cfg.learn_events else None
+    fj = job.fit
+    loop.data = clock.run("collect", collect, spec, fj.policy or random_policy, fj.n_transitions, fj.epsilon, fj.seed,
+                          max_steps_per_episode=fj.max_steps_per_episode, wrap_env=loop.counted("collect"))
+    loop.next_episode = int(loop.data.episode.max()) + 1
+    first, events = loop.refit(clock)
     venv = SurrogateVecEnv(first.model, spec, job.agent.n_envs, seed=seed, event_model=events)
     agent = make_agent(job.agent, venv, seed)
     rounds = [RoundResult(0, first, events, first.data, dict(loop.counts), 0, clock.seconds)]
@@ -255,7 +259,8 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
         screen, new = clock.run("evaluate", loop.evaluate, agent, cfg.eval_episodes,
                                 SCREEN_SEED + seed * 10_000 + k * cfg.eval_episodes, "evaluate")
         new_parts = [new] if cfg.data_from_evaluations else []
-        curve.append((sum(loop.counts[p] for p in LOOP_PHASES), screen.mean, screen.std))
+        screened_at = sum(loop.counts[p] for p in LOOP_PHASES)
+        curve.append((screened_at, screen.mean, screen.std))
         final, solved = None, False
         if screen.mean >= spec.solved_threshold:
             final, new = clock.run("final", loop.evaluate, agent, cfg.final_episodes,
@@ -277,7 +282,7 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
         if not last:
             venv.swap_model(fit.model, events, seed=seed * 1000 + k)
         result = RoundResult(k, fit, events, new_rows, dict(loop.counts), int(agent.num_timesteps), clock.seconds,
-                             screen, final, solved, venv.n_learned_crashes - crashes0)
+                             screen, final, solved, venv.n_learned_crashes - crashes0, screened_at, not last)
         rounds.append(result)
         if recorder is not None:
             recorder.round_done(result, agent)
@@ -290,8 +295,6 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
 
 
 def _collect(loop: _Loop, agent: Any, n: int, seed: int) -> Transitions:
-    from sdrl_bench.data import collect
-
     job = loop.job
     got = collect(job.fit.spec, agent_policy(agent), n, job.dyna.epsilon, seed, first_episode=loop.next_episode,
                   wrap_env=loop.counted("collect"))

@@ -37,7 +37,9 @@ class EventModel:
     train_log_loss: float
 
     def probability(self, features: np.ndarray) -> np.ndarray:
-        return self.classifier.predict_proba(np.asarray(features, dtype=float))[:, 1]
+        x = np.asarray(features, dtype=float)
+        classes = list(self.classifier.classes_)
+        return self.classifier.predict_proba(x)[:, classes.index(True)] if True in classes else np.zeros(len(x))
 
     def metrics(self) -> dict[str, float]:
         return {"n_events": float(self.n_events), "n_crashes": float(self.n_crashes),

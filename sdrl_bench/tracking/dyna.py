@@ -30,8 +30,14 @@ class DynaRunRecorder:
         tags = {**self.tags, "sdrl.kind": "dyna_round", "dyna.round": result.round}
         with start_run(self.parent.uri, self.experiment, f"{self.run_name}-round{result.round}", tags,
                        self.parent.run_id) as child:
-            if result.round == 0 or len(result.new_data):
+            if result.refit:
                 log_fit(child, result.fit, model=False, rows=result.new_data)
+            elif len(result.new_data):  # the last round's real rows, recorded but never fitted
+                with tempfile.TemporaryDirectory() as tmp:
+                    from sdrl_bench.data import save_csv
+
+                    spec = result.fit.job.spec
+                    child.log_artifact(save_csv(result.new_data, spec, Path(tmp) / f"{spec.name}_unfitted_rows.csv"), "data")
             child.log_metrics(result.metrics())
             if result.events is not None:
                 child.log_dict(result.events.to_dict(), "events/event_model.json")
@@ -47,7 +53,7 @@ class DynaRunRecorder:
                                 step=result.round)
         if result.screen is not None:
             self.parent.log_metrics({"dyna/curve_return_mean": result.screen.mean,
-                                     "dyna/curve_return_std": result.screen.std}, step=result.real_transitions)
+                                     "dyna/curve_return_std": result.screen.std}, step=result.screened_at)
 
     def real_arm_curve(self, key: str) -> tuple[list[int], list[float], list[float]] | None:
         """The curve of a finished real arm with ``key`` in the store (training steps, means, stds)."""

@@ -84,7 +84,7 @@ def log_datasets(run: Run, result, csv_artifact: str, rows=None) -> None:
         with warnings.catch_warnings():  # MLflow's hints on source ambiguity and integer columns
             warnings.simplefilter("ignore", UserWarning)
             ds = mlflow.data.from_pandas(_frame(data, spec), source=src, name=name)
-        inputs.append(DatasetInput(ds._to_mlflow_entity(), tags=[InputTag(MLFLOW_DATASET_CONTEXT, context)]))
+            inputs.append(DatasetInput(ds._to_mlflow_entity(), tags=[InputTag(MLFLOW_DATASET_CONTEXT, context)]))
     mlflow_client(run.uri).log_inputs(run.run_id, datasets=inputs)
 
 
