@@ -7,19 +7,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from sdrl_bench import tracking
 from sdrl_bench.cli.build import build_dyna_job, real_arm_key
+from sdrl_bench.cli.train import prepare
 from sdrl_bench.rl.dyna import LOOP_PHASES, DynaOutcome, run_dyna
 from sdrl_bench.tracking.dyna import DynaRunRecorder
 
 
 def run_dyna_task(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict[str, str] | None = None) -> dict[str, float]:
     """Validate, then run the loop inside one MLflow run; returns its summary metrics."""
-    import torch
-
-    torch.set_num_threads(int(cfg.torch_threads))
-    job = build_dyna_job(cfg, fit_job)
-    checked = job.check()
-    uri = tracking.resolve_uri(cfg.tracking.uri)
-    tracking.check_writable(uri)
+    job, checked, uri = prepare(cfg, build_dyna_job(cfg, fit_job))
     spec, names = job.fit.spec, job.fit.names
     base = {"env": spec.name, "agent": job.agent.name, "surrogate": names["surrogate"], "library": names["library"],
             "optimizer": names["optimizer"], "collector": names["collector"], "seed": job.seed,

@@ -18,13 +18,7 @@ from sdrl_bench.tracking.transfer import RunRecorder
 
 def run_train(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict[str, str] | None = None) -> dict[str, float]:
     """Validate, then run the arms of one seed inside one MLflow run; returns its metrics."""
-    import torch
-
-    torch.set_num_threads(int(cfg.torch_threads))
-    job = build_transfer_job(cfg, fit_job)
-    checked = job.check()
-    uri = tracking.resolve_uri(cfg.tracking.uri)
-    tracking.check_writable(uri)
+    job, checked, uri = prepare(cfg, build_transfer_job(cfg, fit_job))
     spec, names = job.fit.spec, job.fit.names
     key = real_arm_key(cfg)
     tags = {
@@ -48,6 +42,18 @@ def run_train(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict[str
         tracking.set_description(run, _description(outcome.summary, job, outcome.model_text))
     _print(outcome.summary, uri, run.run_id, job, outcome.model_text, exp_id)
     return outcome.summary
+
+
+def prepare(cfg: DictConfig, job):
+    """(job, what its check returned, store URI): torch's threads set, the job validated and the
+    store checked writable, before any env step or run (task=train and task=dyna)."""
+    import torch
+
+    torch.set_num_threads(int(cfg.torch_threads))
+    checked = job.check()
+    uri = tracking.resolve_uri(cfg.tracking.uri)
+    tracking.check_writable(uri)
+    return job, checked, uri
 
 
 def _start_banner(run_name: str, run_id: str, uri: str, exp_id: str, job: TransferJob) -> None:

@@ -83,11 +83,17 @@ def test_pendulum_needs_no_code_but_has_no_heuristic():
 def test_every_experiment_pack_composes_and_validates(pack):
     from sdrl_bench.cli.train import build_transfer_job
 
+    from sdrl_bench.cli.build import build_dyna_job, real_arm_key
+
     cfg = compose_cfg(f"experiment={pack}")
-    assert cfg.task == "train"
+    assert cfg.task in ("train", "dyna")
     job = build_transfer_job(cfg, build_fit_job(cfg))
     job.check()  # agent fits the action space, budgets positive; no expert is trained here
     assert job.agent.name in {"sac", "ppo", "ppo_fast"} and set(job.arms) == {"surrogate", "real"}
+    if cfg.task == "dyna":  # a Dyna pack validates, and finds the real arm of its fast pack (same key)
+        build_dyna_job(cfg, build_fit_job(cfg)).check()
+        fast = compose_cfg(f"experiment={pack.replace('dyna_', 'fast_')}")
+        assert real_arm_key(cfg) == real_arm_key(fast)
 
 
 def test_paper_packs_use_the_papers_budgets():
