@@ -53,7 +53,8 @@ class DynaConfig:
     """The loop's budgets (``rl.dyna.*``)."""
 
     collect_per_round: int = 2000
-    """Real transitions collected with the agent (eps-greedy) after each unsolved round."""
+    """Real transitions collected with the agent (eps-greedy) after each unsolved round (0: none;
+    the screens' episodes are then the only new data)."""
     surrogate_steps_per_round: int = 100_000
     """Surrogate training steps of rounds 2, 3, ..."""
     first_round_steps: int = 300_000
@@ -63,6 +64,9 @@ class DynaConfig:
     max_rounds: int = 20
     eval_episodes: int = 5
     """Real episodes of each round's screen."""
+    screen_max_steps: int | None = None
+    """Cut each screen episode after this many steps (None: play it out). A screen only decides
+    whether to confirm; the confirmation's episodes always play out."""
     final_episodes: int = 20
     """Real episodes of a confirmation (solved: their mean reaches the env's threshold)."""
     epsilon: float = 0.2
@@ -77,14 +81,20 @@ class DynaConfig:
     """Real episodes of the post-loop audit (0: none)."""
 
     def check(self) -> None:
-        for key in ("collect_per_round", "surrogate_steps_per_round", "first_round_steps", "max_real_transitions",
+        for key in ("surrogate_steps_per_round", "first_round_steps", "max_real_transitions",
                     "max_rounds", "eval_episodes", "final_episodes", "min_events"):
             value = getattr(self, key)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
                 raise ConfigError(f"rl.dyna.{key}: a positive integer is required, got {value!r}")
-        if isinstance(self.audit_episodes, bool) or not isinstance(self.audit_episodes, (int, np.integer)) \
-                or self.audit_episodes < 0:
-            raise ConfigError(f"rl.dyna.audit_episodes: an integer >= 0 is required, got {self.audit_episodes!r}")
+        for key in ("collect_per_round", "audit_episodes"):
+            value = getattr(self, key)
+            if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+                raise ConfigError(f"rl.dyna.{key}: an integer >= 0 is required, got {value!r}")
+        if self.screen_max_steps is not None and (isinstance(self.screen_max_steps, bool) or not isinstance(
+                self.screen_max_steps, (int, np.integer)) or self.screen_max_steps < 1):
+            raise ConfigError(f"rl.dyna.screen_max_steps: a positive integer or null is required, got {self.screen_max_steps!r}")
+        if self.collect_per_round == 0 and not self.data_from_evaluations:
+            raise ConfigError("rl.dyna.collect_per_round: 0 with data_from_evaluations false leaves the loop no new data")
         if isinstance(self.epsilon, bool) or not isinstance(self.epsilon, (int, float)) or not 0.0 <= self.epsilon <= 1.0:
             raise ConfigError(f"rl.dyna.epsilon must be within [0, 1], got {self.epsilon!r}")
         for key in ("data_from_evaluations", "learn_events"):
@@ -213,7 +223,8 @@ class _Loop:
     def counted(self, phase: str):
         return lambda env: StepCounter(env, self.counts, phase)
 
-    def evaluate(self, agent: Any, n: int, seed: int, phase: str) -> tuple[EvalResult, Transitions | None]:
+    def evaluate(self, agent: Any, n: int, seed: int, phase: str, max_steps: int | None = None
+                 ) -> tuple[EvalResult, Transitions | None]:
         spec, recorders = self.job.fit.spec, []
 
         def wrap(env, i):
@@ -221,7 +232,7 @@ class _Loop:
             recorders.append(rec)
             return rec
 
-        res = evaluate_real(agent, spec, n, seed, self.counts, phase, wrap_env=wrap)
+        res = evaluate_real(agent, spec, n, seed, self.counts, phase, wrap_env=wrap, max_steps=max_steps)
         self.next_episode += n
         return res, recorded(recorders)
 
@@ -257,7 +268,7 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
         steps = cfg.first_round_steps if k == 1 else cfg.surrogate_steps_per_round
         clock.run("train", agent.learn, total_timesteps=int(steps), reset_num_timesteps=False)
         screen, new = clock.run("evaluate", loop.evaluate, agent, cfg.eval_episodes,
-                                SCREEN_SEED + seed * 10_000 + k * cfg.eval_episodes, "evaluate")
+                                SCREEN_SEED + seed * 10_000 + k * cfg.eval_episodes, "evaluate", cfg.screen_max_steps)
         new_parts = [new] if cfg.data_from_evaluations else []
         screened_at = sum(loop.counts[p] for p in LOOP_PHASES)
         curve.append((screened_at, screen.mean, screen.std))
@@ -271,7 +282,7 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
         total = sum(loop.counts[p] for p in LOOP_PHASES)
         left = cfg.max_real_transitions - total
         last = solved or left <= 0 or k == cfg.max_rounds
-        if not last:
+        if not last and cfg.collect_per_round:
             got = clock.run("collect", _collect, loop, agent, min(cfg.collect_per_round, left),
                             COLLECT_SEED + seed * 10_000 + k * 100)
             new_parts.append(got)

@@ -102,7 +102,8 @@ def test_dyna_cli_writes_parent_and_round_runs(store, tmp_path):
 
 
 @pytest.mark.parametrize("override,needle", [
-    ("rl.dyna.collect_per_round=0", "rl.dyna.collect_per_round: a positive integer"),
+    ("rl.dyna.collect_per_round=-1", "rl.dyna.collect_per_round: an integer >= 0"),
+    ("rl.dyna.first_round_steps=0", "rl.dyna.first_round_steps: a positive integer"),
     ("rl.dyna.max_real_transitions=1.5", "rl.dyna.max_real_transitions: a positive integer"),
     ("rl.dyna.epsilon=2", "rl.dyna.epsilon must be within [0, 1]"),
     ("rl.dyna.learn_events=maybe", "rl.dyna.learn_events: true or false"),

@@ -159,7 +159,8 @@ class LunarLanderSpec(EnvSpec):
 
     # The learned touchdown event (Dyna, ``surrogate.events``): where off the pad a touchdown the
     # rules let survive ends in a crash is learned from the agent's own real touchdowns.
-    event_feature_names: ClassVar[tuple[str, ...]] = ("x", "|x|", "off_pad", "y", "vx", "vy", "angle", "angvel")
+    event_feature_names: ClassVar[tuple[str, ...]] = ("x", "|x|", "off_pad", "y", "vx", "|vx|", "vy", "angle", "|angle|",
+                                                      "angvel", "|angvel|")
     PAD_HALF_WIDTH: ClassVar[float] = 0.2
     """The helipad spans |x| <= 0.2 in observation units (the real env's source: chunks 4 to 6
     of 11 over 20 m; a prior). ``off_pad`` = max(|x| - 0.2, 0): where the random terrain begins."""
@@ -168,10 +169,12 @@ class LunarLanderSpec(EnvSpec):
     (``touchdowns.CRASH_WINDOW``)."""
 
     def event_features(self, states: np.ndarray) -> np.ndarray:
+        """The pre-impact state with the magnitudes a crash depends on either way (position off
+        the pad, lateral speed, tilt, spin): the logistic model is linear in its features."""
         s = np.asarray(states, dtype=float)
         x = s[:, 0]
         return np.column_stack([x, np.abs(x), np.maximum(np.abs(x) - self.PAD_HALF_WIDTH, 0.0), s[:, 1], s[:, 2],
-                                s[:, 3], s[:, 4], s[:, 5]])
+                                np.abs(s[:, 2]), s[:, 3], s[:, 4], np.abs(s[:, 4]), s[:, 5], np.abs(s[:, 5])])
 
     def event_rows(self, states, next_states, terminated) -> np.ndarray:
         """Touchdowns: s in flight (no leg flag), s' with a leg flag, not ended by the rules."""
