@@ -230,6 +230,57 @@ def transfer_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=cols)
 
 
+def _median_cost(costs: Sequence[float]) -> float:
+    """The median of per-seed costs where an unsolved seed costs infinity (NaN: no seeds)."""
+    return float(np.median(costs)) if len(costs) else math.nan
+
+
+def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
+    """Dyna runs (``task=dyna``) per env, surrogate kind and agent, and beside them the real
+    arm of the same agent (finished transfer runs that ran the real arm only, as
+    ``benchmarks/dyna.py`` runs it): seeds solved; the median real transitions to solve (an
+    unsolved seed counts as infinitely many); per phase, the mean real steps (Dyna: collect,
+    screens, confirmations; real arm: training to the first solved evaluation, and the
+    evaluations); the last 20-episode return and the Dyna audit, each as IQM (or mean) with a 95%
+    bootstrap CI over seeds."""
+    runs = list(runs)
+    dyna = finished(runs, "dyna")
+    real = [r for r in finished(runs, "transfer") if r["tags"].get("arms") == "real"]
+    rows = []
+    for env in envs_of({"env": r["tags"].get("env")} for r in dyna):
+        for agent in sorted({r["tags"].get("agent", "?") for r in dyna if r["tags"].get("env") == env}):
+            for kind in ("sindy", "nn"):
+                group = [r for r in dyna if r["tags"].get("env") == env and r["tags"].get("agent") == agent
+                         and r["tags"].get("surrogate", "sindy") == kind]
+                m = [r["metrics"] for r in group]
+                costs = [x["real_transitions_total"] if x.get("solved") == 1.0 else math.inf for x in m]
+                final = bootstrap_ci([x.get("final_return_mean", math.nan) for x in m], seed=seed)
+                audit = bootstrap_ci([x.get("audit_return_mean", math.nan) for x in m], seed=seed)
+                rows.append({"env": env, "method": f"Dyna, {kind}", "agent": agent, "n_seeds": len(group),
+                             "n_solved": sum(x.get("solved") == 1.0 for x in m), "median_to_solve": _median_cost(costs),
+                             "model_data": _mean(x.get("real_transitions_model") for x in m),
+                             "phase_a": _mean(x.get("real_steps_collect") for x in m),
+                             "phase_b": _mean(x.get("real_steps_evaluate") for x in m),
+                             "phase_c": _mean(x.get("real_steps_final") for x in m),
+                             "surrogate_steps": _mean(x.get("surrogate_steps") for x in m),
+                             "wall_seconds": _mean(x.get("wall_seconds") for x in m),
+                             "final": final, "audit": audit, "runs": [r["run_id"] for r in group]})
+            group = [r for r in real if r["tags"].get("env") == env and r["tags"].get("agent") == agent]
+            m = [r["metrics"] for r in group]
+            costs = [x["real/solved_real_steps"] + x.get("real/eval_steps", 0.0) if "real/solved_real_steps" in x
+                     else math.inf for x in m]
+            rows.append({"env": env, "method": "real arm", "agent": agent, "n_seeds": len(group),
+                         "n_solved": sum("real/solved_real_steps" in x for x in m), "median_to_solve": _median_cost(costs),
+                         "model_data": 0.0, "phase_a": _mean(x.get("real/solved_real_steps") for x in m),
+                         "phase_b": _mean(x.get("real/eval_steps") for x in m), "phase_c": math.nan,
+                         "surrogate_steps": 0.0, "wall_seconds": _mean(x.get("real/train_wall_seconds") for x in m),
+                         "final": bootstrap_ci([x.get("real/final_return_mean", math.nan) for x in m], seed=seed),
+                         "audit": (math.nan, math.nan, math.nan, "mean"), "runs": [r["run_id"] for r in group]})
+    return pd.DataFrame(rows, columns=["env", "method", "agent", "n_seeds", "n_solved", "median_to_solve", "model_data",
+                                       "phase_a", "phase_b", "phase_c", "surrogate_steps", "wall_seconds", "final",
+                                       "audit", "runs"])
+
+
 def curve_band(curves: Sequence[pd.DataFrame]) -> pd.DataFrame:
     """Learning curves of several seeds (columns train_steps, return_mean) on their common
     steps: mean, min and max across seeds per step, and how many seeds have the step."""

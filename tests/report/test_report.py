@@ -243,3 +243,58 @@ def test_a_missing_kind_links_nowhere(store: str, tmp_path) -> None:
     row = {(r[0], r[1]): r for r in _md_rows((res.folder / "report.md").read_text(), "## 3. SINDy vs NN")}[("mountain_car", "mse/x")]
     assert row[3] == "not run" and row[6] == "0"  # "NN fits 0" used to link to a SINDy run
     assert _link(row[2]).endswith("?workflowType=machine_learning") and "/runs/" in _link(row[2])
+
+
+def _dyna(uri: str, seed: int, surrogate: str, solved: bool, total: float, audit: float) -> str:
+    tags = {"sdrl.kind": "dyna", "env": "lunar_lander", "agent": "ppo_fast", "surrogate": surrogate, "seed": seed}
+    with tracking.start_run(uri, EXP, f"dyna-s{seed}", tags) as run:
+        run.log_metrics({"solved": float(solved), "real_transitions_total": total, "real_transitions_model": total - 5000,
+                         "real_steps_collect": total - 9000, "real_steps_evaluate": 4000, "real_steps_final": 5000,
+                         "surrogate_steps": 600_000 + seed, "wall_seconds": 30.0 + seed,
+                         "final_return_mean": 205.0 + seed, "audit_return_mean": audit})
+    return run.run_id
+
+
+def _real_arm(uri: str, seed: int, solved_at: float | None) -> str:
+    tags = {"sdrl.kind": "transfer", "env": "lunar_lander", "agent": "ppo_fast", "surrogate": "sindy", "seed": seed,
+            "arms": "real"}
+    with tracking.start_run(uri, EXP, f"real-s{seed}", tags) as run:
+        m = {"real/final_return_mean": 210.0 + seed, "real/eval_steps": 3000.0, "real/train_wall_seconds": 40.0}
+        if solved_at is not None:
+            m["real/solved_real_steps"] = solved_at
+        run.log_metrics(m)
+    return run.run_id
+
+
+def test_dyna_table_equals_the_runs_metrics_and_links_its_runs(store: str, tmp_path) -> None:
+    """Section 5: solved counts, the median real transitions to solve (an unsolved seed counts
+    as infinite), phase means and the audit IQM come from the Dyna runs' metrics; the real arm's
+    cost is its training steps to the first solve plus its evaluations; every number links to
+    exactly the runs of its row."""
+    from urllib.parse import unquote
+
+    sindy = [_dyna(store, 0, "sindy", True, 20_000, 230.0), _dyna(store, 1, "sindy", True, 30_000, 190.0),
+             _dyna(store, 2, "sindy", False, 50_500, 150.0)]
+    nn = [_dyna(store, 0, "nn", False, 50_100, 120.0)]
+    real = [_real_arm(store, 0, 200_000.0), _real_arm(store, 1, 250_000.0)]
+    runs = tracking.find_runs(store, EXP, missing_ok=False)
+    dy = rt.dyna_table(runs).set_index(["env", "method"])
+    row = dy.loc[("lunar_lander", "Dyna, sindy")]
+    assert (row["n_seeds"], row["n_solved"]) == (3, 2)
+    assert row["median_to_solve"] == 30_000  # median of 20k, 30k and infinity
+    metrics = _client_metrics(store, "tags.`sdrl.kind` = 'dyna' and tags.surrogate = 'sindy'")
+    assert row["phase_a"] == pytest.approx(np.mean([m["real_steps_collect"] for m in metrics]))
+    assert row["audit"][:3] == pytest.approx(rt.bootstrap_ci([m["audit_return_mean"] for m in metrics])[:3])
+    assert math.isinf(dy.loc[("lunar_lander", "Dyna, nn"), "median_to_solve"])
+    r = dy.loc[("lunar_lander", "real arm")]
+    assert r["median_to_solve"] == np.median([203_000, 253_000]) and r["n_solved"] == 2
+
+    res = build_report(ReportInput(store, EXP, ui_url="http://ui:5000"), "dyna", tmp_path, log_run=False)
+    md = (res.folder / "report.md").read_text()
+    rows = {r[1]: r for r in _md_rows(md, "## 5. Dyna")}
+    assert rows["Dyna, sindy"][3].startswith("[2/3](") and rows["Dyna, sindy"][4].startswith("[30,000](")
+    assert rows["Dyna, nn"][4].startswith("[not solved](")
+    assert rows["real arm"][4].startswith("[228,000](")
+    for method, ids in (("Dyna, sindy", sindy), ("Dyna, nn", nn), ("real arm", real)):
+        url = unquote(_link(rows[method][4]))
+        assert {i for i in sindy + nn + real if i in url} == set(ids)
