@@ -135,6 +135,47 @@ def table(data: dict[str, dict[int, dict[str, float]]], seeds: list[int]) -> tup
     return text, seeds_text
 
 
+def curves_figure(uri: str, data: dict[str, dict[int, dict[str, float]]], env: str, path: Path) -> Path | None:
+    """Every seed's learning curve against real transitions, on one axis: Dyna (x: every real
+    step of the loop when the screen ended) and the real arm (x: its training steps; its own
+    evaluation steps are not added, which flatters it)."""
+    import tempfile
+
+    import pandas as pd
+    from matplotlib.figure import Figure
+
+    from sdrl_bench.tracking.read import download_artifact
+
+    fig = Figure(figsize=(8, 4.5))
+    ax = fig.subplots()
+    colors = {"real": "tab:gray", "sindy": "tab:blue", "nn": "tab:orange"}
+    drawn = False
+    with tempfile.TemporaryDirectory() as tmp:
+        for arm, runs in data.items():
+            artifact, x = ("curves/real.csv", "train_steps") if arm == "real" else ("curves/dyna.csv", "real_transitions")
+            for i, (seed, m) in enumerate(sorted(runs.items())):
+                got = download_artifact(uri, m["run_id"], artifact, Path(tmp) / f"{arm}-{seed}")
+                if got is None:
+                    continue
+                c = pd.read_csv(got)
+                label = {"real": "real arm (x: training steps)", "sindy": "Dyna, SINDy", "nn": "Dyna, NN"}[arm]
+                ax.plot(c[x], c["return_mean"], color=colors[arm], alpha=0.8, marker="." if arm != "real" else None,
+                        label=label if i == 0 else None)
+                drawn = True
+    if not drawn:
+        return None
+    ax.axhline(200 if env == "lunar_lander" else 90, color="k", ls="--", lw=0.8, label="solved")
+    ax.set_xscale("log")
+    ax.set_xlabel("real transitions (log scale)")
+    ax.set_ylabel("return in the real env")
+    ax.set_title(f"{env}: Dyna vs the real arm, one line per seed")
+    ax.legend(loc="lower right")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    return path
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--env", choices=("lunar_lander", "mountain_car"), default="lunar_lander")
@@ -150,8 +191,12 @@ def main() -> None:
     if not args.report_only:
         for arm in args.arms.split(","):
             run_arm(args.workdir, overrides(args.env, arm, seeds, uri, args.jobs))
-    summary, per_seed = table(gather(uri, args.env, seeds), seeds)
+    data = gather(uri, args.env, seeds)
+    summary, per_seed = table(data, seeds)
     print(f"\n{args.env}, seeds {args.seeds} (store {uri})\n\n{summary}\n\n{per_seed}")
+    fig = curves_figure(uri, data, args.env, args.workdir / "figures" / f"dyna_{args.env}.png")
+    if fig is not None:
+        print(f"\nlearning curves against real transitions: {fig}")
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The package as a user installs it: build the wheel, install it into a fresh venv outside the
-# checkout (CPU torch first), and from an unrelated folder run every entry point on a tiny budget,
+# checkout (CPU torch first), and from an unrelated folder run every entry point (and task=dyna) on a tiny budget,
 # with a user config dir (--config-dir) that adds a library the package does not ship.
 #   bash scripts/check_wheel.sh            (CI runs it; about 3 minutes with a warm pip cache)
 set -euo pipefail
@@ -40,6 +40,9 @@ run "$V/sdrl-bench" --config-dir myconf library=user_cubic
 run "$V/sdrl-bench" task=train rl.surrogate_steps=64 rl.real_steps=64 rl.eval_every=64 rl.eval_episodes=1 \
     rl.final_episodes=1 agent.algo.train_freq=16 agent.algo.gradient_steps=2 agent.algo.batch_size=32 progress_bar=false
 run "$V/sdrl-bench-search" search.n_trials=3
+run "$V/sdrl-bench" experiment=dyna_mountain_car agent.n_envs=4 agent.algo.n_steps=16 agent.algo.batch_size=32 \
+    agent.algo.n_epochs=1 rl.dyna.first_round_steps=64 rl.dyna.surrogate_steps_per_round=64 rl.dyna.max_rounds=1 \
+    rl.dyna.eval_episodes=1 rl.dyna.final_episodes=1 rl.dyna.audit_episodes=1 progress_bar=false
 run "$V/sdrl-bench-report" --name wheel
 "$V/python" - <<'PY'
 import sys
@@ -51,7 +54,8 @@ kinds = sorted(r.data.tags.get("sdrl.kind", "?") for r in runs)
 user = [r for r in runs if r.data.tags.get("library") == "user_cubic"]
 bad = [r.info.run_id for r in runs if r.info.status != "FINISHED"]
 print(f"check_wheel: runs {kinds}; user library runs {len(user)}; not FINISHED {bad}")
-ok = len(user) == 1 and "transfer" in kinds and "report" in kinds and kinds.count("fit") >= 2 and not bad
+ok = (len(user) == 1 and "transfer" in kinds and "report" in kinds and kinds.count("fit") >= 2 and not bad
+      and kinds.count("dyna") == 1 and kinds.count("dyna_round") == 2)
 if ok:  # the user's library was used: its cos(3x) term is in the recovered law
     eq = open(client.download_artifacts(user[0].info.run_id, "model/equations.txt", ".")).read()
     print(eq)
