@@ -77,6 +77,8 @@ def gather(uri: str, env: str, seeds: list[int]) -> dict[str, dict[int, dict[str
             else:
                 real["solved"] = 0.0
             real["wall_seconds"] = real.get("train_wall_seconds", math.nan) + real.get("curve_eval_wall_seconds", 0.0)
+            real["real_transitions_total"] = (real.get("real_transitions_train", 0.0) + real.get("eval_steps", 0.0)
+                                              + real.get("final_eval_steps", 0.0))
             out["real"][seed] = {**real, "run_id": r["run_id"]}
     return out
 
@@ -121,7 +123,7 @@ def table(data: dict[str, dict[int, dict[str, float]]], seeds: list[int]) -> tup
             m = runs[s]
             per_seed.append([arm, s, "yes" if m.get("solved") == 1.0 else "no",
                              f"{m.get('solved_real_transitions', math.nan):,.0f}",
-                             f"{m.get('real_transitions_total', m.get('total_steps', math.nan)):,.0f}",
+                             f"{m.get('real_transitions_total', math.nan):,.0f}",
                              f"{m.get('rounds', math.nan):.0f}", f"{m.get('final_return_mean', math.nan):.1f}",
                              f"{m.get('audit_return_mean', math.nan):.1f}", m["run_id"]])
     head = ["arm", "solved", "median real transitions to solve", "of which (medians)", "median surrogate steps",
@@ -158,6 +160,7 @@ def curves_figure(uri: str, data: dict[str, dict[int, dict[str, float]]], env: s
                 if got is None:
                     continue
                 c = pd.read_csv(got)
+                c = c[c[x] > 0]  # the real arm's point before training has no place on a log axis
                 label = {"real": "real arm (x: training steps)", "sindy": "Dyna, SINDy", "nn": "Dyna, NN"}[arm]
                 ax.plot(c[x], c["return_mean"], color=colors[arm], alpha=0.8, marker="." if arm != "real" else None,
                         label=label if i == 0 else None)
@@ -166,10 +169,11 @@ def curves_figure(uri: str, data: dict[str, dict[int, dict[str, float]]], env: s
         return None
     ax.axhline(200 if env == "lunar_lander" else 90, color="k", ls="--", lw=0.8, label="solved")
     ax.set_xscale("log")
+    ax.set_ylim(bottom=max(ax.get_ylim()[0], -300.0))  # the real arm's untrained start (down to -1000) is cut off
     ax.set_xlabel("real transitions (log scale)")
     ax.set_ylabel("return in the real env")
     ax.set_title(f"{env}: Dyna vs the real arm, one line per seed")
-    ax.legend(loc="lower right")
+    ax.legend(loc="lower left", fontsize=8, framealpha=0.9)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)

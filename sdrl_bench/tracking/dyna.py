@@ -1,7 +1,8 @@
 """Recording a Dyna run: one child run per round under the Dyna run (the parent).
 
 Each child holds that round's refit as a fit run holds it (metrics, model, equations, figures;
-its data file holds the rows the round added), the learned event model, the agent's real
+its data file holds the rows the round added, so the rounds' files together are the model
+data, each row stored once), the learned event model, the agent's real
 returns and the running account of real steps. The parent holds the learning curve against
 real transitions (``dyna/curve_return_mean`` at step = real transitions so far), the summary,
 the final agent, the audit, and a figure of the curve beside the real arm's when the store has
@@ -71,10 +72,9 @@ class DynaRunRecorder:
         return curve["train_steps"].tolist(), curve["return_mean"].tolist(), curve["return_std"].tolist()
 
     def finish(self, outcome, spec, real_key: str | None, title: str) -> None:
-        """The summary, the final agent, the model data, and the learning-curve figure."""
+        """The summary, the final agent, the learning curve (CSV and figure)."""
         import pandas as pd
 
-        from sdrl_bench.data import save_csv
         from sdrl_bench.plots import learning_curves
 
         self.parent.log_metrics(outcome.summary)
@@ -82,13 +82,10 @@ class DynaRunRecorder:
         self.parent.log_text(pd.DataFrame({"real_transitions": steps, "return_mean": [c[1] for c in outcome.curve],
                                            "return_std": [c[2] for c in outcome.curve]}).to_csv(index=False),
                              "curves/dyna.csv")
-        with tempfile.TemporaryDirectory() as tmp:
+        with tempfile.TemporaryDirectory() as tmp:  # the model data: the rounds' data files, together
             path = Path(tmp) / "dyna.zip"
             outcome.agent.save(path)
             self.parent.log_artifact(path, "agents")
-            data = outcome.rounds[-1].fit.data
-            csv = save_csv(data, spec, Path(tmp) / f"{spec.name}_model_data.csv")
-            self.parent.log_artifact(csv, "data")
         curves = {"Dyna (x: every real step of the loop)": (steps, [c[1] for c in outcome.curve], [c[2] for c in outcome.curve])}
         real = self.real_arm_curve(real_key) if real_key else None
         if real is not None:
