@@ -87,6 +87,10 @@ def _median(values: list[float]) -> float:
     return float(np.median(values)) if values else math.nan
 
 
+def _steps(value: float) -> str:
+    return "-" if math.isnan(value) else f"{value:,.0f}"
+
+
 def _ci(values: list[float]) -> str:
     point, lo, hi, name = bootstrap_ci(values)
     if math.isnan(point):
@@ -106,34 +110,36 @@ def table(data: dict[str, dict[int, dict[str, float]]], seeds: list[int]) -> tup
         cost = [runs[s]["solved_real_transitions"] if s in solved else math.inf for s in seeds if s in runs]
         medians[arm] = float(np.median(cost)) if cost else math.nan
         if arm == "real":
-            phases = (f"train {_median([runs[s].get('solved_real_steps', math.nan) for s in solved]):,.0f} + "
-                      f"evaluations {_median([runs[s].get('eval_steps', math.nan) for s in solved]):,.0f}")
+            phases = (f"train {_steps(_median([runs[s].get('solved_real_steps', math.nan) for s in solved]))} + "
+                      f"evaluations {_steps(_median([runs[s].get('eval_steps', math.nan) for s in solved]))}")
             final = [runs[s].get("final_return_mean", math.nan) for s in runs]
             audit = "-"
         else:
-            phases = " + ".join(f"{p} {_median([runs[s].get(f'real_steps_{p}', math.nan) for s in runs]):,.0f}"
+            phases = " + ".join(f"{p} {_steps(_median([runs[s].get(f'real_steps_{p}', math.nan) for s in solved]))}"
                                 for p in ("collect", "evaluate", "final"))
             final = [runs[s].get("final_return_mean", math.nan) for s in runs]
             audit = _ci([runs[s].get("audit_return_mean", math.nan) for s in runs])
-        rows.append([arm, f"{len(solved)}/{len(runs)}", f"{medians[arm]:,.0f}", phases,
+        rows.append([arm, f"{len(solved)}/{len(runs)}", "not solved" if math.isinf(medians[arm]) else _steps(medians[arm]), phases,
                      f"{_median([runs[s].get('surrogate_steps', 0.0) for s in runs]):,.0f}",
                      f"{_median([runs[s].get('wall_seconds', math.nan) for s in runs]):.1f}",
                      _ci(final), audit])
         for s in sorted(runs):
             m = runs[s]
             per_seed.append([arm, s, "yes" if m.get("solved") == 1.0 else "no",
-                             f"{m.get('solved_real_transitions', math.nan):,.0f}",
-                             f"{m.get('real_transitions_total', math.nan):,.0f}",
+                             _steps(m.get("solved_real_transitions", math.nan)), _steps(m.get("real_transitions_total", math.nan)),
                              f"{m.get('rounds', math.nan):.0f}", f"{m.get('final_return_mean', math.nan):.1f}",
                              f"{m.get('audit_return_mean', math.nan):.1f}", m["run_id"]])
-    head = ["arm", "solved", "median real transitions to solve", "of which (medians)", "median surrogate steps",
+    head = ["arm", "solved", "median real transitions to solve", "of which (medians over the solved seeds)", "median surrogate steps",
             "median wall s", "last 20-episode return, IQM [95% CI]", "audit return, IQM [95% CI]"]
-    text = tabulate(rows, head, tablefmt="github")
+    text = tabulate(rows, head, tablefmt="github", disable_numparse=True)
     for arm in ("sindy", "nn"):
         if arm in medians and "real" in medians and medians["real"] not in (0, math.inf):
-            text += f"\nratio of median real transitions to solve, {arm} Dyna / real arm: {medians[arm] / medians['real']:.3f}"
+            ratio = medians[arm] / medians["real"]
+            text += (f"\nratio of median real transitions to solve, {arm} Dyna / real arm: "
+                     + ("- (Dyna's median seed did not solve)" if math.isinf(ratio) else f"{ratio:.3f}"))
     seeds_text = tabulate(per_seed, ["arm", "seed", "solved", "real transitions to solve", "real transitions in all",
-                                     "rounds", "last 20-episode return", "audit return", "run id"], tablefmt="github")
+                                     "rounds", "last 20-episode return", "audit return", "run id"], tablefmt="github",
+                          disable_numparse=True)
     return text, seeds_text
 
 
