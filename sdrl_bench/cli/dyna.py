@@ -43,6 +43,9 @@ class _Printing:
     def __init__(self, inner: DynaRunRecorder):
         self.inner = inner
 
+    def sb3_logger(self):
+        return self.inner.sb3_logger()
+
     def round_done(self, result, agent) -> None:
         m = result.metrics()
         parts = [f"round {result.round}: {m['real_transitions_total']:,.0f} real steps "

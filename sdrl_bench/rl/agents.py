@@ -285,15 +285,18 @@ def train(
 
 
 def make_agent(agent: AgentConfig, env: VecEnv, seed: int, logger: Any = None) -> BaseAlgorithm:
-    """The untrained SB3 agent around ``env`` (inside ``VecNormalize`` when the config normalizes rewards)."""
+    """The untrained SB3 agent around ``env`` (inside ``VecNormalize`` when the config normalizes
+    rewards). Without ``logger`` the agent logs nowhere: SB3's default logger would make an empty
+    ``SB3-<time>`` folder in the temp dir at every ``learn`` call (a Dyna run calls it every round)."""
+    from stable_baselines3.common.logger import Logger
+
     if agent.normalize_reward:
         from stable_baselines3.common.vec_env import VecNormalize
 
         keywords = getattr(agent.algo, "keywords", {})
         env = VecNormalize(env, norm_obs=False, norm_reward=True, gamma=float(keywords.get("gamma", 0.99)))
     model = agent.algo(env=env, seed=seed, verbose=0)
-    if logger is not None:
-        model.set_logger(logger)
+    model.set_logger(logger if logger is not None else Logger(folder=None, output_formats=[]))
     return model
 
 

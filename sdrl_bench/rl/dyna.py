@@ -172,9 +172,11 @@ class RoundResult:
 
 
 class DynaRecorder(Protocol):
-    """Where ``run_dyna`` puts each round the moment it ends."""
+    """Where ``run_dyna`` puts each round the moment it ends, and SB3's own training metrics."""
 
     def round_done(self, result: RoundResult, agent: Any) -> None: ...
+
+    def sb3_logger(self) -> Any: ...
 
 
 @dataclass
@@ -257,7 +259,7 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
     loop.next_episode = int(loop.data.episode.max()) + 1
     first, events = loop.refit(clock)
     venv = SurrogateVecEnv(first.model, spec, job.agent.n_envs, seed=seed, event_model=events)
-    agent = make_agent(job.agent, venv, seed)
+    agent = make_agent(job.agent, venv, seed, recorder.sb3_logger() if recorder is not None else None)
     rounds = [RoundResult(0, first, events, first.data, dict(loop.counts), 0, clock.seconds)]
     if recorder is not None:
         recorder.round_done(rounds[0], agent)

@@ -56,6 +56,12 @@ class DynaRunRecorder:
             self.parent.log_metrics({"dyna/curve_return_mean": result.screen.mean,
                                      "dyna/curve_return_std": result.screen.std}, step=result.screened_at)
 
+    def sb3_logger(self):
+        """SB3's training metrics into the parent run (``dyna/sb3/...``, step = surrogate steps so far)."""
+        from sdrl_bench.tracking.sb3 import sb3_logger
+
+        return sb3_logger(self.parent, "dyna/sb3")
+
     def real_arm_curve(self, key: str) -> tuple[list[int], list[float], list[float]] | None:
         """The curve of a finished real arm with ``key`` in the store (training steps, means, stds)."""
         import pandas as pd

@@ -34,6 +34,9 @@ class _Agents:
     def __init__(self, inner):
         self.inner, self.agents, self.rounds = inner, [], []
 
+    def sb3_logger(self):
+        return self.inner.sb3_logger()
+
     def round_done(self, result, agent):
         self.agents.append(agent)
         self.rounds.append(result)
@@ -86,6 +89,8 @@ def test_two_round_loop_counts_every_real_step_and_keeps_the_agent(store, from_e
     assert sorted(m.step for m in history) == [int(x) for x, _, _ in outcome.curve]
     artifacts = {a.path for a in client.list_artifacts(parent.run_id, "agents")}
     assert artifacts == {"agents/dyna.zip"}
+    # SB3's own training metrics reach the parent run, at the agent's cumulative step count
+    assert {m.step for m in client.get_metric_history(parent.run_id, "dyna/sb3/time/total_timesteps")} == {64, 128}
 
 
 def test_dyna_cli_writes_parent_and_round_runs(store, tmp_path):
