@@ -241,3 +241,21 @@ def test_hydra_errors_reach_stderr_with_a_non_zero_exit(store, tmp_path):
     res = run_cli("library=nope", f"tracking.uri={store}", cwd=tmp_path)
     assert res.returncode != 0 and res.stdout == ""
     assert "library/nope" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_sigterm_mid_dyna_ends_the_parent_and_the_open_round_killed(tmp_path):
+    """A Dyna run stopped by SIGTERM while it trains: its finished round runs stay FINISHED, the
+    parent ends KILLED, nothing is left RUNNING; exit 128 + SIGTERM."""
+    uri = f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
+    proc = _start(["experiment=dyna_mountain_car", "rl.dyna.first_round_steps=10000000", f"tracking.uri={uri}",
+                   "progress_bar=false"], tmp_path)
+    _wait_for(lambda: bool(_kinds(_runs(uri), "dyna_round", "FINISHED")), 240, "round 0's run")
+    time.sleep(2)  # inside round 1's training
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert "stopped by SIGTERM" in err
+    runs = _runs(uri)
+    assert not [r for r in runs if r["status"] == "RUNNING"]
+    assert [r["status"] for r in _kinds(runs, "dyna")] == ["KILLED"]
+    assert [(r["tags"]["dyna.round"], r["status"]) for r in _kinds(runs, "dyna_round")] == [("0", "FINISHED")]
