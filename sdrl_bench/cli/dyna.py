@@ -33,7 +33,7 @@ def run_dyna_task(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict
             outcome = run_dyna(job, checked, _Printing(recorder))
             recorder.finish(outcome, spec, real_arm_key(cfg), f"{spec.name}: Dyna ({names['surrogate']}) vs the real arm, seed {job.seed}")
         tracking.set_description(run, _description(outcome, job))
-    _print(outcome, uri, run.run_id, exp_id)
+    _print(outcome, uri, run.run_id, exp_id, job.dyna.final_episodes)
     return outcome.summary
 
 
@@ -74,7 +74,7 @@ def _description(outcome: DynaOutcome, job) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _print(outcome: DynaOutcome, uri: str, run_id: str, exp_id: str) -> None:
+def _print(outcome: DynaOutcome, uri: str, run_id: str, exp_id: str, final_episodes: int) -> None:
     s = outcome.summary
     verdict = "solved" if s["solved"] else "not solved"
     print(f"Dyna: {verdict} after {s['rounds']:.0f} rounds; real steps {s['real_transitions_total']:,.0f} "
@@ -82,7 +82,7 @@ def _print(outcome: DynaOutcome, uri: str, run_id: str, exp_id: str) -> None:
           f"confirmations {s['real_steps_final']:,.0f}); surrogate steps {s['surrogate_steps']:,.0f}; "
           f"wall {s['wall_seconds']:.1f} s")
     if "final_return_mean" in s:
-        print(f"last confirmation: {s['final_return_mean']:.1f} +- {s['final_return_std']:.1f} on 20 real episodes")
+        print(f"last confirmation: {s['final_return_mean']:.1f} +- {s['final_return_std']:.1f} on {final_episodes} real episodes")
     if "audit_return_mean" in s:
         print(f"audit: {s['audit_return_mean']:.1f} +- {s['audit_return_std']:.1f} on {s['audit_episodes']:.0f} fresh real "
               f"episodes (success {s['audit_success_rate']:.0%}; not counted in the loop's real steps)")
