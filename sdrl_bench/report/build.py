@@ -247,16 +247,19 @@ def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
 
 
 def overview_blocks(inp: ReportInput, runs: Sequence[Mapping[str, Any]], problems: Sequence[str], command: str) -> list[Block]:
+    commit = tracking.standard_tags().get("git_commit", "unknown")
     out: list[Block] = [Heading(1, "sdrl-bench report: SINDy surrogates in RL, ours beside the paper's"),
                         Para(f"Made by `{command}` from store `{tracking.display_uri(inp.uri)}`, experiment "
                              f"`{inp.experiment}`" + (f", parent run `{inp.parent_run}`" if inp.parent_run else "")
-                             + (f", tags `{inp.tags}`" if inp.tags else "") + f", {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}.")]
+                             + (f", tags `{inp.tags}`" if inp.tags else "") + f", {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}"
+                             + f", at commit `{commit}`.")]
     for p in problems:
         out.append(Para(f"Missing: {p}"))
     if runs:
         counts = pd.Series([f"{r['tags'].get('sdrl.kind', '?')} ({r['status']})" for r in runs]).value_counts().sort_index()
         out.append(Para("Runs read: " + ", ".join(f"{k}: {v}" for k, v in counts.items())
-                        + ". Only FINISHED runs count; RUNNING, FAILED and KILLED runs are listed here but not used."))
+                        + ". Only FINISHED runs count; RUNNING, FAILED and KILLED runs are listed here but not used. "
+                        "Every run read, with its tags, params and metrics: [runs.csv](runs.csv) beside this report."))
     return out
 
 
@@ -275,6 +278,7 @@ def build_report(inp: ReportInput, name: str, out_dir: Path, command: str = "sdr
     link = Linker(runs, inp.ui_url)
     blocks = overview_blocks(inp, runs, problems, command) + table_blocks(runs, link)
     blocks += figure_blocks(inp.uri, runs, folder, link.url)
+    rt.runs_frame(runs).to_csv(folder / "runs.csv", index=False)
     (folder / "report.md").write_text(render_markdown(blocks, folder))
     (folder / "report.html").write_text(render_html(blocks, f"sdrl-bench report {name}"))
     run_id = None

@@ -281,6 +281,33 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                                        "audit", "runs"])
 
 
+RUN_TAGS = ("sdrl.kind", "mlflow.runName", "mlflow.parentRunId", "env", "agent", "surrogate", "library", "optimizer",
+            "collector", "seed", "arms", "git_commit")
+"""The tags ``runs_frame`` keeps (the rest are MLflow's bookkeeping or descriptions)."""
+
+
+def runs_frame(runs: Iterable[Run]) -> pd.DataFrame:
+    """Every run as one row: id, experiment, status, start time, the tags of ``RUN_TAGS``
+    (``tag.<name>``), every param (``param.<name>``) and every metric's last value
+    (``metric.<name>``): the runs a report read, so each of its numbers can be traced to a run id."""
+    rows = []
+    for r in runs:
+        row: dict[str, Any] = {"run_id": r["run_id"], "experiment_id": r.get("experiment_id"), "status": r.get("status"),
+                               "start_time": r.get("start_time")}
+        row.update({f"tag.{k}": r["tags"][k] for k in RUN_TAGS if k in r["tags"]})
+        row.update({f"param.{k}": v for k, v in sorted(r.get("params", {}).items())})
+        row.update({f"metric.{k}": v for k, v in sorted(r.get("metrics", {}).items())})
+        rows.append(row)
+    df = pd.DataFrame(rows)
+    if df.empty:
+        return df
+    head = [c for c in ("run_id", "experiment_id", "status", "start_time") if c in df.columns]
+    rest = sorted(c for c in df.columns if c not in head)
+    order = [c for c in rest if c.startswith("tag.")] + [c for c in rest if c.startswith("param.")] + \
+        [c for c in rest if c.startswith("metric.")]
+    return df[head + order]
+
+
 def curve_band(curves: Sequence[pd.DataFrame]) -> pd.DataFrame:
     """Learning curves of several seeds (columns train_steps, return_mean) on their common
     steps: mean, min and max across seeds per step, and how many seeds have the step."""

@@ -298,3 +298,25 @@ def test_dyna_table_equals_the_runs_metrics_and_links_its_runs(store: str, tmp_p
     for method, ids in (("Dyna, sindy", sindy), ("Dyna, nn", nn), ("real arm", real)):
         url = unquote(_link(rows[method][4]))
         assert {i for i in sindy + nn + real if i in url} == set(ids)
+
+
+def test_report_exports_every_run_it_read_and_names_its_commit(fits_store: str, tmp_path) -> None:
+    """runs.csv beside the report: one row per run read, its tags, params and metrics as the
+    store holds them; the report names the commit it was made at."""
+    import pandas as pd
+
+    ids = [_transfer(fits_store, s, 90.0 + s, 80.0) for s in range(2)]
+    tracking.Run(fits_store, ids[0]).log_params({"agent.name": "sac"})
+    res = build_report(ReportInput(fits_store, EXP), "export", tmp_path, log_run=False)
+    df = pd.read_csv(res.folder / "runs.csv")
+    runs = tracking.find_runs(fits_store, EXP)
+    assert sorted(df["run_id"]) == sorted(r["run_id"] for r in runs) and len(df) == res.n_runs == 6
+    by_id = df.set_index("run_id")
+    for r in runs:
+        for k, v in r["metrics"].items():
+            assert by_id.loc[r["run_id"], f"metric.{k}"] == pytest.approx(v, rel=1e-12)
+        assert by_id.loc[r["run_id"], "tag.sdrl.kind"] == r["tags"]["sdrl.kind"]
+    assert by_id.loc[ids[0], "param.agent.name"] == "sac" and pd.isna(by_id.loc[ids[1], "param.agent.name"])
+    md = (res.folder / "report.md").read_text()
+    commit = tracking.standard_tags()["git_commit"]
+    assert f"at commit `{commit}`" in md and "[runs.csv](runs.csv)" in md
