@@ -71,7 +71,6 @@ def log_datasets(run: Run, result, csv_artifact: str, rows=None) -> None:
     from mlflow.entities import DatasetInput, InputTag
     from mlflow.utils.mlflow_tags import MLFLOW_DATASET_CONTEXT
 
-    from sdrl_bench.tracking.client import mlflow_client
 
     spec = result.job.spec
     test_source = CodeDatasetSource({"sdrl.test_set": result.test_name, "sdrl.test_set_sha256": result.test_hash,
@@ -85,7 +84,29 @@ def log_datasets(run: Run, result, csv_artifact: str, rows=None) -> None:
             warnings.simplefilter("ignore", UserWarning)
             ds = mlflow.data.from_pandas(_frame(data, spec), source=src, name=name)
             inputs.append(DatasetInput(ds._to_mlflow_entity(), tags=[InputTag(MLFLOW_DATASET_CONTEXT, context)]))
-    mlflow_client(run.uri).log_inputs(run.run_id, datasets=inputs)
+    log_inputs_retrying(run, inputs)
+
+
+def log_inputs_retrying(run: Run, inputs: list, attempts: int = 5) -> None:
+    """``log_inputs``, retried when it loses a race. MLflow's SQL store looks for an existing
+    dataset (same name and digest), then inserts one: two processes logging the same dataset at
+    once (a sweep's parallel jobs share the held-out test set) can both insert, and the second
+    fails its UNIQUE constraint (a parallel sweep in CI lost a job to it once). Its transaction
+    is rolled back whole, so a retry finds the first one's row and links to it."""
+    import time
+
+    from mlflow.exceptions import MlflowException
+
+    from sdrl_bench.tracking.client import mlflow_client
+
+    for attempt in range(attempts):
+        try:
+            mlflow_client(run.uri).log_inputs(run.run_id, datasets=inputs)
+            return
+        except MlflowException as exc:
+            if attempt == attempts - 1 or not any(s in str(exc) for s in ("UNIQUE constraint", "IntegrityError")):
+                raise
+            time.sleep(0.05 * (attempt + 1))
 
 
 def model_io_example(result, n: int = 5):

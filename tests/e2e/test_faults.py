@@ -70,6 +70,37 @@ def test_parallel_processes_create_one_store_safely(tmp_path):
     tracking.check_integrity(tracking.sqlite_path(uri))
 
 
+def test_parallel_runs_logging_the_same_new_dataset_all_land(tmp_path):
+    """Four processes log the same new dataset (name and digest) as an input of their own run at
+    the same moment, ten times over: MLflow looks for the dataset and then inserts it, so all
+    but one can hit its UNIQUE constraint; every run must still get its input (retried).
+    Without the retry (attempts=1) this failed here."""
+    uri = f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
+    tracking.ensure_experiment(uri, EXP)
+    code = ("import sys, time\n"
+            "import mlflow.data, pandas as pd\n"
+            "from mlflow.entities import DatasetInput\n"
+            "from sdrl_bench import tracking\n"
+            "from sdrl_bench.tracking.model import log_inputs_retrying\n"
+            "uri, i, t0 = sys.argv[1], sys.argv[2], float(sys.argv[3])\n"
+            "for k in range(10):\n"
+            "    ds = mlflow.data.from_pandas(pd.DataFrame({'x': [float(k), 1.0]}), source='test', name=f'shared-{k}')\n"
+            "    with tracking.start_run(uri, 'sdrl-bench', f'p{i}-{k}', {'sdrl.kind': 'probe'}) as run:\n"
+            "        time.sleep(max(0.0, t0 + 0.5 * k - time.time()))\n"
+            "        log_inputs_retrying(run, [DatasetInput(ds._to_mlflow_entity())])\n")
+    t0 = time.time() + 8.0  # all four have imported MLflow by then
+    procs = [subprocess.Popen([sys.executable, "-c", code, uri, str(i), str(t0)], env=_env(), stderr=subprocess.PIPE,
+                              text=True) for i in range(4)]
+    errs = [p.communicate(timeout=120)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0] * 4, [e[-1500:] for e in errs]
+    from mlflow.tracking import MlflowClient
+
+    runs = MlflowClient(uri).search_runs([tracking.ensure_experiment(uri, EXP)], max_results=100)
+    assert len(runs) == 40 and {r.info.status for r in runs} == {"FINISHED"}
+    names = sorted(d.dataset.name for r in runs for d in r.inputs.dataset_inputs)
+    assert names == sorted(f"shared-{k}" for k in range(10) for _ in range(4))
+
+
 @pytest.mark.slow
 def test_eight_parallel_first_fits_on_an_empty_folder(tmp_path):
     """The issue's case with the real command: ``sdrl-bench seed=i`` x 8 at once in an empty folder."""
