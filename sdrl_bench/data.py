@@ -188,24 +188,18 @@ def collect(
 def _play_episode(spec, policy_factory, epsilon, seed, episode, limit, wrap_env=None) -> list[tuple]:
     env = spec.make_env()
     env = wrap_env(env) if wrap_env is not None else env
+    env = TransitionRecorder(env, spec, episode)  # the rows: states (angles from their cos / sin), raw actions
     try:
         policy = policy_factory(spec, env)
         rng = np.random.default_rng(seed)
         obs, _ = env.reset(seed=seed)
-        rows = []
-        mapped = spec.maps_observations  # rows record states (angles from their cos / sin)
-        state = spec.coordinates(obs) if mapped else obs
-        for t in range(int(min(limit, spec.max_episode_steps + 1))):
+        for _ in range(int(min(limit, spec.max_episode_steps + 1))):
             explore = policy is None or rng.random() < epsilon
             action = spec.random_action(rng, env) if explore else policy(obs)
-            nxt, reward, term, trunc, _ = env.step(action)
-            # the next angle unwrapped next to the current one (the step's change stays continuous)
-            next_state = spec.coordinates(nxt, reference=state) if mapped else nxt
-            rows.append((state, np.atleast_1d(np.asarray(action, dtype=float)), reward, next_state, term, trunc, episode, t))
-            obs, state = nxt, (spec.coordinates(nxt) if mapped else nxt)
+            obs, _, term, trunc, _ = env.step(action)
             if term or trunc:
                 break
-        return rows
+        return env.rows
     finally:
         env.close()
 
@@ -231,6 +225,7 @@ class TransitionRecorder(gym.Wrapper):
 
     def step(self, action):
         nxt, reward, term, trunc, info = self.env.step(action)
+        # the next angle unwrapped next to the current one (the step's change stays continuous)
         next_state = self._coords(nxt, self._state)
         self.rows.append((self._state, np.atleast_1d(np.asarray(action, dtype=float)), reward, next_state, term, trunc,
                           self.episode, self._t))

@@ -19,7 +19,8 @@ def run_dyna_task(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict
     base = {"env": spec.name, "agent": job.agent.name, "surrogate": names["surrogate"], "library": names["library"],
             "optimizer": names["optimizer"], "collector": names["collector"], "seed": job.seed,
             "solved_threshold": spec.solved_threshold}
-    tags = {"sdrl.kind": "dyna", **base, **tracking.standard_tags("sdrl-bench task=dyna"), **(extra_tags or {})}
+    standard = tracking.standard_tags("sdrl-bench task=dyna")
+    tags = {"sdrl.kind": "dyna", **base, **standard, **(extra_tags or {})}
     run_name = f"dyna-{spec.name}-{job.agent.name}-{names['surrogate']}-s{job.seed}"
     with tracking.start_run(uri, cfg.tracking.experiment, run_name, tags, parent) as run:
         exp_id = tracking.ensure_experiment(uri, cfg.tracking.experiment)
@@ -28,7 +29,7 @@ def run_dyna_task(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict
         print(f"MLflow run {run.run_id} in {tracking.display_uri(uri)}; "
               f"{tracking.browse_hint(uri, exp_id, run.run_id, tracking.display_uri(uri))}", flush=True)
         tracking.log_config(run, OmegaConf.to_container(cfg, resolve=True), uri, task="dyna")
-        recorder = DynaRunRecorder(run, cfg.tracking.experiment, run_name, {**base, **tracking.standard_tags("sdrl-bench task=dyna")})
+        recorder = DynaRunRecorder(run, cfg.tracking.experiment, run_name, {**base, **standard})
         with tracking.system_metrics(run):
             outcome = run_dyna(job, checked, _Printing(recorder))
             recorder.finish(outcome, spec, real_arm_key(cfg), f"{spec.name}: Dyna ({names['surrogate']}) vs the real arm, seed {job.seed}")

@@ -143,12 +143,14 @@ def _df_table(df: pd.DataFrame, spec: Sequence[tuple[str, ...]], link: Linker, c
     return Table([s[1] for s in spec] + ["runs"], rows, caption)
 
 
-def _ci_text(r: Mapping[str, Any]) -> str:
-    if math.isnan(r["return"]):
-        return NOT_RUN
-    if math.isnan(r["ci_low"]):
-        return f"{r['return']:.1f} ({r['statistic']}, 1 seed: no CI)"
-    return f"{r['return']:.1f} [{r['ci_low']:.1f}, {r['ci_high']:.1f}] ({r['statistic']})"
+def _ci_text(ci: tuple[float, float, float, str], empty: str = NOT_RUN) -> str:
+    """(point, low, high, statistic) as "point [low, high] (statistic)"; ``empty`` without a point."""
+    point, lo, hi, stat = ci
+    if math.isnan(point):
+        return empty
+    if math.isnan(lo):
+        return f"{point:.1f} ({stat}, 1 seed: no CI)"
+    return f"{point:.1f} [{lo:.1f}, {hi:.1f}] ({stat})"
 
 
 def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
@@ -188,7 +190,8 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
         solved = NOT_RUN if not ids else ("not reached" if r["n_solved"] == 0 else
                                          f"{fmt(r['solved_real_steps'], 'int')} ({r['n_solved']}/{r['n_seeds']} seeds)")
         vals = [fmt(r["real_transitions"], "int", e), fmt(r["surrogate_steps"], "int", e), fmt(r["total_steps"], "int", e),
-                fmt(r["paper_total_steps"], "int", "-"), _ci_text(r), fmt(r["success_rate"], "pct", e),
+                fmt(r["paper_total_steps"], "int", "-"),
+                _ci_text((r["return"], r["ci_low"], r["ci_high"], r["statistic"])), fmt(r["success_rate"], "pct", e),
                 fmt(r["train_wall_seconds"], "f1", e), solved]
         rows.append([Cell(r["env"]), Cell(r["surrogate"]), Cell(r["arm"]), Cell(r["agent"]), Cell(str(r["n_seeds"]))]
                     + [link.cell(v, ids) for v in vals] + [link.ids(ids)])
@@ -200,13 +203,6 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                      "percentile bootstrap CI over seeds (scipy.stats.bootstrap, 2000 resamples, seed 0)."))
     out += dyna_blocks(runs, link)
     return out
-
-
-def _ci_cell(ci: tuple[float, float, float, str]) -> str:
-    point, lo, hi, stat = ci
-    if math.isnan(point):
-        return "-"
-    return f"{point:.1f} ({stat}, 1 seed)" if math.isnan(lo) else f"{point:.1f} [{lo:.1f}, {hi:.1f}] ({stat})"
 
 
 def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
@@ -226,8 +222,8 @@ def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
                   f"collect {fmt(r['phase_a'], 'int', e)}, screens {fmt(r['phase_b'], 'int', e)}, "
                   f"confirmations {fmt(r['phase_c'], 'int', e)}")
         vals = [f"{r['n_solved']}/{r['n_seeds']}", cost, phases, fmt(r["model_data"], "int", e),
-                fmt(r["surrogate_steps"], "int", e), fmt(r["wall_seconds"], "f1", e), _ci_cell(r["final"]),
-                "-" if real else _ci_cell(r["audit"])]
+                fmt(r["surrogate_steps"], "int", e), fmt(r["wall_seconds"], "f1", e), _ci_text(r["final"], "-"),
+                "-" if real else _ci_text(r["audit"], "-")]
         rows.append([Cell(r["env"]), Cell(r["method"]), Cell(r["agent"])] + [link.cell(v, ids) for v in vals]
                     + [link.ids(ids)])
     out.append(Table(["env", "method", "agent", "solved", "median real transitions to solve", "real steps by phase (mean)",

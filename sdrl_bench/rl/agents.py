@@ -145,9 +145,7 @@ def evaluate_real(
                 lens[i] += 1
                 if term or trunc:
                     succ[i] = spec.is_success(float(rets[i]), bool(term))
-                elif max_steps is not None and lens[i] >= max_steps:
-                    succ[i] = False
-                else:
+                elif max_steps is None or lens[i] < max_steps:  # a cut episode stays no success
                     running.append(i)
             live = running
     finally:

@@ -222,6 +222,10 @@ class _Loop:
         self.next_episode = 0
         self.test = held_out_test_set(job.fit.spec)
 
+    def real_steps(self) -> int:
+        """Real steps the loop has taken so far (the audit apart)."""
+        return sum(self.counts[p] for p in LOOP_PHASES)
+
     def counted(self, phase: str):
         return lambda env: StepCounter(env, self.counts, phase)
 
@@ -272,23 +276,22 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
         screen, new = clock.run("evaluate", loop.evaluate, agent, cfg.eval_episodes,
                                 SCREEN_SEED + seed * 10_000 + k * cfg.eval_episodes, "evaluate", cfg.screen_max_steps)
         new_parts = [new] if cfg.data_from_evaluations else []
-        screened_at = sum(loop.counts[p] for p in LOOP_PHASES)
+        screened_at = loop.real_steps()
         curve.append((screened_at, screen.mean, screen.std))
-        final, solved = None, False
+        final = None
         if screen.mean >= spec.solved_threshold:
             final, new = clock.run("final", loop.evaluate, agent, cfg.final_episodes,
                                    FINAL_SEED + seed * 10_000 + k * cfg.final_episodes, "final")
             new_parts += [new] if cfg.data_from_evaluations else []
-            total = sum(loop.counts[p] for p in LOOP_PHASES)
-            solved = final.mean >= spec.solved_threshold and total <= cfg.max_real_transitions
-        total = sum(loop.counts[p] for p in LOOP_PHASES)
-        left = cfg.max_real_transitions - total
+        left = cfg.max_real_transitions - loop.real_steps()
+        solved = final is not None and final.mean >= spec.solved_threshold and left >= 0
         last = solved or left <= 0 or k == cfg.max_rounds
         if not last and cfg.collect_per_round:
             got = clock.run("collect", _collect, loop, agent, min(cfg.collect_per_round, left),
                             COLLECT_SEED + seed * 10_000 + k * 100)
             new_parts.append(got)
-        new_rows = concat(new_parts) if any(p is not None and len(p) for p in new_parts) else loop.data.subset(slice(0, 0))
+        new_parts = [p for p in new_parts if p is not None and len(p)]
+        new_rows = concat(new_parts) if new_parts else loop.data.subset(slice(0, 0))
         if len(new_rows):
             loop.data = concat([loop.data, new_rows])
         fit, events = (rounds[-1].fit, rounds[-1].events) if last else loop.refit(clock)
