@@ -2,6 +2,7 @@
 
     sdrl-bench-report --name reproduction [--uri URI] [--experiment E] [--parent-run ID]
                       [--tag k=v ...] [--out reports] [--ui-url http://127.0.0.1:5000]
+                      [--provenance rebuild.json]
 """
 
 from __future__ import annotations
@@ -37,11 +38,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--out", default="reports", type=Path, help="output folder (default: reports/)")
     ap.add_argument("--ui-url", help="MLflow UI base URL: numbers link to their runs there")
     ap.add_argument("--no-log", action="store_true", help="do not log the report as an MLflow run")
+    ap.add_argument("--provenance", type=Path, help="rebuild record (scripts/reproduce.py's rebuild.json): how it was made")
     args = ap.parse_args(argv)
     command = "sdrl-bench-report " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     try:
         inp = ReportInput(tracking.resolve_uri(args.uri), args.experiment, args.parent_run, _parse_tags(args.tag), args.ui_url)
-        res = build_report(inp, args.name, args.out, command.strip(), log_run=not args.no_log)
+        res = build_report(inp, args.name, args.out, command.strip(), log_run=not args.no_log,
+                           provenance=args.provenance)
     except ConfigError as exc:
         print(f"sdrl-bench-report: error: {exc}", file=sys.stderr)
         return 2

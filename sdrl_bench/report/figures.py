@@ -71,10 +71,10 @@ def _solved_threshold(runs: Sequence[Mapping[str, Any]]) -> float | None:
 
 
 def figure_blocks(uri: str, runs: Sequence[Mapping[str, Any]], folder: Path, url: UrlFn) -> list[Block]:
-    """Section 5: learning curves, policy maps, predicted vs true, Optuna, equations."""
+    """Section 6: learning curves, policy maps, predicted vs true, Optuna, equations."""
     figs = folder / "figures"
     figs.mkdir(parents=True, exist_ok=True)
-    out: list[Block] = [Heading(2, "5. Figures")]
+    out: list[Block] = [Heading(2, "6. Figures")]
     out += _transfer_blocks(uri, runs, folder, url)
     out += _fit_blocks(uri, runs, folder, url)
     out += _study_blocks(uri, runs, folder, url)
@@ -89,28 +89,30 @@ def _transfer_blocks(uri: str, runs: Sequence[Mapping[str, Any]], folder: Path, 
     figs = folder / "figures"
     out: list[Block] = [Heading(3, "Learning curves and policy maps")]
     done = rt.finished(runs, "transfer")
-    groups = sorted({(r["tags"].get("env", "?"), r["tags"].get("surrogate", "sindy")) for r in done})
+    # one group per env, surrogate kind and agent: the zoo recipe and a fast one never share a plot;
+    # runs that trained one arm alone (a Dyna benchmark's real arm) are the Dyna section's
+    groups = sorted({(r["tags"].get("env", "?"), r["tags"].get("surrogate", "sindy"), r["tags"].get("agent", "?"))
+                     for r in done if "," in r["tags"].get("arms", "surrogate,real")})
     if not groups:
-        out.append(Para("RL transfer: not run (no finished transfer runs)."))
-    for env, kind in groups:
-        members = [r for r in done if r["tags"].get("env") == env and r["tags"].get("surrogate", "sindy") == kind]
+        out.append(Para("RL transfer: not run (no finished transfer runs of both arms)."))
+    for env, kind, agent in groups:
+        members = [r for r in done if (r["tags"].get("env"), r["tags"].get("surrogate", "sindy"), r["tags"].get("agent", "?"))
+                   == (env, kind, agent) and "," in r["tags"].get("arms", "surrogate,real")]
+        label = f"{env}, {agent}, {kind}"
         bands = {arm: rt.curve_band(_curves(uri, members, arm, folder / ".dl")) for arm in rt.ARMS}
         if any(len(b) for b in bands.values()):
-            path = figs / f"curves_{env}_{kind}.png"
-            path.write_bytes(learning_curve_figure(bands, f"{env}, {kind} surrogate vs real", _solved_threshold(members)))
-            out.append(Image(path, f"{env} ({kind}): real return vs training steps, mean across seeds, shaded min..max"))
+            path = figs / f"curves_{env}_{agent}_{kind}.png"
+            path.write_bytes(learning_curve_figure(bands, f"{label} surrogate vs real", _solved_threshold(members)))
+            out.append(Image(path, f"{label}: real return vs training steps, mean across seeds, shaded min..max"))
         else:
-            out.append(Para(f"{env} ({kind}): learning curves missing from runs {', '.join(r['run_id'][:8] for r in members)}."))
+            out.append(Para(f"{label}: learning curves missing from runs {', '.join(r['run_id'][:8] for r in members)}."))
         first = members[0]["run_id"]
-        got = _fetch(uri, first, "figures/policy_maps.png", figs / f"policy_maps_{env}_{kind}.png")
+        got = _fetch(uri, first, "figures/policy_maps.png", figs / f"policy_maps_{env}_{agent}_{kind}.png")
         if got:
-            arms = [a for a in rt.ARMS if f"{a}/final_return_mean" in members[0]["metrics"]]
-            what = ("real-trained vs surrogate-trained agent" if len(arms) == 2 else
-                    f"the {arms[0] if arms else 'trained'}-arm agent (one arm ran)")
-            out.append(Image(got, f"{env} ({kind}): policy maps, {what} (run {first[:8]})"))
+            out.append(Image(got, f"{label}: policy maps, real-trained vs surrogate-trained agent (run {first[:8]})"))
             out.append(Para(f"Policy maps from run {_ref(first, url)}."))
         else:
-            out.append(Para(f"{env} ({kind}): policy maps missing from run {_ref(first, url)}."))
+            out.append(Para(f"{label}: policy maps missing from run {_ref(first, url)}."))
     return out
 
 

@@ -39,7 +39,9 @@ PAPER_TOTAL_STEPS: dict[str, dict[str, float]] = {
 }
 ARMS = ("surrogate", "real")
 #: The library each paper pack uses (conf/experiment/paper_*.yaml): preferred for Table 1 top.
-PAPER_LIBRARY = {"mountain_car": "poly_trig", "lunar_lander": "polynomial"}
+PAPER_LIBRARY = {"mountain_car": "poly_trig", "lunar_lander": "lunar_lander_flight"}
+#: Open-loop rollout horizon of the fidelity tables (fits log ``rollout<k>_mse/<state>``).
+HORIZON = 50
 
 
 # ---------------------------------------------------------------------- run selection
@@ -102,46 +104,91 @@ def _mean(values: Iterable[float | None]) -> float:
 
 
 # ---------------------------------------------------------------------- tables 1-3
+def _stat(values: Iterable[float | None]) -> tuple[float, float, float, str]:
+    """IQM (>= 5 values, else the mean) with its 95% bootstrap CI: ``bootstrap_ci`` of the finite values."""
+    return bootstrap_ci([float(v) for v in values if v is not None])
+
+
+def floor_regime(fits: Sequence[Mapping[str, Any]], state: str) -> str | None:
+    """The regime whose replay noise floor the fits were scored against for ``state``
+    (``floor_ratio_<regime>/<state>``): "flight" (the regressed dynamics) when logged, else "all",
+    else the first found; None when the env has no floor."""
+    found = sorted({k.split("/")[0][len("floor_ratio_"):] for f in fits for k in f["metrics"]
+                    if k.startswith("floor_ratio_") and k.endswith(f"/{state}")})
+    for regime in ("flight", "all"):
+        if regime in found:
+            return regime
+    return found[0] if found else None
+
+
 def fidelity_table(runs: Iterable[Run]) -> pd.DataFrame:
-    """Paper Table 1 top: per env and state, one-step MSE (raw units and normalized) and
-    correlation, the mean over the env's main fits (``main_fits``), beside the paper's."""
+    """Paper Table 1 top, per env and state over the env's main fits (``main_fits``, one per
+    seed): one-step MSE (raw units; IQM with a 95% bootstrap CI over seeds, the mean below 5
+    seeds), normalized MSE and correlation (same statistic), the one-step MSE as a multiple of
+    the replay noise floor where the env has one (``floor_ratio``, its regime in
+    ``floor_regime``), the MSE of the state after ``HORIZON`` open-loop steps (``rollout``, over
+    the rollouts that did not diverge) and the fraction that diverged; beside the paper's."""
     records = fit_records(runs)
     rows = []
     for env in envs_of(records):
         fits = main_fits(records, env)
         for state in states_of(records, env):
             paper = PAPER_FIDELITY.get(env, {}).get(state, (math.nan, math.nan))
+            one = _stat(f["metrics"].get(f"mse/{state}") for f in fits)
+            roll = _stat(f["metrics"].get(f"rollout{HORIZON}_mse/{state}") for f in fits)
+            regime = floor_regime(fits, state)
+            floor = _stat(f["metrics"].get(f"floor_ratio_{regime}/{state}") for f in fits) if regime else (math.nan,) * 3
             rows.append({
                 "env": env, "state": state,
                 "library": fits[0]["library"] if fits else None,
                 "test_set": fits[0]["test_set"] if fits else None,
-                "n_fits": len(fits),
-                "mse": _mean(f["metrics"].get(f"mse/{state}") for f in fits),
-                "mse_norm": _mean(f["metrics"].get(f"mse_norm/{state}") for f in fits),
-                "corr": _mean(f["metrics"].get(f"corr/{state}") for f in fits),
+                "n_fits": len(fits), "statistic": one[3],
+                "mse": one[0], "mse_lo": one[1], "mse_hi": one[2],
+                "mse_norm": _stat(f["metrics"].get(f"mse_norm/{state}") for f in fits)[0],
+                "corr": _stat(f["metrics"].get(f"corr/{state}") for f in fits)[0],
+                "floor_ratio": floor[0], "floor_ratio_lo": floor[1], "floor_ratio_hi": floor[2], "floor_regime": regime,
+                "rollout": roll[0], "rollout_lo": roll[1], "rollout_hi": roll[2],
+                "diverged": _mean(f["metrics"].get(f"rollout{HORIZON}/diverged_fraction") for f in fits),
                 "paper_mse": paper[0], "paper_corr": paper[1],
                 "runs": [f["run_id"] for f in fits],
             })
-    return pd.DataFrame(rows, columns=["env", "state", "library", "test_set", "n_fits", "mse", "mse_norm", "corr",
-                                       "paper_mse", "paper_corr", "runs"])
+    return pd.DataFrame(rows, columns=["env", "state", "library", "test_set", "n_fits", "statistic", "mse", "mse_lo",
+                                       "mse_hi", "mse_norm", "corr", "floor_ratio", "floor_ratio_lo", "floor_ratio_hi",
+                                       "floor_regime", "rollout", "rollout_lo", "rollout_hi", "diverged", "paper_mse",
+                                       "paper_corr", "runs"])
+
+
+def _state_mean(metrics: Mapping[str, float], prefix: str) -> float:
+    """The mean over states of ``<prefix>/<state>`` (e.g. the 50-step rollout MSE of one fit)."""
+    vals = [v for k, v in metrics.items() if k.startswith(prefix + "/") and not k.endswith(("/mean", "/max", "/n"))]
+    return _mean(vals)
 
 
 def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
-    """Paper Table 1 bottom: per env and library, the mean one-step MSE over states
-    (``mse/mean``, raw units) of the SINDy fit runs, averaged over runs, beside the paper's."""
+    """Paper Table 1 bottom: per env and library, over the SINDy fit runs (one per seed): the
+    one-step MSE averaged over states (``mse/mean``, raw units; IQM with a 95% bootstrap CI
+    over seeds, the mean below 5), the normalized one, the ``HORIZON``-step rollout MSE
+    averaged over states, the fraction of rollouts that diverged and the active terms
+    (``n_parameters``); beside the paper's."""
     records = [r for r in fit_records(runs) if r["surrogate"] == "sindy" and r["source"] == "fit"]
     rows = []
     for env in envs_of(records):
         libraries = list(ABLATION_LIBRARIES) + sorted({r["library"] for r in records if r["env"] == env} - set(ABLATION_LIBRARIES))
         for lib in libraries:
             fits = [r for r in records if r["env"] == env and r["library"] == lib]
+            one = _stat(f["metrics"].get("mse/mean") for f in fits)
             rows.append({"env": env, "library": lib, "n_fits": len(fits),
-                         "test_set": fits[0]["test_set"] if fits else None,
-                         "mse_mean": _mean(f["metrics"].get("mse/mean") for f in fits),
-                         "mse_norm_mean": _mean(f["metrics"].get("mse_norm/mean") for f in fits),
+                         "test_set": fits[0]["test_set"] if fits else None, "statistic": one[3],
+                         "mse_mean": one[0], "mse_mean_lo": one[1], "mse_mean_hi": one[2],
+                         "mse_norm_mean": _stat(f["metrics"].get("mse_norm/mean") for f in fits)[0],
+                         "rollout_mean": _stat(_state_mean(f["metrics"], f"rollout{HORIZON}_mse") for f in fits)[0],
+                         "diverged": _mean(f["metrics"].get(f"rollout{HORIZON}/diverged_fraction") for f in fits),
+                         "n_terms": _mean(f["metrics"].get("n_parameters") for f in fits),
                          "paper_mse": PAPER_ABLATION.get(env, {}).get(lib, math.nan),
                          "runs": [f["run_id"] for f in fits]})
-    return pd.DataFrame(rows, columns=["env", "library", "n_fits", "test_set", "mse_mean", "mse_norm_mean", "paper_mse", "runs"])
+    return pd.DataFrame(rows, columns=["env", "library", "n_fits", "test_set", "statistic", "mse_mean", "mse_mean_lo",
+                                       "mse_mean_hi", "mse_norm_mean", "rollout_mean", "diverged", "n_terms", "paper_mse",
+                                       "runs"])
 
 
 def _ratio(a: float, b: float) -> float:
@@ -149,23 +196,28 @@ def _ratio(a: float, b: float) -> float:
 
 
 def sindy_vs_nn_table(runs: Iterable[Run]) -> pd.DataFrame:
-    """SINDy vs NN per env: per-state one-step MSE, fit wall and CPU seconds, parameters
-    (SINDy: active terms) and the SINDy/NN ratios, each the mean over the kind's fit runs
-    (``runs_sindy`` and ``runs_nn`` name them, so each number links to its own runs)."""
+    """SINDy vs NN per env: per-state one-step and ``HORIZON``-step rollout MSE, fit wall and
+    CPU seconds, parameters (SINDy: active terms) and the SINDy/NN ratios; each value the IQM
+    over the kind's fit runs (one per seed; the mean below 5) with its 95% bootstrap CI
+    (``<kind>_lo``, ``<kind>_hi``); ``runs_sindy`` and ``runs_nn`` name the runs, so each
+    number links to its own runs."""
     records = [r for r in fit_records(runs) if r["source"] == "fit"]
     rows = []
     for env in envs_of(records):
         sindy, nn = main_fits(records, env, "sindy"), main_fits(records, env, "nn")
         ids = [f["run_id"] for f in sindy + nn]
-        quantities = [f"mse/{s}" for s in states_of(records, env)] + ["fit_wall_seconds", "fit_cpu_seconds", "n_parameters"]
+        states = states_of(records, env)
+        quantities = ([f"mse/{s}" for s in states] + [f"rollout{HORIZON}_mse/{s}" for s in states]
+                      + [f"rollout{HORIZON}/diverged_fraction", "fit_wall_seconds", "fit_cpu_seconds", "n_parameters"])
         for q in quantities:
-            s_val = _mean(f["metrics"].get(q) for f in sindy)
-            n_val = _mean(f["metrics"].get(q) for f in nn)
-            rows.append({"env": env, "quantity": q, "sindy": s_val, "nn": n_val, "sindy_over_nn": _ratio(s_val, n_val),
+            s_val = _stat(f["metrics"].get(q) for f in sindy)
+            n_val = _stat(f["metrics"].get(q) for f in nn)
+            rows.append({"env": env, "quantity": q, "sindy": s_val[0], "sindy_lo": s_val[1], "sindy_hi": s_val[2],
+                         "nn": n_val[0], "nn_lo": n_val[1], "nn_hi": n_val[2], "sindy_over_nn": _ratio(s_val[0], n_val[0]),
                          "n_sindy": len(sindy), "n_nn": len(nn), "runs": ids,
                          "runs_sindy": [f["run_id"] for f in sindy], "runs_nn": [f["run_id"] for f in nn]})
-    return pd.DataFrame(rows, columns=["env", "quantity", "sindy", "nn", "sindy_over_nn", "n_sindy", "n_nn", "runs",
-                                       "runs_sindy", "runs_nn"])
+    return pd.DataFrame(rows, columns=["env", "quantity", "sindy", "sindy_lo", "sindy_hi", "nn", "nn_lo", "nn_hi",
+                                       "sindy_over_nn", "n_sindy", "n_nn", "runs", "runs_sindy", "runs_nn"])
 
 
 # ---------------------------------------------------------------------- RL transfer
@@ -237,15 +289,17 @@ def _median_cost(costs: Sequence[float]) -> float:
 
 def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
     """Dyna runs (``task=dyna``) per env, surrogate kind and agent, and beside them the real
-    arm of the same agent (finished transfer runs that ran the real arm only, as
-    ``benchmarks/dyna.py`` runs it): seeds solved; the median real transitions to solve (an
+    arm of the same agent (finished transfer runs that trained it, not those that reused it): seeds solved; the median real transitions to solve (an
     unsolved seed counts as infinitely many); per phase, the mean real steps (Dyna: collect,
     screens, confirmations; real arm: training to the first solved evaluation, and the
     evaluations); the last 20-episode return and the Dyna audit, each as IQM (or mean) with a 95%
     bootstrap CI over seeds."""
     runs = list(runs)
     dyna = finished(runs, "dyna")
-    real = [r for r in finished(runs, "transfer") if r["tags"].get("arms") == "real"]
+    # the real arm: every transfer run that trained one of the same agent (alone, as benchmarks/dyna.py
+    # runs it, or beside a surrogate arm); a reused real arm is the same run's and is not counted twice
+    real = [r for r in finished(runs, "transfer") if "real/final_return_mean" in r["metrics"]
+            and not r["tags"].get("real_arm_reused_from")]
     rows = []
     for env in envs_of({"env": r["tags"].get("env")} for r in dyna):
         for agent in sorted({r["tags"].get("agent", "?") for r in dyna if r["tags"].get("env") == env}):

@@ -142,7 +142,7 @@ def test_transfer_table_and_report_from_a_sweep(store: str, tmp_path) -> None:
     assert res.n_runs == 5 and res.problems == []  # parent, 3 transfers, the RUNNING one
     assert "http://ui:5000/#/experiments/" in md and f"/runs/{ids[0]}" in md
     assert "94.0 [" in md and "(mean)" in md and "not run" in md
-    assert "figures/curves_mountain_car_sindy.png" in md and (res.folder / "figures/curves_mountain_car_sindy.png").is_file()
+    assert "figures/curves_mountain_car_sac_sindy.png" in md and (res.folder / "figures/curves_mountain_car_sac_sindy.png").is_file()
     assert "data:image/png;base64," in html and "<img class='math'" in html and "src='figures/" not in html
     logged = search(store, EXP, "tags.`sdrl.kind` = 'report'")
     assert list(logged["run_id"]) == [res.report_run_id]
@@ -320,3 +320,99 @@ def test_report_exports_every_run_it_read_and_names_its_commit(fits_store: str, 
     md = (res.folder / "report.md").read_text()
     commit = tracking.standard_tags()["git_commit"]
     assert f"at commit `{commit}`" in md and "[runs.csv](runs.csv)" in md
+
+
+def _ll_fit(uri: str, library: str, surrogate: str, seed: int, kind: str = "fit") -> str:
+    """A LunarLander fit (or a transfer run's fit) with the fidelity metrics a real one logs:
+    one-step and 50-step MSE per state, the flight regime's noise-floor ratio, divergence."""
+    states = ("x", "y", "vx", "vy", "angle", "angvel")
+    tags = {"sdrl.kind": kind, "env": "lunar_lander", "library": library, "surrogate": surrogate, "seed": seed,
+            "collector": "expert", "test_set": "lunar_lander-heldout-v1", "agent": "ppo", "arms": "surrogate,real"}
+    rng = np.random.default_rng(seed + (100 if surrogate == "nn" else 0))
+    m: dict[str, float] = {}
+    for i, s in enumerate(states):
+        m[f"mse/{s}"] = float(10.0 ** (-8 + i) * rng.uniform(1, 3))
+        m[f"mse_norm/{s}"] = float(rng.uniform(0, 1e-2))
+        m[f"corr/{s}"] = float(1 - rng.uniform(0, 1e-3))
+        m[f"rollout50_mse/{s}"] = float(10.0 ** (-5 + i) * rng.uniform(1, 3))
+        m[f"floor_ratio_flight/{s}"] = float(rng.uniform(1, 40))
+        m[f"floor_ratio_contact/{s}"] = float(rng.uniform(100, 400))
+    m.update({"mse/mean": float(np.mean([m[f"mse/{s}"] for s in states])), "mse_norm/mean": 1e-3,
+              "rollout50/diverged_fraction": float(rng.uniform(0, 0.2)), "fit_wall_seconds": 0.1 + seed,
+              "fit_cpu_seconds": 0.05, "n_parameters": 40.0 + seed if surrogate == "sindy" else 1222.0})
+    if kind == "transfer":
+        m.update({"surrogate/final_return_mean": 150.0 + 10 * seed, "real/final_return_mean": 260.0})
+    with tracking.start_run(uri, EXP, f"{kind}-ll-{library}-{surrogate}-s{seed}", tags) as run:
+        run.log_metrics(m)
+    return run.run_id
+
+
+def test_five_seed_fidelity_tables_report_iqm_cis_rollouts_and_noise_floor_ratios(store: str, tmp_path) -> None:
+    """Five seeds: the fidelity table's one-step and 50-step cells are the IQM and bootstrap CI
+    of the runs' own metrics, the noise-floor ratio is the flight regime's; the ablation and
+    SINDy-vs-NN tables the same; every number in the report links to exactly its row's runs."""
+    from urllib.parse import unquote
+
+    flight = [_ll_fit(store, "lunar_lander_flight", "sindy", s, kind="transfer") for s in range(5)]
+    poly = [_ll_fit(store, "polynomial", "sindy", s) for s in range(5)]
+    nn = [_ll_fit(store, "nn", "nn", s) for s in range(5)]
+    runs = tracking.find_runs(store, EXP, missing_ok=False)
+    by_id = {r["run_id"]: r["metrics"] for r in runs}
+    fid = rt.fidelity_table(runs).set_index(["env", "state"])
+    for state in ("x", "vy", "angvel"):
+        row = fid.loc[("lunar_lander", state)]
+        assert sorted(row["runs"]) == sorted(flight) and row["library"] == "lunar_lander_flight"
+        for col, key in (("mse", f"mse/{state}"), ("rollout", f"rollout50_mse/{state}"),
+                         ("floor_ratio", f"floor_ratio_flight/{state}")):
+            ref = rt.bootstrap_ci([by_id[i][key] for i in flight])
+            assert ref[3] == "IQM" and (row[col], row[f"{col}_lo"], row[f"{col}_hi"]) == pytest.approx(ref[:3], rel=1e-12)
+        assert row["floor_regime"] == "flight" and row["statistic"] == "IQM"
+        assert row["diverged"] == pytest.approx(np.mean([by_id[i]["rollout50/diverged_fraction"] for i in flight]))
+    abl = rt.ablation_table(runs).set_index(["env", "library"]).loc[("lunar_lander", "polynomial")]
+    assert abl["mse_mean"] == pytest.approx(rt.bootstrap_ci([by_id[i]["mse/mean"] for i in poly])[0], rel=1e-12)
+    roll = [np.mean([by_id[i][f"rollout50_mse/{s}"] for s in ("x", "y", "vx", "vy", "angle", "angvel")]) for i in poly]
+    assert abl["rollout_mean"] == pytest.approx(rt.iqm(np.array(roll)), rel=1e-12)
+    assert abl["n_terms"] == pytest.approx(42.0) and abl["n_fits"] == 5
+    vs = rt.sindy_vs_nn_table(runs).set_index(["env", "quantity"]).loc[("lunar_lander", "rollout50_mse/vx")]
+    assert sorted(vs["runs_sindy"]) == sorted(poly) and sorted(vs["runs_nn"]) == sorted(nn)
+    ref_s = rt.bootstrap_ci([by_id[i]["rollout50_mse/vx"] for i in poly])
+    ref_n = rt.bootstrap_ci([by_id[i]["rollout50_mse/vx"] for i in nn])
+    assert (vs["sindy"], vs["sindy_lo"], vs["sindy_hi"]) == pytest.approx(ref_s[:3], rel=1e-12)
+    assert vs["sindy_over_nn"] == pytest.approx(ref_s[0] / ref_n[0])
+
+    res = build_report(ReportInput(store, EXP, ui_url="http://ui:5000"), "five", tmp_path, log_run=False)
+    md = (res.folder / "report.md").read_text()
+    row = {r[1]: r for r in _md_rows(md, "## 1. Fidelity per state")}["angvel"]
+    ref = rt.bootstrap_ci([by_id[i]["mse/angvel"] for i in flight])
+    assert row[6].startswith(f"[{ref[0]:.2e} [{ref[1]:.2e}, {ref[2]:.2e}]](")
+    assert row[10] == "flight" and "No such" not in md
+    for cell in row[6:10] + row[11:13]:
+        assert {i for i in flight + poly + nn if i in unquote(_link(cell))} == set(flight)
+    vs_row = {r[1]: r for r in _md_rows(md, "## 3. SINDy vs NN")}["rollout50_mse/vx"]
+    assert {i for i in flight + poly + nn if i in unquote(_link(vs_row[2]))} == set(poly)
+    assert {i for i in flight + poly + nn if i in unquote(_link(vs_row[3]))} == set(nn)
+    for heading in ("## 1.", "## 2.", "## 3.", "## 4."):  # every table is followed by its differences paragraph
+        section = md.split(heading, 1)[1].split("\n## ", 1)[0]
+        assert "Differences explained:" in section
+
+
+def test_report_states_how_it_was_made_from_the_rebuild_record(fits_store: str, tmp_path) -> None:
+    import json
+
+    record = {"command": "python scripts/reproduce.py --jobs 2", "seeds": [0, 1, 2, 3, 4], "jobs": 2,
+              "machine": "2 cores", "stages": {
+                  "fits": {"commands": [["-m", "env=mountain_car", "seed=0,1,2,3,4"]], "status": "finished",
+                           "wall_seconds": 120.0, "cpu_seconds": 230.0, "finished_at": "2026-11-24 14:00 UTC"},
+                  "transfer": {"commands": [["-m", "experiment=paper_mountain_car", "seed=0,1,2,3,4"]],
+                               "status": "finished", "wall_seconds": 3000.0, "cpu_seconds": 5900.0,
+                               "finished_at": "2026-11-24 15:00 UTC"}}}
+    path = tmp_path / "rebuild.json"
+    path.write_text(json.dumps(record))
+    assert main(["--uri", fits_store, "--name", "made", "--out", str(tmp_path), "--no-log", "--provenance", str(path)]) == 0
+    md = (tmp_path / "made" / "report.md").read_text()
+    assert "`python scripts/reproduce.py --jobs 2`" in md and "52 min wall, 102 min CPU in all" in md
+    rows = {r[0]: r for r in _md_rows(md, "## How this report was made")}
+    assert rows["transfer"][2] == "3,000" and rows["fits"][5] == "sdrl-bench -m env=mountain_car seed=0,1,2,3,4"
+    path.write_text("not json")
+    assert main(["--uri", fits_store, "--name", "bad", "--out", str(tmp_path), "--no-log", "--provenance", str(path)]) == 2
+    assert not (tmp_path / "bad").exists()

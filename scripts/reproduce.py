@@ -1,0 +1,188 @@
+"""Rebuild the reproduction store and the reference report from nothing, in one command.
+
+    .venv/bin/python scripts/reproduce.py [--workdir runs/reproduction] [--jobs 2] [--seeds 0-4]
+                                          [--out reports] [--name reproduction]
+
+Every stage is an ordinary ``sdrl-bench -m`` sweep into one MLflow store under ``--workdir``
+(``<workdir>/mlruns/mlflow.db``; the experts cache and Hydra's folders live there too), run
+with ``--jobs`` processes at a time, one thread each. The stages, in order:
+
+  experts      the paper's collectors, trained once with their zoo settings (SAC on MountainCar,
+               50k steps; PPO on LunarLander, 1M steps), both at once; then LunarLander's touchdown
+               test set (benchmarks/touchdown_set.py), which every LunarLander fit is scored on.
+               The warm-up fits that train the experts go to experiment ``rebuild-setup``, not
+               to the report's.
+  fits         SINDy per library (polynomial, poly_trig, rational; LunarLander also its
+               per-equation flight law), the NN surrogate, and Pendulum (random data), on the
+               experts' data, every seed: one-step and 50-step fidelity, fit cost, parameters.
+  transfer     the paper packs with SINDy, then with the NN surrogate (the real arm is reused,
+               not retrained): MountainCar, SAC (zoo), the paper's budgets (65k surrogate / 100k
+               real steps) as caps, each arm stopped at its first real evaluation >= 90;
+               LunarLander, PPO (zoo, 16 envs), the paper's fixed budgets (800k / 1M), no stop.
+  fast         the fast PPO recipe (experiment=fast_<env>) on the same data, both surrogates
+               and the real arm, stopped at the first real evaluation at the threshold.
+  dyna         Dyna-style refits (experiment=dyna_<env>), SINDy and NN, beside the fast real arm.
+  report       sdrl-bench-report on the store, with this run's provenance (command, seeds,
+               budgets, per-stage wall and CPU seconds, commit) as its first section.
+
+Resumable: a finished stage is recorded in ``<workdir>/rebuild.json`` with its commands and cost
+and skipped on a rerun with the same commands; inside an unfinished stage each sweep adopts its
+FINISHED jobs (``resume=true``) and runs only the rest. Stop it (Ctrl-C) and run it again.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import shlex
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parent.parent
+STORE_EXPERIMENT = "sdrl-bench"
+SETUP_EXPERIMENT = "rebuild-setup"
+EXPERT_PACK = {"mountain_car": "paper_mountain_car", "lunar_lander": "paper_lunar_lander"}
+
+
+def parse_seeds(text: str) -> list[int]:
+    if "-" in text:
+        lo, hi = text.split("-")
+        return list(range(int(lo), int(hi) + 1))
+    return [int(s) for s in text.split(",")]
+
+
+def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
+    """(stage name, its commands in order); a command is ``sdrl-bench`` arguments, or starts
+    with ``parallel:`` (several single runs at once) or ``python:`` (a script in the repo)."""
+    s = "seed=" + ",".join(map(str, seeds))
+    touchdowns = "mlruns/datasets/lunar_lander-touchdowns-v1.npz"
+    return [
+        ("experts", [
+            ["parallel:", *[f"experiment={EXPERT_PACK[e]}" for e in ("mountain_car", "lunar_lander")]],
+            ["python:", "benchmarks/touchdown_set.py", "--out", touchdowns],
+        ]),
+        ("fits", [
+            ["-m", "env=mountain_car", "collector=expert", "library=polynomial,poly_trig,rational", s],
+            ["-m", "env=lunar_lander", "collector=expert", "library=polynomial,poly_trig,rational",
+             "env.spec.fit_regime=null", f"+env.spec.touchdown_set={touchdowns}", s],
+            ["-m", "env=lunar_lander", "collector=expert", f"+env.spec.touchdown_set={touchdowns}", s],
+            ["-m", "env=mountain_car", "collector=expert", "surrogate=nn", s],
+            ["-m", "env=lunar_lander", "collector=expert", "surrogate=nn", f"+env.spec.touchdown_set={touchdowns}", s],
+            ["-m", "env=pendulum", "surrogate=sindy,nn", s],
+        ]),
+        ("transfer", [
+            ["-m", "experiment=paper_mountain_car", "surrogate=sindy", "rl.stop_when_solved=true", s],
+            ["-m", "experiment=paper_mountain_car", "surrogate=nn", "rl.stop_when_solved=true", s],
+            ["-m", "experiment=paper_lunar_lander", "surrogate=sindy", s],
+            ["-m", "experiment=paper_lunar_lander", "surrogate=nn", s],
+        ]),
+        ("fast", [
+            ["-m", f"experiment=fast_{env}", f"surrogate={kind}", s]
+            for env in ("mountain_car", "lunar_lander") for kind in ("sindy", "nn")
+        ]),
+        ("dyna", [
+            ["-m", f"experiment=dyna_{env}", "surrogate=sindy,nn", s] for env in ("mountain_car", "lunar_lander")
+        ]),
+    ]
+
+
+def child_cpu() -> float:
+    r = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return r.ru_utime + r.ru_stime
+
+
+def run_command(cmd: list[str], workdir: Path, uri: str, jobs: int, log) -> None:
+    env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
+    sdrl = [sys.executable, "-m", "sdrl_bench.cli.main"]
+    if cmd[0] == "python:":
+        procs = [[sys.executable, str(REPO / cmd[1]), *cmd[2:]]]
+    elif cmd[0] == "parallel:":  # single warm-up runs side by side, outside the report's experiment
+        procs = [[*sdrl, o, "task=fit", "progress_bar=false", f"tracking.uri={uri}",
+                  f"tracking.experiment={SETUP_EXPERIMENT}"] for o in cmd[1:]]
+    else:
+        procs = [[*sdrl, *cmd, f"tracking.uri={uri}", f"hydra.launcher.n_jobs={jobs}"]]
+    running = []
+    for p in procs:
+        shown = " ".join(shlex.quote(a) for a in p[1:])
+        print(f"  + {shown}", flush=True)
+        log.write(f"\n+ {shown}\n")
+        log.flush()
+        running.append(subprocess.Popen(p, cwd=workdir, env=env, stdout=log, stderr=subprocess.STDOUT))
+    codes = [p.wait() for p in running]
+    if any(codes):
+        raise SystemExit(f"reproduce: a command failed (exit {max(codes)}); its output is in {log.name}. "
+                         "Fix it and run this command again: finished work is kept and skipped.")
+
+
+def run_stage(name: str, commands: list[list[str]], state: dict, state_path: Path, workdir: Path, uri: str,
+              jobs: int) -> float:
+    """Run one stage's commands and record it in ``state`` (written to ``state_path``) as
+    finished, or as interrupted when a command fails or the user stops it; the cost of earlier
+    interrupted attempts of the same commands is added, not lost. Returns this attempt's wall s."""
+    old = state["stages"].get(name) or {}
+    before = old if old.get("commands") == commands else {}
+    t0, c0 = time.time(), child_cpu()
+
+    def record(status: str) -> None:
+        state["stages"][name] = {"commands": commands, "status": status,
+                                 "wall_seconds": before.get("wall_seconds", 0.0) + time.time() - t0,
+                                 "cpu_seconds": before.get("cpu_seconds", 0.0) + child_cpu() - c0,
+                                 "attempts": before.get("attempts", 0) + 1,
+                                 "finished_at": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+        state_path.write_text(json.dumps(state, indent=1))
+
+    try:
+        with open(workdir / "logs" / f"{name}.log", "a") as log:
+            for cmd in commands:
+                run_command(cmd, workdir, uri, jobs, log)
+    except BaseException:  # a failed command, Ctrl-C: keep what this attempt cost
+        record("interrupted")
+        raise
+    record("finished")
+    return time.time() - t0
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
+    ap.add_argument("--workdir", type=Path, default=Path("runs/reproduction"), help="store, experts, logs")
+    ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="processes per sweep (default: cores)")
+    ap.add_argument("--seeds", default="0-4", help="seeds of every stage (default 0-4)")
+    ap.add_argument("--out", type=Path, default=REPO / "reports", help="report folder's parent")
+    ap.add_argument("--name", default="reproduction", help="report folder name")
+    ap.add_argument("--only", default=None, help="run only these stages (comma-separated), then the report")
+    ap.add_argument("--report-only", action="store_true", help="build the report from the store; run nothing")
+    args = ap.parse_args()
+    seeds = parse_seeds(args.seeds)
+    workdir = args.workdir.resolve()
+    (workdir / "logs").mkdir(parents=True, exist_ok=True)
+    uri = f"sqlite:///{workdir / 'mlruns' / 'mlflow.db'}"
+    state_path = workdir / "rebuild.json"
+    state = json.loads(state_path.read_text()) if state_path.is_file() else {"stages": {}}
+    if not args.report_only:  # the record names the command that ran the stages, not a later --report-only
+        state["command"] = "python scripts/reproduce.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
+        state.update(seeds=seeds, jobs=args.jobs, machine=f"{os.cpu_count()} cores")
+    only = set(args.only.split(",")) if args.only else None
+    for name, commands in ([] if args.report_only else stages(seeds)):
+        if only and name not in only:
+            continue
+        done = state["stages"].get(name)
+        if done and done.get("commands") == commands and done.get("status") == "finished":
+            print(f"{name}: finished before ({done['wall_seconds']:.0f} s), skipped", flush=True)
+            continue
+        print(f"{name}: {len(commands)} command(s)", flush=True)
+        seconds = run_stage(name, commands, state, state_path, workdir, uri, args.jobs)
+        print(f"{name}: done in {seconds:.0f} s", flush=True)
+    state_path.write_text(json.dumps(state, indent=1))
+    report = [sys.executable, "-m", "sdrl_bench.cli.report", "--uri", uri, "--experiment", STORE_EXPERIMENT,
+              "--name", args.name, "--out", str(args.out.resolve()), "--provenance", str(state_path)]
+    print("report: " + " ".join(report[2:]), flush=True)
+    return subprocess.run(report, cwd=workdir).returncode
+
+
+if __name__ == "__main__":
+    sys.exit(main())
