@@ -72,7 +72,7 @@ def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
             ["-m", "env=lunar_lander", "collector=expert", f"+env.spec.touchdown_set={touchdowns}", s],
             ["-m", "env=mountain_car", "collector=expert", "surrogate=nn", s],
             ["-m", "env=lunar_lander", "collector=expert", "surrogate=nn", f"+env.spec.touchdown_set={touchdowns}", s],
-            ["-m", "env=pendulum", "surrogate=sindy,nn", s],
+            ["-m", "env=pendulum", "collector=random", "surrogate=sindy,nn", s],
         ]),
         ("transfer", [
             ["-m", "experiment=paper_mountain_car", "surrogate=sindy", "rl.stop_when_solved=true", s],

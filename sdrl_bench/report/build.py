@@ -130,8 +130,10 @@ def _df_table(df: pd.DataFrame, spec: Sequence[tuple[str, ...]], link: Linker, c
         for col, _, kind, *runs_col in spec:
             v = r[col]
             cell_ids = list(r[runs_col[0]]) if runs_col else ids
-            kind, _, count_col = kind.partition("|")  # "g|n_nn": "not run" when n_nn is 0
-            empty = NOT_RUN if not cell_ids or (count_col and not r[count_col]) else MISSING
+            kind, _, count_col = kind.partition("|")  # "g|n_nn": "not run" when n_nn is 0; "g|-": "-" (none exists)
+            empty = NOT_RUN if not cell_ids or (count_col not in ("", "-") and not r[count_col]) else MISSING
+            if count_col == "-" and cell_ids:
+                empty = "-"
             if kind == "text":
                 cells.append(Cell("-" if v is None or (isinstance(v, float) and math.isnan(v)) else str(v)))
             elif kind.startswith("paper"):
@@ -148,8 +150,8 @@ def _df_table(df: pd.DataFrame, spec: Sequence[tuple[str, ...]], link: Linker, c
 def _with_ci(value: Any, lo: Any, hi: Any, kind: str, empty: str) -> str:
     """``value [lo, hi]`` in the number format ``kind``; the value alone when there is no interval."""
     text = fmt(value, kind, empty)
-    if text in (NOT_RUN, MISSING) or lo is None or hi is None or math.isnan(lo) or math.isnan(hi):
-        return text
+    if text in (NOT_RUN, MISSING, "-") or lo is None or hi is None or math.isnan(lo) or math.isnan(hi) or lo == hi == value:
+        return text  # no interval, or every seed gave the same value
     return f"{text} [{fmt(lo, kind)}, {fmt(hi, kind)}]"
 
 
@@ -216,7 +218,7 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                                ("test_set", "test set", "text"), ("n_fits", "seeds", "int"),
                                ("statistic", "statistic", "text"),
                                ("mse", "one-step MSE (raw) [95% CI]", "eci"), ("mse_norm", "one-step MSE (normalized)", "e"),
-                               ("corr", "corr", "f3"), ("floor_ratio", "one-step MSE / noise floor [95% CI]", "gci"),
+                               ("corr", "corr", "f3"), ("floor_ratio", "one-step MSE / noise floor [95% CI]", "gci|-"),
                                ("floor_regime", "floor regime", "text"),
                                ("rollout", f"{rt.HORIZON}-step MSE (raw) [95% CI]", "eci"),
                                ("diverged", f"{rt.HORIZON}-step diverged", "pct"),

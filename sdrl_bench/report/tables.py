@@ -40,6 +40,8 @@ PAPER_TOTAL_STEPS: dict[str, dict[str, float]] = {
 ARMS = ("surrogate", "real")
 #: The library each paper pack uses (conf/experiment/paper_*.yaml): preferred for Table 1 top.
 PAPER_LIBRARY = {"mountain_car": "poly_trig", "lunar_lander": "lunar_lander_flight"}
+#: The agent each paper pack trains (conf/experiment/paper_*.yaml).
+PAPER_AGENT = {"mountain_car": "sac", "lunar_lander": "ppo"}
 #: Open-loop rollout horizon of the fidelity tables (fits log ``rollout<k>_mse/<state>``).
 HORIZON = 50
 
@@ -67,7 +69,8 @@ def fit_records(runs: Iterable[Run]) -> list[dict[str, Any]]:
             continue
         out.append({"run_id": r["run_id"], "source": kind, "env": tags.get("env"), "library": tags.get("library"),
                     "surrogate": tags.get("surrogate", "sindy"), "collector": tags.get("collector"),
-                    "seed": tags.get("seed"), "test_set": tags.get("test_set", "?"), "metrics": metrics})
+                    "seed": tags.get("seed"), "test_set": tags.get("test_set", "?"), "agent": tags.get("agent"),
+                    "metrics": metrics})
     return out
 
 
@@ -86,10 +89,12 @@ def envs_of(records: Iterable[Mapping[str, Any]]) -> list[str]:
 
 def main_fits(records: Sequence[Mapping[str, Any]], env: str, surrogate: str = "sindy") -> list[Mapping[str, Any]]:
     """The fits that stand for an env's surrogate: those made inside transfer runs (the
-    paper's pipeline) if any, else fit runs; of the paper pack's library when present (SINDy),
-    and of the most frequent (library, test set)."""
+    paper's pipeline) if any, else fit runs; of the paper pack's agent and library when present
+    (SINDy), and of the most frequent (library, test set)."""
     mine = [r for r in records if r["env"] == env and r["surrogate"] == surrogate]
     mine = [r for r in mine if r["source"] == "transfer"] or mine
+    # the paper packs' runs when there are any: a fast recipe's runs fit the same data again
+    mine = [r for r in mine if r["agent"] in (None, PAPER_AGENT.get(env))] or mine
     if surrogate == "sindy":
         mine = [r for r in mine if r["library"] == PAPER_LIBRARY.get(env)] or mine
     if not mine:

@@ -10,6 +10,7 @@ from pathlib import Path
 
 from helpers import compose_cfg
 from sdrl_bench.cli.build import build_dyna_job, build_fit_job, build_transfer_job
+from sdrl_bench.pipeline import check
 
 SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "reproduce.py"
 
@@ -45,6 +46,7 @@ def test_every_stage_command_builds_and_every_rl_sweep_has_five_seeds() -> None:
             for job in _jobs(cmd[1:]):
                 cfg = compose_cfg(*job)
                 fit = build_fit_job(cfg)
+                check(fit)  # the checks a run makes before collecting (a collector the env lacks, ...)
                 if cfg.task == "train":
                     build_transfer_job(cfg, fit)
                 elif cfg.task == "dyna":
