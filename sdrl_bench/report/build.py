@@ -132,7 +132,7 @@ def _df_table(df: pd.DataFrame, spec: Sequence[tuple[str, ...]], link: Linker, c
             cell_ids = list(r[runs_col[0]]) if runs_col else ids
             kind, _, count_col = kind.partition("|")  # "g|n_nn": "not run" when n_nn is 0; "g|-": "-" (none exists)
             empty = NOT_RUN if not cell_ids or (count_col not in ("", "-") and not r[count_col]) else MISSING
-            if count_col == "-" and cell_ids:
+            if count_col == "-" and cell_ids:  # e.g. no noise floor, or a ratio of two zeros
                 empty = "-"
             if kind == "text":
                 cells.append(Cell("-" if v is None or (isinstance(v, float) and math.isnan(v)) else str(v)))
@@ -216,7 +216,6 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
     fid = rt.fidelity_table(runs)
     out.append(_df_table(fid, [("env", "env", "text"), ("state", "state", "text"), ("library", "library", "text"),
                                ("test_set", "test set", "text"), ("n_fits", "seeds", "int"),
-                               ("statistic", "statistic", "text"),
                                ("mse", "one-step MSE (raw) [95% CI]", "eci"), ("mse_norm", "one-step MSE (normalized)", "e"),
                                ("corr", "corr", "f3"), ("floor_ratio", "one-step MSE / noise floor [95% CI]", "gci|-"),
                                ("floor_regime", "floor regime", "text"),
@@ -244,7 +243,7 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
     out.append(_df_table(rt.sindy_vs_nn_table(runs), [("env", "env", "text"), ("quantity", "quantity", "text"),
                                                       ("sindy", "SINDy [95% CI]", "gci|n_sindy", "runs_sindy"),
                                                       ("nn", "NN [95% CI]", "gci|n_nn", "runs_nn"),
-                                                      ("sindy_over_nn", "SINDy / NN", "g|n_nn"),
+                                                      ("sindy_over_nn", "SINDy / NN", "g|-"),
                                                       ("n_sindy", "SINDy fits", "int", "runs_sindy"),
                                                       ("n_nn", "NN fits", "int", "runs_nn")], link,
                          "Fit runs on the same data per seed; IQM over seeds with a 95% bootstrap CI (the mean "

@@ -183,15 +183,20 @@ def _equations_html(b: Equations) -> str:
             else:
                 data = base64.b64encode(png).decode()
                 parts.append(f"<div><img class='math' alt='{html.escape(piece)}' src='data:image/png;base64,{data}'></div>")
+    # the same equations as plain text, to copy
+    parts.append("<pre class='eqtext'>" + html.escape("\n".join(b.lines)) + "</pre>")
     parts.append("</figure>")
     return "\n".join(parts)
 
 
-_STYLE = """body{font-family:system-ui,sans-serif;max-width:1200px;margin:2em auto;padding:0 1em;color:#222}
-table{border-collapse:collapse;margin:.5em 0 1.5em;font-size:.9em}th,td{border:1px solid #ccc;padding:3px 7px;text-align:right}
+_STYLE = """body{font-family:system-ui,sans-serif;max-width:1500px;margin:2em auto;padding:0 1em;color:#222}
+div.scroll{overflow-x:auto;margin:.5em 0 1.5em}
+table{border-collapse:collapse;font-size:.85em}th,td{border:1px solid #ccc;padding:3px 6px;text-align:right}
+td{white-space:nowrap}td:last-child{white-space:normal;text-align:left;min-width:16em}
 th{background:#f2f2f2}td:first-child,th:first-child{text-align:left}figure{margin:1em 0}
 img.fig{max-width:100%;border:1px solid #ddd}img.math{margin:2px 0}code{background:#f4f4f4;padding:0 3px}
-figcaption{font-style:italic;color:#555;margin:.3em 0}.caption{font-style:italic;color:#555}"""
+figcaption{font-style:italic;color:#555;margin:.3em 0}.caption{font-style:italic;color:#555}
+pre.eqtext{white-space:pre-wrap;font-size:.85em;background:#f8f8f8;padding:.4em}"""
 
 
 def render_html(blocks: Sequence[Block], title: str) -> str:
@@ -206,12 +211,12 @@ def render_html(blocks: Sequence[Block], title: str) -> str:
         elif isinstance(b, Table):
             if b.caption:
                 out.append(f"<p class='caption'>{_inline_html(b.caption)}</p>")
-            out.append("<table><tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in b.columns) + "</tr>")
+            out.append("<div class='scroll'><table><tr>" + "".join(f"<th>{html.escape(c)}</th>" for c in b.columns) + "</tr>")
             for row in b.rows:
                 cells = [f"<a href='{html.escape(c.url)}'>{html.escape(c.text)}</a>" if c.url else html.escape(c.text)
                          for c in row]
                 out.append("<tr>" + "".join(f"<td>{c}</td>" for c in cells) + "</tr>")
-            out.append("</table>")
+            out.append("</table></div>")
         elif isinstance(b, Image):
             data = base64.b64encode(b.path.read_bytes()).decode()
             out.append(f"<figure><img class='fig' alt='{html.escape(b.caption)}' src='data:image/png;base64,{data}'>"

@@ -384,9 +384,9 @@ def test_five_seed_fidelity_tables_report_iqm_cis_rollouts_and_noise_floor_ratio
     md = (res.folder / "report.md").read_text()
     row = {r[1]: r for r in _md_rows(md, "## 1. Fidelity per state")}["angvel"]
     ref = rt.bootstrap_ci([by_id[i]["mse/angvel"] for i in flight])
-    assert row[6].startswith(f"[{ref[0]:.2e} [{ref[1]:.2e}, {ref[2]:.2e}]](")
-    assert row[10] == "flight" and "No such" not in md
-    for cell in row[6:10] + row[11:13]:
+    assert row[5].startswith(f"[{ref[0]:.2e} [{ref[1]:.2e}, {ref[2]:.2e}]](")
+    assert row[9] == "flight"
+    for cell in row[5:9] + row[10:12]:
         assert {i for i in flight + poly + nn if i in unquote(_link(cell))} == set(flight)
     vs_row = {r[1]: r for r in _md_rows(md, "## 3. SINDy vs NN")}["rollout50_mse/vx"]
     assert {i for i in flight + poly + nn if i in unquote(_link(vs_row[2]))} == set(poly)
