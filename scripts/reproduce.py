@@ -179,9 +179,10 @@ def main() -> int:
         print(f"{name}: done in {seconds:.0f} s", flush=True)
     state_path.write_text(json.dumps(state, indent=1))
     report = [sys.executable, "-m", "sdrl_bench.cli.report", "--uri", uri, "--experiment", STORE_EXPERIMENT,
-              "--name", args.name, "--out", str(args.out.resolve()), "--provenance", str(state_path)]
+              "--name", args.name, "--out", str(args.out.resolve()), "--provenance", str(state_path),
+              "--ui-url", "http://127.0.0.1:5000"]  # links open in `mlflow ui` served on this store
     print("report: " + " ".join(report[2:]), flush=True)
-    return subprocess.run(report, cwd=workdir).returncode
+    return subprocess.run(report, cwd=REPO).returncode  # the store path as typed from the checkout
 
 
 if __name__ == "__main__":

@@ -331,7 +331,10 @@ def overview_blocks(inp: ReportInput, runs: Sequence[Mapping[str, Any]], problem
         counts = pd.Series([f"{r['tags'].get('sdrl.kind', '?')} ({r['status']})" for r in runs]).value_counts().sort_index()
         out.append(Para("Runs read: " + ", ".join(f"{k}: {v}" for k, v in counts.items())
                         + ". Only FINISHED runs count; RUNNING, FAILED and KILLED runs are listed here but not used. "
-                        "Every run read, with its tags, params and metrics: [runs.csv](runs.csv) beside this report."))
+                        "Every run read, with its tags, params and metrics: [runs.csv](runs.csv) beside this report "
+                        "(the tables name runs by the first 8 characters of their MLflow run id)."
+                        + (f" Numbers link to their runs in the MLflow UI at {inp.ui_url} (serve this store there with "
+                           f"`mlflow ui --backend-store-uri {tracking.display_uri(inp.uri)}`)." if inp.ui_url else "")))
     return out
 
 
