@@ -178,7 +178,9 @@ def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
     records = [r for r in fit_records(runs) if r["surrogate"] == "sindy" and r["source"] == "fit"]
     rows = []
     for env in envs_of(records):
-        libraries = list(ABLATION_LIBRARIES) + sorted({r["library"] for r in records if r["env"] == env} - set(ABLATION_LIBRARIES))
+        # the paper's libraries ("not run" where missing) for the paper's envs; others: what was fitted
+        paper_libs = list(ABLATION_LIBRARIES) if env in PAPER_ABLATION else []
+        libraries = paper_libs + sorted({r["library"] for r in records if r["env"] == env} - set(paper_libs))
         for lib in libraries:
             fits = [r for r in records if r["env"] == env and r["library"] == lib]
             one = _stat(f["metrics"].get("mse/mean") for f in fits)
