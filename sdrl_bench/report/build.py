@@ -177,7 +177,9 @@ FIDELITY_DIFFERENCES = (
     "flight rows' MSE by the replay noise floor of those rows (the best any deterministic model can do: 1). "
     "The 50-step columns are not in the paper: open-loop rollouts from every 5th step of each test episode "
     "with the real actions fed in, the MSE of the state after 50 steps over the rollouts that stayed finite, "
-    "and the fraction that diverged.")
+    "and the fraction that diverged. They, and the open-loop panels of the predicted-vs-true figures, run "
+    "the regressed law alone: after a LunarLander touchdown the real lander is held by the ground, which the "
+    "surrogate env models with its contact rules, not with the law, so those rollouts drift off after contact.")
 ABLATION_DIFFERENCES = (
     "Differences explained: the paper gives one MSE per library and env without saying how the states are "
     "combined or in what units; ours is the mean over states of the raw-unit MSE (so it is dominated by the "
