@@ -95,27 +95,33 @@ def child_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
-def run_command(cmd: list[str], workdir: Path, uri: str, jobs: int, log) -> None:
+def run_command(cmd: list[str], workdir: Path, uri: str, jobs: int, log) -> list[str]:
+    """Run one stage command in ``workdir`` (output to ``log``); returns what ran, as typed."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     sdrl = [sys.executable, "-m", "sdrl_bench.cli.main"]
     if cmd[0] == "python:":
         procs = [[sys.executable, str(REPO / cmd[1]), *cmd[2:]]]
     elif cmd[0] == "parallel:":  # single warm-up runs side by side, outside the report's experiment
         procs = [[*sdrl, o, "task=fit", "progress_bar=false", f"tracking.uri={uri}",
-                  f"tracking.experiment={SETUP_EXPERIMENT}"] for o in cmd[1:]]
+                  f"tracking.experiment={SETUP_EXPERIMENT}", f"hydra.run.dir=outputs/{SETUP_EXPERIMENT}/{o.split('=')[-1]}"]
+                 for o in cmd[1:]]
     else:
         procs = [[*sdrl, *cmd, f"tracking.uri={uri}", f"hydra.launcher.n_jobs={jobs}"]]
-    running = []
+    running, shown = [], []
     for p in procs:
-        shown = " ".join(shlex.quote(a) for a in p[1:])
-        print(f"  + {shown}", flush=True)
-        log.write(f"\n+ {shown}\n")
+        typed = ("sdrl-bench " + " ".join(shlex.quote(a) for a in p[3:]) if p[1:3] == ["-m", "sdrl_bench.cli.main"]
+                 else "python " + " ".join(shlex.quote(str(Path(a).relative_to(REPO)) if a.startswith(str(REPO)) else a)
+                                            for a in p[1:]))
+        shown.append(typed)
+        print(f"  + {typed}", flush=True)
+        log.write(f"\n+ {typed}\n")
         log.flush()
         running.append(subprocess.Popen(p, cwd=workdir, env=env, stdout=log, stderr=subprocess.STDOUT))
     codes = [p.wait() for p in running]
     if any(codes):
         raise SystemExit(f"reproduce: a command failed (exit {max(codes)}); its output is in {log.name}. "
                          "Fix it and run this command again: finished work is kept and skipped.")
+    return shown
 
 
 def run_stage(name: str, commands: list[list[str]], state: dict, state_path: Path, workdir: Path, uri: str,
@@ -127,8 +133,11 @@ def run_stage(name: str, commands: list[list[str]], state: dict, state_path: Pat
     before = old if old.get("commands") == commands else {}
     t0, c0 = time.time(), child_cpu()
 
+    argv: list[str] = []
+
     def record(status: str) -> None:
-        state["stages"][name] = {"commands": commands, "status": status,
+        state["stages"][name] = {"commands": commands, "status": status, "jobs": jobs,
+                                 "argv": before.get("argv", []) + [a for a in argv if a not in before.get("argv", [])],
                                  "wall_seconds": before.get("wall_seconds", 0.0) + time.time() - t0,
                                  "cpu_seconds": before.get("cpu_seconds", 0.0) + child_cpu() - c0,
                                  "attempts": before.get("attempts", 0) + 1,
@@ -138,7 +147,7 @@ def run_stage(name: str, commands: list[list[str]], state: dict, state_path: Pat
     try:
         with open(workdir / "logs" / f"{name}.log", "a") as log:
             for cmd in commands:
-                run_command(cmd, workdir, uri, jobs, log)
+                argv.extend(run_command(cmd, workdir, uri, jobs, log))
     except BaseException:  # a failed command, Ctrl-C: keep what this attempt cost
         record("interrupted")
         raise
@@ -149,7 +158,8 @@ def run_stage(name: str, commands: list[list[str]], state: dict, state_path: Pat
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter, epilog=__doc__)
-    ap.add_argument("--workdir", type=Path, default=Path("runs/reproduction"), help="store, experts, logs")
+    ap.add_argument("--workdir", type=Path, default=REPO / "runs" / "reproduction", help="store, experts, logs "
+                    "(default: runs/reproduction in the checkout)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="processes per sweep (default: cores)")
     ap.add_argument("--seeds", default="0-4", help="seeds of every stage (default 0-4)")
     ap.add_argument("--out", type=Path, default=REPO / "reports", help="report folder's parent")
@@ -166,10 +176,18 @@ def main() -> int:
     if not args.report_only:  # the record names the command that ran the stages, not a later --report-only
         state["command"] = "python scripts/reproduce.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         state.update(seeds=seeds, jobs=args.jobs, machine=f"{os.cpu_count()} cores")
+    plan = stages(seeds)
     only = set(args.only.split(",")) if args.only else None
-    for name, commands in ([] if args.report_only else stages(seeds)):
+    if only and only - {n for n, _ in plan}:
+        ap.error(f"--only: unknown stage(s) {', '.join(sorted(only - {n for n, _ in plan}))} "
+                 f"(stages: {', '.join(n for n, _ in plan)})")
+    for i, (name, commands) in enumerate([] if args.report_only else plan):
         if only and name not in only:
             continue
+        unfinished = [n for n, _ in plan[:i] if state["stages"].get(n, {}).get("status") != "finished"]
+        if unfinished:  # e.g. fits before the experts exist: every job would train its own expert
+            raise SystemExit(f"reproduce: stage {name} needs {', '.join(unfinished)} finished first "
+                             f"(run without --only, or --only {','.join(unfinished + [name])})")
         done = state["stages"].get(name)
         if done and done.get("commands") == commands and done.get("status") == "finished":
             print(f"{name}: finished before ({done['wall_seconds']:.0f} s), skipped", flush=True)
@@ -178,9 +196,17 @@ def main() -> int:
         seconds = run_stage(name, commands, state, state_path, workdir, uri, args.jobs)
         print(f"{name}: done in {seconds:.0f} s", flush=True)
     state_path.write_text(json.dumps(state, indent=1))
-    report = [sys.executable, "-m", "sdrl_bench.cli.report", "--uri", uri, "--experiment", STORE_EXPERIMENT,
-              "--name", args.name, "--out", str(args.out.resolve()), "--provenance", str(state_path),
+    def typed(path: Path) -> str:  # as typed from the checkout, where the report command runs
+        try:
+            return str(path.resolve().relative_to(REPO))
+        except ValueError:
+            return str(path.resolve())
+
+    report = [sys.executable, "-m", "sdrl_bench.cli.report", "--uri", f"sqlite:///{typed(workdir / 'mlruns' / 'mlflow.db')}",
+              "--experiment", STORE_EXPERIMENT, "--name", args.name, "--out", typed(args.out),
               "--ui-url", "http://127.0.0.1:5000"]  # links open in `mlflow ui` served on this store
+    if state["stages"]:  # how the store was made (a --report-only on a store made otherwise has no record)
+        report += ["--provenance", typed(state_path)]
     print("report: " + " ".join(report[2:]), flush=True)
     return subprocess.run(report, cwd=REPO).returncode  # the store path as typed from the checkout
 

@@ -12,6 +12,7 @@ line, and nothing written or logged. Inside sweeps each job's config has a key
 from __future__ import annotations
 
 import math
+import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -106,8 +107,8 @@ class Linker:
         return tracking.compare_url(self.ui, run_ids, [self.exp.get(r, "0") for r in run_ids])
 
     def cell(self, text: str, run_ids: Sequence[str]) -> Cell:
-        """A number linked to the runs it is computed from; "not run"/"missing" carry no link."""
-        if text in (NOT_RUN, MISSING) or not run_ids:
+        """A number linked to the runs it is computed from; "not run", "missing" and "-" carry no link."""
+        if text in (NOT_RUN, MISSING, "-") or not run_ids:
             return Cell(text)
         return Cell(text, self.runs_url(run_ids))
 
@@ -139,7 +140,11 @@ def _df_table(df: pd.DataFrame, spec: Sequence[tuple[str, ...]], link: Linker, c
             elif kind.startswith("paper"):
                 cells.append(Cell(fmt(v, kind[6:] or "g", empty="-")))
             elif kind.endswith("ci"):  # "eci", "gci": the value with its CI from <col>_lo, <col>_hi
-                cells.append(link.cell(_with_ci(v, r.get(f"{col}_lo"), r.get(f"{col}_hi"), kind[:-2], empty), cell_ids))
+                text = _with_ci(v, r.get(f"{col}_lo"), r.get(f"{col}_hi"), kind[:-2], empty)
+                n = r.get(f"{col}_n")  # over fewer seeds than the row's (e.g. every rollout of a seed diverged)
+                if n is not None and "n_fits" in r and n < r["n_fits"] and text not in (NOT_RUN, MISSING, "-"):
+                    text += f" ({n} of {r['n_fits']} seeds)"
+                cells.append(link.cell(text, cell_ids))
             else:
                 cells.append(link.cell(fmt(v, kind, empty), cell_ids))
         cells.append(link.ids(ids))
@@ -359,7 +364,8 @@ def provenance_blocks(path: Path) -> list[Block]:
                     "skips the finished stages, and inside a stage each sweep adopts its finished jobs. Per stage:"))
     rows = []
     for name, v in stages.items():
-        cmds = "; ".join("sdrl-bench " + " ".join(c) if c[0] == "-m" else " ".join(c) for c in v.get("commands", []))
+        cmds = "; ".join(v.get("argv") or ["sdrl-bench " + " ".join(c) if c[0] == "-m" else " ".join(c)
+                                          for c in v.get("commands", [])])
         rows.append([Cell(name), Cell(v.get("status", "?")), Cell(fmt(v.get("wall_seconds"), "int", "-")),
                      Cell(fmt(v.get("cpu_seconds"), "int", "-")), Cell(v.get("finished_at", "-")), Cell(cmds)])
     out.append(Table(["stage", "status", "wall s", "CPU s (all processes)", "finished", "commands"], rows))
@@ -379,6 +385,7 @@ def build_report(inp: ReportInput, name: str, out_dir: Path, command: str = "sdr
     runs = latest_per_config(runs)
     problems += rt.missing_metrics(runs)
     folder.mkdir(parents=True, exist_ok=True)
+    shutil.rmtree(folder / "figures", ignore_errors=True)  # a figure of an earlier build never outlives it
     link = Linker(runs, inp.ui_url)
     blocks = overview_blocks(inp, runs, problems, command) + made + table_blocks(runs, link)
     blocks += figure_blocks(inp.uri, runs, folder, link.url)

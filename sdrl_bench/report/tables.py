@@ -65,13 +65,28 @@ def fit_records(runs: Iterable[Run]) -> list[dict[str, Any]]:
             old = {k[4:]: v for k, v in r["metrics"].items() if k.startswith("fit/")}
             metrics = old or {k: v for k, v in r["metrics"].items()
                               if not k.startswith(("surrogate/", "real/")) and k != "policy_map_agreement"}
+            if "surrogate" not in tags.get("arms", "surrogate") or not any(k.startswith("mse/") for k in metrics):
+                continue  # a real arm trained alone fits nothing
         else:
             continue
         out.append({"run_id": r["run_id"], "source": kind, "env": tags.get("env"), "library": tags.get("library"),
                     "surrogate": tags.get("surrogate", "sindy"), "collector": tags.get("collector"),
                     "seed": tags.get("seed"), "test_set": tags.get("test_set", "?"), "agent": tags.get("agent"),
-                    "metrics": metrics})
+                    "start_time": r.get("start_time") or 0, "metrics": metrics})
     return out
+
+
+def one_per_seed(fits: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
+    """The newest fit of each seed (fits without a seed tag are all kept): two sweeps of the same
+    pack never count a seed twice, so the "seeds" column and the CIs are over distinct seeds."""
+    newest: dict[str, Mapping[str, Any]] = {}
+    rest = []
+    for f in fits:
+        if f.get("seed") is None:
+            rest.append(f)
+        elif f["seed"] not in newest or f.get("start_time", 0) >= newest[f["seed"]].get("start_time", 0):
+            newest[f["seed"]] = f
+    return [f for f in fits if f in rest or newest.get(f.get("seed")) is f]
 
 
 def states_of(records: Sequence[Mapping[str, Any]], env: str) -> list[str]:
@@ -100,7 +115,7 @@ def main_fits(records: Sequence[Mapping[str, Any]], env: str, surrogate: str = "
     if not mine:
         return []
     key = Counter((r["library"], r["test_set"]) for r in mine).most_common(1)[0][0]
-    return [r for r in mine if (r["library"], r["test_set"]) == key]
+    return one_per_seed([r for r in mine if (r["library"], r["test_set"]) == key])
 
 
 def _mean(values: Iterable[float | None]) -> float:
@@ -109,6 +124,11 @@ def _mean(values: Iterable[float | None]) -> float:
 
 
 # ---------------------------------------------------------------------- tables 1-3
+def _finite_count(values: Iterable[float | None]) -> int:
+    """How many seeds a statistic is over (a seed whose every rollout diverged logs NaN)."""
+    return sum(v is not None and not math.isnan(float(v)) for v in values)
+
+
 def _stat(values: Iterable[float | None]) -> tuple[float, float, float, str]:
     """IQM (>= 5 values, else the mean) with its 95% bootstrap CI: ``bootstrap_ci`` of the finite values."""
     return bootstrap_ci([float(v) for v in values if v is not None])
@@ -153,14 +173,15 @@ def fidelity_table(runs: Iterable[Run]) -> pd.DataFrame:
                 "corr": _stat(f["metrics"].get(f"corr/{state}") for f in fits)[0],
                 "floor_ratio": floor[0], "floor_ratio_lo": floor[1], "floor_ratio_hi": floor[2], "floor_regime": regime,
                 "rollout": roll[0], "rollout_lo": roll[1], "rollout_hi": roll[2],
+                "rollout_n": _finite_count(f["metrics"].get(f"rollout{HORIZON}_mse/{state}") for f in fits),
                 "diverged": _mean(f["metrics"].get(f"rollout{HORIZON}/diverged_fraction") for f in fits),
                 "paper_mse": paper[0], "paper_corr": paper[1],
                 "runs": [f["run_id"] for f in fits],
             })
     return pd.DataFrame(rows, columns=["env", "state", "library", "test_set", "n_fits", "statistic", "mse", "mse_lo",
                                        "mse_hi", "mse_norm", "corr", "floor_ratio", "floor_ratio_lo", "floor_ratio_hi",
-                                       "floor_regime", "rollout", "rollout_lo", "rollout_hi", "diverged", "paper_mse",
-                                       "paper_corr", "runs"])
+                                       "floor_regime", "rollout", "rollout_lo", "rollout_hi", "rollout_n", "diverged",
+                                       "paper_mse", "paper_corr", "runs"])
 
 
 def _state_mean(metrics: Mapping[str, float], prefix: str) -> float:
@@ -182,7 +203,7 @@ def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
         paper_libs = list(ABLATION_LIBRARIES) if env in PAPER_ABLATION else []
         libraries = paper_libs + sorted({r["library"] for r in records if r["env"] == env} - set(paper_libs))
         for lib in libraries:
-            fits = [r for r in records if r["env"] == env and r["library"] == lib]
+            fits = one_per_seed([r for r in records if r["env"] == env and r["library"] == lib])
             one = _stat(f["metrics"].get("mse/mean") for f in fits)
             rows.append({"env": env, "library": lib, "n_fits": len(fits),
                          "test_set": fits[0]["test_set"] if fits else None, "statistic": one[3],
@@ -326,7 +347,12 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                              "surrogate_steps": _mean(x.get("surrogate_steps") for x in m),
                              "wall_seconds": _mean(x.get("wall_seconds") for x in m),
                              "final": final, "audit": audit, "runs": [r["run_id"] for r in group]})
-            group = [r for r in real if r["tags"].get("env") == env and r["tags"].get("agent") == agent]
+            # the real arm each Dyna run was plotted beside (tag ``dyna.real_arm_run``: same agent, env,
+            # budgets and seed); without such tags, every real arm of the same env and agent
+            linked = {r["tags"].get("dyna.real_arm_run") for r in dyna
+                      if r["tags"].get("env") == env and r["tags"].get("agent") == agent} - {None}
+            group = ([r for r in real if r["run_id"] in linked] if linked else
+                     [r for r in real if r["tags"].get("env") == env and r["tags"].get("agent") == agent])
             m = [r["metrics"] for r in group]
             costs = [x["real/solved_real_steps"] + x.get("real/eval_steps", 0.0) if "real/solved_real_steps" in x
                      else math.inf for x in m]

@@ -8,6 +8,8 @@ import importlib.util
 import itertools
 from pathlib import Path
 
+import pytest
+
 from helpers import compose_cfg
 from sdrl_bench.cli.build import build_dyna_job, build_fit_job, build_transfer_job
 from sdrl_bench.pipeline import check
@@ -58,3 +60,45 @@ def test_every_stage_command_builds_and_every_rl_sweep_has_five_seeds() -> None:
         sindy = next(i for i, c in enumerate(transfer) if f"paper_{env}" in c and "surrogate=sindy" in c)
         nn = next(i for i, c in enumerate(transfer) if f"paper_{env}" in c and "surrogate=nn" in c)
         assert sindy < nn  # the NN sweep finds the SINDy sweep's finished real arms and reuses them
+
+
+def test_a_rerun_skips_finished_stages_and_keeps_the_cost_of_an_interrupted_one(tmp_path, monkeypatch) -> None:
+    """Stage bookkeeping with the commands replaced by a recorder (the sweeps themselves resume
+    through Hydra; tests/e2e covers that): a failed stage is recorded as interrupted with what it
+    cost, the rerun runs it again from there and adds the cost, finished stages are skipped, and
+    --only refuses a stage whose predecessors have not finished."""
+    import json
+    import sys
+
+    mod = _script()
+    ran: list[str] = []
+    fail = {"transfer"}
+
+    def fake(cmd, workdir, uri, jobs, log):
+        stage = log.name.rsplit("/", 1)[-1][:-4]
+        ran.append(stage)
+        if stage in fail:
+            raise SystemExit("reproduce: a command failed")
+        return [" ".join(cmd)]
+
+    monkeypatch.setattr(mod, "run_command", fake)
+    monkeypatch.setattr(mod.subprocess, "run", lambda *a, **k: type("P", (), {"returncode": 0})())
+    argv = ["reproduce.py", "--workdir", str(tmp_path), "--jobs", "2"]
+    monkeypatch.setattr(sys, "argv", argv)
+    with pytest.raises(SystemExit):
+        mod.main()
+    record = json.loads((tmp_path / "rebuild.json").read_text())
+    assert [(k, v["status"], v["attempts"]) for k, v in record["stages"].items()] == [
+        ("experts", "finished", 1), ("fits", "finished", 1), ("transfer", "interrupted", 1)]
+    assert record["stages"]["fits"]["jobs"] == 2 and record["stages"]["fits"]["argv"][0].startswith("-m env=mountain_car")
+    first = record["stages"]["transfer"]["wall_seconds"]
+    fail.clear()
+    ran.clear()
+    assert mod.main() == 0
+    record = json.loads((tmp_path / "rebuild.json").read_text())
+    assert set(ran) == {"transfer", "fast", "dyna"}  # experts and fits were skipped
+    assert record["stages"]["transfer"]["attempts"] == 2 and record["stages"]["transfer"]["wall_seconds"] >= first
+    assert all(v["status"] == "finished" for v in record["stages"].values())
+    monkeypatch.setattr(sys, "argv", ["reproduce.py", "--workdir", str(tmp_path / "fresh"), "--only", "fits"])
+    with pytest.raises(SystemExit, match="needs experts finished first"):
+        mod.main()

@@ -416,3 +416,36 @@ def test_report_states_how_it_was_made_from_the_rebuild_record(fits_store: str, 
     path.write_text("not json")
     assert main(["--uri", fits_store, "--name", "bad", "--out", str(tmp_path), "--no-log", "--provenance", str(path)]) == 2
     assert not (tmp_path / "bad").exists()
+
+
+def test_fit_tables_take_one_fit_per_seed_from_the_paper_packs_and_skip_real_only_runs(store: str) -> None:
+    """Table 1 stands on the paper pack's transfer runs (agent ``ppo``), not on a fast recipe's
+    runs that fit the same data again, nor on real-arm-only runs, which fit nothing; a seed
+    fitted twice counts once (the newest); the Dyna real arm is the run each Dyna run was
+    plotted beside, not every real arm of the agent."""
+    paper = [_ll_fit(store, "lunar_lander_flight", "sindy", s, kind="transfer") for s in range(3)]
+    runs_fast = []
+    for s in range(3):  # the fast recipe's transfer runs: same fits, another agent
+        with tracking.start_run(store, EXP, f"fast-s{s}", {"sdrl.kind": "transfer", "env": "lunar_lander", "agent": "ppo_fast",
+                                                           "surrogate": "sindy", "library": "lunar_lander_flight", "seed": s,
+                                                           "arms": "surrogate,real"}) as run:
+            run.log_metrics({"mse/x": 1.0, "mse/mean": 1.0, "surrogate/final_return_mean": 1.0,
+                             "real/final_return_mean": 230.0 + s, "real/solved_real_steps": 100_000.0 * (s + 1)})
+        runs_fast.append(run.run_id)
+    with tracking.start_run(store, EXP, "real-only", {"sdrl.kind": "transfer", "env": "lunar_lander", "agent": "ppo_fast",
+                                                     "surrogate": "sindy", "seed": 7, "arms": "real"}) as run:
+        run.log_metrics({"real/final_return_mean": 100.0, "real/solved_real_steps": 900_000.0})
+    real_only = run.run_id
+    again = _ll_fit(store, "polynomial", "sindy", 0)
+    polys = [_ll_fit(store, "polynomial", "sindy", s) for s in range(2)]  # seed 0 fitted again, newest wins
+    runs = tracking.find_runs(store, EXP, missing_ok=False)
+    records = rt.fit_records(runs)
+    assert real_only not in {r["run_id"] for r in records}
+    fid = rt.fidelity_table(runs).set_index(["env", "state"]).loc[("lunar_lander", "x")]
+    assert sorted(fid["runs"]) == sorted(paper) and fid["n_fits"] == 3
+    abl = rt.ablation_table(runs).set_index(["env", "library"]).loc[("lunar_lander", "polynomial")]
+    assert abl["n_fits"] == 2 and again not in abl["runs"] and sorted(abl["runs"]) == sorted(polys)
+    dyna = _dyna(store, 0, "sindy", True, 20_000, 230.0)
+    tracking.Run(store, dyna).set_tags({"dyna.real_arm_run": runs_fast[0]})
+    dy = rt.dyna_table(tracking.find_runs(store, EXP)).set_index(["env", "method"]).loc[("lunar_lander", "real arm")]
+    assert dy["runs"] == [runs_fast[0]] and dy["median_to_solve"] == 100_000.0
