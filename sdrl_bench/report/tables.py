@@ -259,7 +259,8 @@ def bootstrap_ci(values: Sequence[float], confidence: float = 0.95, n_resamples:
     """(point, low, high, statistic name) over seeds: the IQM when there are >= 5 values, else
     the mean; a percentile bootstrap interval (``scipy.stats.bootstrap``, fixed seed). Fewer
     than two values: no interval (NaN bounds)."""
-    x = np.asarray([v for v in values if v is not None and not math.isnan(v)], dtype=float)
+    # sorted: the interval depends on the values, not on the order the runs were read in
+    x = np.sort(np.asarray([v for v in values if v is not None and not math.isnan(v)], dtype=float))
     if len(x) == 0:
         return math.nan, math.nan, math.nan, "mean"
     name, fn = ("IQM", iqm) if len(x) >= 5 else ("mean", np.mean)
@@ -286,7 +287,9 @@ def transfer_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
     done = finished(runs, "transfer")
     rows = []
     for env in envs_of({"env": r["tags"].get("env")} for r in done):
-        agents = sorted({r["tags"].get("agent", "?") for r in done if r["tags"].get("env") == env}) or ["-"]
+        # the paper pack's agent first, then the others (a fast recipe)
+        agents = sorted({r["tags"].get("agent", "?") for r in done if r["tags"].get("env") == env},
+                        key=lambda a: (a != PAPER_AGENT.get(env), a)) or ["-"]
         for kind, agent in ((k, a) for k in ("sindy", "nn") for a in agents):
             # one row group per agent: a store with the zoo recipe and a fast one keeps them apart
             group = [r for r in done if r["tags"].get("env") == env and r["tags"].get("surrogate", "sindy") == kind
@@ -301,7 +304,9 @@ def transfer_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                     row[m] = _mean(r["metrics"].get(f"{arm}/{m}") for r in have)
                 row["real_transitions"] = row["real_transitions_model"] + row["real_transitions_train"]
                 row["n_solved"] = sum(f"{arm}/solved_real_steps" in r["metrics"] for r in have)
-                row["paper_total_steps"] = PAPER_TOTAL_STEPS.get(env, {}).get(arm, math.nan)
+                # the paper's step counts belong to its recipe: beside the paper pack's agent only
+                row["paper_total_steps"] = (PAPER_TOTAL_STEPS.get(env, {}).get(arm, math.nan)
+                                            if agent in (PAPER_AGENT.get(env), "?", "-") else math.nan)
                 row["runs"] = [r["run_id"] for r in have]
                 rows.append(row)
     cols = ["env", "surrogate", "arm", "agent", "n_seeds", "real_transitions", "surrogate_steps", "total_steps", "paper_total_steps",

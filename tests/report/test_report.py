@@ -102,6 +102,7 @@ def test_bootstrap_ci_matches_a_hand_computation() -> None:
     six = [10.0, 80.0, 90.0, 91.0, 95.0, 200.0]
     point, lo, hi, name = rt.bootstrap_ci(six)
     assert name == "IQM" and point == pytest.approx(np.mean(sorted(six)[1:5])) and lo <= point <= hi
+    assert rt.bootstrap_ci(six[::-1]) == (point, lo, hi, name)  # the same seeds read in another order
     one = rt.bootstrap_ci([5.0])
     assert one[0] == 5.0 and math.isnan(one[1]) and math.isnan(one[2])  # no CI from one seed
     assert math.isnan(rt.bootstrap_ci([])[0])
