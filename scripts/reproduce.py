@@ -22,6 +22,7 @@ with ``--jobs`` processes at a time, one thread each. The stages, in order:
   fast         the fast PPO recipe (experiment=fast_<env>) on the same data, both surrogates
                and the real arm, stopped at the first real evaluation at the threshold.
   dyna         Dyna-style refits (experiment=dyna_<env>), SINDy and NN, beside the fast real arm.
+  search       one Optuna TPE study per env (sdrl-bench-search, seed 0) over the SINDy hyperparameters.
   report       sdrl-bench-report on the store, with this run's provenance (command, seeds,
                budgets, per-stage wall and CPU seconds, commit) as its first section.
 
@@ -87,6 +88,11 @@ def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
         ("dyna", [
             ["-m", f"experiment=dyna_{env}", "surrogate=sindy,nn", s] for env in ("mountain_car", "lunar_lander")
         ]),
+        ("search", [  # one Optuna study per env (seed 0): TPE over library, degree, optimizer, threshold, alpha
+            ["search:", "env=mountain_car", "collector=expert", f"tracking.experiment={STORE_EXPERIMENT}"],
+            ["search:", "env=lunar_lander", "collector=expert", "env.spec.fit_regime=null", "search.n_trials=40",
+             "search.space.poly_degree.high=2", f"tracking.experiment={STORE_EXPERIMENT}"],
+        ]),
     ]
 
 
@@ -101,6 +107,8 @@ def run_command(cmd: list[str], workdir: Path, uri: str, jobs: int, log) -> list
     sdrl = [sys.executable, "-m", "sdrl_bench.cli.main"]
     if cmd[0] == "python:":
         procs = [[sys.executable, str(REPO / cmd[1]), *cmd[2:]]]
+    elif cmd[0] == "search:":
+        procs = [[sys.executable, "-m", "sdrl_bench.cli.search", *cmd[1:], f"tracking.uri={uri}"]]
     elif cmd[0] == "parallel:":  # single warm-up runs side by side, outside the report's experiment
         procs = [[*sdrl, o, "task=fit", "progress_bar=false", f"tracking.uri={uri}",
                   f"tracking.experiment={SETUP_EXPERIMENT}", f"hydra.run.dir=outputs/{SETUP_EXPERIMENT}/{o.split('=')[-1]}"]
@@ -110,6 +118,7 @@ def run_command(cmd: list[str], workdir: Path, uri: str, jobs: int, log) -> list
     running, shown = [], []
     for p in procs:
         typed = ("sdrl-bench " + " ".join(shlex.quote(a) for a in p[3:]) if p[1:3] == ["-m", "sdrl_bench.cli.main"]
+                 else "sdrl-bench-search " + " ".join(shlex.quote(a) for a in p[3:]) if p[1:3] == ["-m", "sdrl_bench.cli.search"]
                  else "python " + " ".join(shlex.quote(str(Path(a).relative_to(REPO)) if a.startswith(str(REPO)) else a)
                                             for a in p[1:]))
         shown.append(typed)

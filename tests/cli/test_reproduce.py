@@ -38,7 +38,7 @@ def _jobs(sweep: list[str]) -> list[list[str]]:
 def test_every_stage_command_builds_and_every_rl_sweep_has_five_seeds() -> None:
     mod = _script()
     stages = dict(mod.stages(mod.parse_seeds("0-4")))
-    assert list(stages) == ["experts", "fits", "transfer", "fast", "dyna"]
+    assert list(stages) == ["experts", "fits", "transfer", "fast", "dyna", "search"]
     built = 0
     for name, commands in stages.items():
         for cmd in commands:
@@ -46,6 +46,11 @@ def test_every_stage_command_builds_and_every_rl_sweep_has_five_seeds() -> None:
                 for pack in cmd[1:]:
                     check(build_fit_job(compose_cfg(pack, "task=fit")))
                     built += 1
+            if cmd[0] == "search:":  # the search app's config
+                from sdrl_bench.cli.build import compose
+
+                assert compose(cmd[1:], config_name="search_app").search.name == "tpe"
+                built += 1
             if cmd[0] != "-m":
                 continue
             assert "seed=0,1,2,3,4" in cmd, (name, cmd)
@@ -100,7 +105,7 @@ def test_a_rerun_skips_finished_stages_and_keeps_the_cost_of_an_interrupted_one(
     ran.clear()
     assert mod.main() == 0
     record = json.loads((tmp_path / "rebuild.json").read_text())
-    assert set(ran) == {"transfer", "fast", "dyna"}  # experts and fits were skipped
+    assert set(ran) == {"transfer", "fast", "dyna", "search"}  # experts and fits were skipped
     assert record["stages"]["transfer"]["attempts"] == 2 and record["stages"]["transfer"]["wall_seconds"] >= first
     assert all(v["status"] == "finished" for v in record["stages"].values())
     monkeypatch.setattr(sys, "argv", ["reproduce.py", "--workdir", str(tmp_path / "fresh"), "--only", "fits"])
