@@ -49,7 +49,11 @@ def test_every_stage_command_builds_and_every_rl_sweep_has_five_seeds() -> None:
             if cmd[0] == "search:":  # the search app's config
                 from sdrl_bench.cli.build import compose
 
-                assert compose(cmd[1:], config_name="search_app").search.name == "tpe"
+                from omegaconf import OmegaConf
+
+                cfg = compose(cmd[1:], config_name="search_app")
+                OmegaConf.to_container(cfg, resolve=True)  # every interpolation resolves (the expert's progress_bar)
+                assert cfg.search.name == "tpe"
                 built += 1
             if cmd[0] != "-m":
                 continue
