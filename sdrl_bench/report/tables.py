@@ -59,6 +59,8 @@ def fit_records(runs: Iterable[Run]) -> list[dict[str, Any]]:
     out = []
     for r in finished(runs):
         kind, tags = r["tags"].get("sdrl.kind"), r["tags"]
+        if tags.get("sdrl.study"):  # a study's refit of its best trial: the study's section reports it
+            continue
         if kind == "fit":
             metrics = dict(r["metrics"])
         elif kind == "transfer":  # the fit under the names fit runs use (older runs: under ``fit/``)
@@ -201,7 +203,7 @@ def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
     for env in envs_of(records):
         # the paper's libraries ("not run" where missing) for the paper's envs; others: what was fitted
         paper_libs = list(ABLATION_LIBRARIES) if env in PAPER_ABLATION else []
-        libraries = paper_libs + sorted({r["library"] for r in records if r["env"] == env} - set(paper_libs))
+        libraries = paper_libs + sorted({r["library"] for r in records if r["env"] == env and r["library"]} - set(paper_libs))
         for lib in libraries:
             fits = one_per_seed([r for r in records if r["env"] == env and r["library"] == lib])
             one = _stat(f["metrics"].get("mse/mean") for f in fits)

@@ -450,3 +450,16 @@ def test_fit_tables_take_one_fit_per_seed_from_the_paper_packs_and_skip_real_onl
     tracking.Run(store, dyna).set_tags({"dyna.real_arm_run": runs_fast[0]})
     dy = rt.dyna_table(tracking.find_runs(store, EXP)).set_index(["env", "method"]).loc[("lunar_lander", "real arm")]
     assert dy["runs"] == [runs_fast[0]] and dy["median_to_solve"] == 100_000.0
+
+
+def test_a_studys_best_refit_is_not_a_fit_of_the_tables(fits_store: str) -> None:
+    """sdrl-bench-search logs its best trial's refit as a fit run (no library or seed tag, the
+    study's name): the study's section reports it; the fit tables do not pool it."""
+    with tracking.start_run(fits_store, EXP, "mountain_car-tpe-s0-best-refit",
+                            {"sdrl.kind": "fit", "env": "mountain_car", "sdrl.study": "mountain_car-tpe-s0",
+                             "sdrl.role": "best-refit", "test_set": "mountain_car-heldout-v1"}) as run:
+        run.log_metrics({"mse/x": 5.0, "mse/v": 5.0, "mse/mean": 5.0})
+    runs = tracking.find_runs(fits_store, EXP)
+    assert run.run_id not in {r["run_id"] for r in rt.fit_records(runs)}
+    assert all(run.run_id not in ids for ids in rt.ablation_table(runs)["runs"])
+    assert rt.fidelity_table(runs).set_index(["env", "state"]).loc[("mountain_car", "x"), "mse"] < 1
