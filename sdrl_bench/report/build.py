@@ -173,9 +173,9 @@ def _ci_text(ci: tuple[float, float, float, str], empty: str = NOT_RUN) -> str:
 FIDELITY_DIFFERENCES = (
     "Differences explained: the paper gives one MSE and correlation per state and states neither its units "
     "nor its test set. Ours are in the observation's raw units, on a fixed held-out set of fresh real episodes "
-    "(`<env>-heldout-v1`: twelve episodes of the env's heuristic at eps 0, 0.2 and 0.5 and of uniform random "
-    "actions, seeds the fits never see), one fit per seed on that seed's paper-protocol data (the trained "
-    "expert, eps 0.2). MountainCar is deterministic: it has no noise floor, and an exact law's residual is the "
+    "(`<env>-heldout-v1`; MountainCar and LunarLander: twelve episodes of the env's heuristic at eps 0, 0.2 and "
+    "0.5 and of uniform random actions, seeds the fits never see), one fit per seed on that seed's "
+    "paper-protocol data (the trained expert, eps 0.2; Pendulum, not in the paper: random actions). MountainCar is deterministic: it has no noise floor, and an exact law's residual is the "
     "float32 rounding of the env's observations (about 1e-16 on x). LunarLander's surrogate is the per-equation "
     "flight law fitted on flight rows (contact is the surrogate's touchdown event and settle rules), so its "
     "one-step error over all rows includes contact rows it does not model; the noise-floor column divides the "
