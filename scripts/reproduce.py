@@ -101,6 +101,24 @@ def child_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
+ENTRY_POINTS = {"sdrl_bench.cli.main": "sdrl-bench", "sdrl_bench.cli.search": "sdrl-bench-search"}
+
+
+def as_typed(argv: list[str]) -> str:
+    """A subprocess's argv as a user would type it: the entry point's name, repo paths relative."""
+    if argv[1] == "-m" and argv[2] in ENTRY_POINTS:
+        return " ".join([ENTRY_POINTS[argv[2]], *map(shlex.quote, argv[3:])])
+    return " ".join(["python", *(shlex.quote(typed_path(Path(a)) if a.startswith(str(REPO)) else a) for a in argv[1:])])
+
+
+def typed_path(path: Path) -> str:
+    """A path as typed from the checkout (relative to it when inside, else absolute)."""
+    try:
+        return str(path.resolve().relative_to(REPO))
+    except ValueError:
+        return str(path.resolve())
+
+
 def run_command(cmd: list[str], workdir: Path, uri: str, jobs: int, log) -> list[str]:
     """Run one stage command in ``workdir`` (output to ``log``); returns what ran, as typed."""
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
@@ -117,10 +135,7 @@ def run_command(cmd: list[str], workdir: Path, uri: str, jobs: int, log) -> list
         procs = [[*sdrl, *cmd, f"tracking.uri={uri}", f"hydra.launcher.n_jobs={jobs}"]]
     running, shown = [], []
     for p in procs:
-        typed = ("sdrl-bench " + " ".join(shlex.quote(a) for a in p[3:]) if p[1:3] == ["-m", "sdrl_bench.cli.main"]
-                 else "sdrl-bench-search " + " ".join(shlex.quote(a) for a in p[3:]) if p[1:3] == ["-m", "sdrl_bench.cli.search"]
-                 else "python " + " ".join(shlex.quote(str(Path(a).relative_to(REPO)) if a.startswith(str(REPO)) else a)
-                                            for a in p[1:]))
+        typed = as_typed(p)
         shown.append(typed)
         print(f"  + {typed}", flush=True)
         log.write(f"\n+ {typed}\n")
@@ -205,17 +220,11 @@ def main() -> int:
         seconds = run_stage(name, commands, state, state_path, workdir, uri, args.jobs)
         print(f"{name}: done in {seconds:.0f} s", flush=True)
     state_path.write_text(json.dumps(state, indent=1))
-    def typed(path: Path) -> str:  # as typed from the checkout, where the report command runs
-        try:
-            return str(path.resolve().relative_to(REPO))
-        except ValueError:
-            return str(path.resolve())
-
-    report = [sys.executable, "-m", "sdrl_bench.cli.report", "--uri", f"sqlite:///{typed(workdir / 'mlruns' / 'mlflow.db')}",
-              "--experiment", STORE_EXPERIMENT, "--name", args.name, "--out", typed(args.out),
+    report = [sys.executable, "-m", "sdrl_bench.cli.report", "--uri", f"sqlite:///{typed_path(workdir / 'mlruns' / 'mlflow.db')}",
+              "--experiment", STORE_EXPERIMENT, "--name", args.name, "--out", typed_path(args.out),
               "--ui-url", "http://127.0.0.1:5000"]  # links open in `mlflow ui` served on this store
     if state["stages"]:  # how the store was made (a --report-only on a store made otherwise has no record)
-        report += ["--provenance", typed(state_path)]
+        report += ["--provenance", typed_path(state_path)]
     print("report: " + " ".join(report[2:]), flush=True)
     return subprocess.run(report, cwd=REPO).returncode  # the store path as typed from the checkout
 

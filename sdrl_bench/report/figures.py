@@ -88,16 +88,17 @@ def _transfer_blocks(uri: str, runs: Sequence[Mapping[str, Any]], folder: Path, 
     """Learning curves pooled across seeds and one run's policy maps, per (env, surrogate kind)."""
     figs = folder / "figures"
     out: list[Block] = [Heading(3, "Learning curves and policy maps")]
-    done = rt.finished(runs, "transfer")
-    # one group per env, surrogate kind and agent: the zoo recipe and a fast one never share a plot;
     # runs that trained one arm alone (a Dyna benchmark's real arm) are the Dyna section's
-    groups = sorted({(r["tags"].get("env", "?"), r["tags"].get("surrogate", "sindy"), r["tags"].get("agent", "?"))
-                     for r in done if "," in r["tags"].get("arms", "surrogate,real")})
+    done = [r for r in rt.finished(runs, "transfer") if "," in r["tags"].get("arms", "surrogate,real")]
+
+    def group(r: Mapping[str, Any]) -> tuple[str, str, str]:  # the zoo recipe and a fast one never share a plot
+        return r["tags"].get("env", "?"), r["tags"].get("surrogate", "sindy"), r["tags"].get("agent", "?")
+
+    groups = sorted({group(r) for r in done})
     if not groups:
         out.append(Para("RL transfer: not run (no finished transfer runs of both arms)."))
     for env, kind, agent in groups:
-        members = [r for r in done if (r["tags"].get("env"), r["tags"].get("surrogate", "sindy"), r["tags"].get("agent", "?"))
-                   == (env, kind, agent) and "," in r["tags"].get("arms", "surrogate,real")]
+        members = [r for r in done if group(r) == (env, kind, agent)]
         label = f"{env}, {agent}, {kind}"
         bands = {arm: rt.curve_band(_curves(uri, members, arm, folder / ".dl")) for arm in rt.ARMS}
         if any(len(b) for b in bands.values()):

@@ -81,14 +81,12 @@ def fit_records(runs: Iterable[Run]) -> list[dict[str, Any]]:
 def one_per_seed(fits: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
     """The newest fit of each seed (fits without a seed tag are all kept): two sweeps of the same
     pack never count a seed twice, so the "seeds" column and the CIs are over distinct seeds."""
-    newest: dict[str, Mapping[str, Any]] = {}
-    rest = []
+    newest: dict[Any, Mapping[str, Any]] = {}
     for f in fits:
-        if f.get("seed") is None:
-            rest.append(f)
-        elif f["seed"] not in newest or f.get("start_time", 0) >= newest[f["seed"]].get("start_time", 0):
-            newest[f["seed"]] = f
-    return [f for f in fits if f in rest or newest.get(f.get("seed")) is f]
+        key = f["seed"] if f.get("seed") is not None else id(f)
+        if key not in newest or f.get("start_time", 0) >= newest[key].get("start_time", 0):
+            newest[key] = f
+    return list(newest.values())
 
 
 def states_of(records: Sequence[Mapping[str, Any]], env: str) -> list[str]:
@@ -126,14 +124,9 @@ def _mean(values: Iterable[float | None]) -> float:
 
 
 # ---------------------------------------------------------------------- tables 1-3
-def _finite_count(values: Iterable[float | None]) -> int:
-    """How many seeds a statistic is over (a seed whose every rollout diverged logs NaN)."""
-    return sum(v is not None and not math.isnan(float(v)) for v in values)
-
-
-def _stat(values: Iterable[float | None]) -> tuple[float, float, float, str]:
-    """IQM (>= 5 values, else the mean) with its 95% bootstrap CI: ``bootstrap_ci`` of the finite values."""
-    return bootstrap_ci([float(v) for v in values if v is not None])
+def _values(fits: Sequence[Mapping[str, Any]], key: str) -> list[float]:
+    """One metric of each fit, NaN where a fit lacks it (``bootstrap_ci`` and ``_mean`` skip NaN)."""
+    return [float(f["metrics"].get(key, math.nan)) for f in fits]
 
 
 def floor_regime(fits: Sequence[Mapping[str, Any]], state: str) -> str | None:
@@ -161,22 +154,23 @@ def fidelity_table(runs: Iterable[Run]) -> pd.DataFrame:
         fits = main_fits(records, env)
         for state in states_of(records, env):
             paper = PAPER_FIDELITY.get(env, {}).get(state, (math.nan, math.nan))
-            one = _stat(f["metrics"].get(f"mse/{state}") for f in fits)
-            roll = _stat(f["metrics"].get(f"rollout{HORIZON}_mse/{state}") for f in fits)
+            one = bootstrap_ci(_values(fits, f"mse/{state}"))
+            rollouts = _values(fits, f"rollout{HORIZON}_mse/{state}")  # NaN: every rollout of that seed diverged
+            roll = bootstrap_ci(rollouts)
             regime = floor_regime(fits, state)
-            floor = _stat(f["metrics"].get(f"floor_ratio_{regime}/{state}") for f in fits) if regime else (math.nan,) * 3
+            floor = bootstrap_ci(_values(fits, f"floor_ratio_{regime}/{state}")) if regime else (math.nan,) * 3
             rows.append({
                 "env": env, "state": state,
                 "library": fits[0]["library"] if fits else None,
                 "test_set": fits[0]["test_set"] if fits else None,
                 "n_fits": len(fits), "statistic": one[3],
                 "mse": one[0], "mse_lo": one[1], "mse_hi": one[2],
-                "mse_norm": _stat(f["metrics"].get(f"mse_norm/{state}") for f in fits)[0],
-                "corr": _stat(f["metrics"].get(f"corr/{state}") for f in fits)[0],
+                "mse_norm": bootstrap_ci(_values(fits, f"mse_norm/{state}"))[0],
+                "corr": bootstrap_ci(_values(fits, f"corr/{state}"))[0],
                 "floor_ratio": floor[0], "floor_ratio_lo": floor[1], "floor_ratio_hi": floor[2], "floor_regime": regime,
                 "rollout": roll[0], "rollout_lo": roll[1], "rollout_hi": roll[2],
-                "rollout_n": _finite_count(f["metrics"].get(f"rollout{HORIZON}_mse/{state}") for f in fits),
-                "diverged": _mean(f["metrics"].get(f"rollout{HORIZON}/diverged_fraction") for f in fits),
+                "rollout_n": int(np.isfinite(rollouts).sum()),
+                "diverged": _mean(_values(fits, f"rollout{HORIZON}/diverged_fraction")),
                 "paper_mse": paper[0], "paper_corr": paper[1],
                 "runs": [f["run_id"] for f in fits],
             })
@@ -206,14 +200,14 @@ def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
         libraries = paper_libs + sorted({r["library"] for r in records if r["env"] == env and r["library"]} - set(paper_libs))
         for lib in libraries:
             fits = one_per_seed([r for r in records if r["env"] == env and r["library"] == lib])
-            one = _stat(f["metrics"].get("mse/mean") for f in fits)
+            one = bootstrap_ci(_values(fits, "mse/mean"))
             rows.append({"env": env, "library": lib, "n_fits": len(fits),
                          "test_set": fits[0]["test_set"] if fits else None, "statistic": one[3],
                          "mse_mean": one[0], "mse_mean_lo": one[1], "mse_mean_hi": one[2],
-                         "mse_norm_mean": _stat(f["metrics"].get("mse_norm/mean") for f in fits)[0],
-                         "rollout_mean": _stat(_state_mean(f["metrics"], f"rollout{HORIZON}_mse") for f in fits)[0],
-                         "diverged": _mean(f["metrics"].get(f"rollout{HORIZON}/diverged_fraction") for f in fits),
-                         "n_terms": _mean(f["metrics"].get("n_parameters") for f in fits),
+                         "mse_norm_mean": bootstrap_ci(_values(fits, "mse_norm/mean"))[0],
+                         "rollout_mean": bootstrap_ci([_state_mean(f["metrics"], f"rollout{HORIZON}_mse") for f in fits])[0],
+                         "diverged": _mean(_values(fits, f"rollout{HORIZON}/diverged_fraction")),
+                         "n_terms": _mean(_values(fits, "n_parameters")),
                          "paper_mse": PAPER_ABLATION.get(env, {}).get(lib, math.nan),
                          "runs": [f["run_id"] for f in fits]})
     return pd.DataFrame(rows, columns=["env", "library", "n_fits", "test_set", "statistic", "mse_mean", "mse_mean_lo",
@@ -240,8 +234,8 @@ def sindy_vs_nn_table(runs: Iterable[Run]) -> pd.DataFrame:
         quantities = ([f"mse/{s}" for s in states] + [f"rollout{HORIZON}_mse/{s}" for s in states]
                       + [f"rollout{HORIZON}/diverged_fraction", "fit_wall_seconds", "fit_cpu_seconds", "n_parameters"])
         for q in quantities:
-            s_val = _stat(f["metrics"].get(q) for f in sindy)
-            n_val = _stat(f["metrics"].get(q) for f in nn)
+            s_val = bootstrap_ci(_values(sindy, q))
+            n_val = bootstrap_ci(_values(nn, q))
             rows.append({"env": env, "quantity": q, "sindy": s_val[0], "sindy_lo": s_val[1], "sindy_hi": s_val[2],
                          "nn": n_val[0], "nn_lo": n_val[1], "nn_hi": n_val[2], "sindy_over_nn": _ratio(s_val[0], n_val[0]),
                          "n_sindy": len(sindy), "n_nn": len(nn), "runs": ids,
