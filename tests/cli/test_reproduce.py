@@ -82,6 +82,8 @@ def test_a_rerun_skips_finished_stages_and_keeps_the_cost_of_an_interrupted_one(
     --only refuses a stage whose predecessors have not finished."""
     import json
     import sys
+    import time
+    import types
 
     mod = _script()
     ran: list[str] = []
@@ -95,6 +97,9 @@ def test_a_rerun_skips_finished_stages_and_keeps_the_cost_of_an_interrupted_one(
         return [" ".join(cmd)]
 
     monkeypatch.setattr(mod, "run_command", fake)
+    clock = iter(range(0, 10**6, 100))  # every reading of the stage clock is 100 s after the last
+    monkeypatch.setattr(mod, "time", types.SimpleNamespace(time=lambda: float(next(clock)), strftime=time.strftime,
+                                                           gmtime=time.gmtime))
     monkeypatch.setattr(mod.subprocess, "run", lambda *a, **k: type("P", (), {"returncode": 0})())
     argv = ["reproduce.py", "--workdir", str(tmp_path), "--jobs", "2"]
     monkeypatch.setattr(sys, "argv", argv)
@@ -104,13 +109,14 @@ def test_a_rerun_skips_finished_stages_and_keeps_the_cost_of_an_interrupted_one(
     assert [(k, v["status"], v["attempts"]) for k, v in record["stages"].items()] == [
         ("experts", "finished", 1), ("fits", "finished", 1), ("transfer", "interrupted", 1)]
     assert record["stages"]["fits"]["jobs"] == 2 and record["stages"]["fits"]["argv"][0].startswith("-m env=mountain_car")
-    first = record["stages"]["transfer"]["wall_seconds"]
+    assert record["stages"]["transfer"]["wall_seconds"] == 100.0  # the failed attempt: start, then its record
     fail.clear()
     ran.clear()
     assert mod.main() == 0
     record = json.loads((tmp_path / "rebuild.json").read_text())
     assert set(ran) == {"transfer", "fast", "dyna", "search"}  # experts and fits were skipped
-    assert record["stages"]["transfer"]["attempts"] == 2 and record["stages"]["transfer"]["wall_seconds"] >= first
+    # the rerun's 100 s added to the failed attempt's 100 s, not in place of them
+    assert record["stages"]["transfer"]["attempts"] == 2 and record["stages"]["transfer"]["wall_seconds"] == 200.0
     assert all(v["status"] == "finished" for v in record["stages"].values())
     monkeypatch.setattr(sys, "argv", ["reproduce.py", "--workdir", str(tmp_path / "fresh"), "--only", "fits"])
     with pytest.raises(SystemExit, match="needs experts finished first"):
