@@ -29,7 +29,8 @@ import numpy as np
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import sdrl_bench  # noqa: F401  (registers sdrl/Surrogate-v0)
-from sdrl_bench.surrogate.env import Surrogate, load_model
+from sdrl_bench.models.base import load_model
+from sdrl_bench.surrogate.model_env import ModelEnv
 from sdrl_bench.surrogate.vec import SurrogateVecEnv
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -97,8 +98,8 @@ def configs(gym_id: str, model, spec: str, dummy_n: int, vec_ns: list[int], seed
     }
     for n in vec_ns:
         out[f"surrogate, vectorized N={n}"] = vec_stepper(SurrogateVecEnv(model, spec, n, seed=seed), seed)
-    composed = Surrogate(model, spec, fused=False)
-    if composed.state_order != Surrogate(model, spec).state_order:  # the spec has a fused step
+    composed = ModelEnv(model, spec, fused=False)
+    if composed.state_order != ModelEnv(model, spec).state_order:  # the spec has a fused step
         n = compare_n
         out[f"  same, numpy composition N={n}"] = vec_stepper(SurrogateVecEnv(composed, n_envs=n, seed=seed), seed)
     return out

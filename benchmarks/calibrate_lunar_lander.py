@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from sdrl_bench.data import Transitions, collect, heuristic_policy, held_out_test_set, random_policy
-from sdrl_bench.envs import LunarLanderSpec
+from sdrl_bench.envs.lunar_lander import LunarLanderSpec
 from sdrl_bench.envs.lunar_lander.task import LanderRules, leg_contacts
 from sdrl_bench.surrogate.env import load_model
 from sdrl_bench.surrogate.fidelity import surrogate_fidelity

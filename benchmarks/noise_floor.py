@@ -21,7 +21,7 @@ import json
 import time
 
 from sdrl_bench.data import held_out_test_set
-from sdrl_bench.envs import LunarLanderSpec
+from sdrl_bench.envs.lunar_lander import LunarLanderSpec
 from sdrl_bench.fidelity import replay_noise_floor
 
 

@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sdrl_bench.envs import LunarLanderSpec
+from sdrl_bench.envs.lunar_lander import LunarLanderSpec
 from sdrl_bench.envs.lunar_lander import touchdowns
 from sdrl_bench.envs.lunar_lander.task import LanderRules
 

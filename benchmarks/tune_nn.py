@@ -23,7 +23,8 @@ import optuna
 import torch
 
 from sdrl_bench.data import Transitions, collect, heuristic_policy, held_out_test_set
-from sdrl_bench.envs import LunarLanderSpec, MountainCarSpec
+from sdrl_bench.envs.lunar_lander import LunarLanderSpec
+from sdrl_bench.envs.mountain_car import MountainCarSpec
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.fidelity import evaluate
 from sdrl_bench.models.nn import MLPDynamics

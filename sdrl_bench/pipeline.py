@@ -13,7 +13,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from sdrl_bench import ConfigError
+from sdrl_bench import ConfigError, seeds
 from sdrl_bench.data import PolicyFactory, Transitions, collect, held_out_test_set, load_csv, random_policy
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.fidelity import FidelityReport, evaluate, open_loop_episode
@@ -42,7 +42,8 @@ class FitJob:
     """Cut each collected episode after this many steps and start the next one (None: play
     each episode to its end or the env's limit)."""
     seed: int = 0
-    """Seed of the collection (episode resets, exploration) and the fit."""
+    """The run seed: the collection's reset seeds (``seeds``, purpose ``collect``; the
+    exploration of each episode is seeded by its reset seed) and the fit's own seed."""
     dataset_path: str | None = None
     """A dataset CSV to fit instead of collecting."""
     exclude_bound_transitions: bool = True
@@ -57,6 +58,11 @@ class FitJob:
     model_factory: Callable[..., DynamicsModel] | None = None
     """Builds the unfitted model: called as ``factory(library=, optimizer=, seed=)`` for SINDy
     and ``factory(seed=)`` otherwise. None: ``SindyModel``."""
+    learn_events: bool = True
+    """Learn the outcome model of every event the env declares from the same data
+    (``surrogate.events``); False: the task's rules alone decide events."""
+    min_events: int | None = None
+    """Real events needed before an event model is fitted (None: each event's own ``min_events``)."""
 
 
 @dataclass
@@ -73,6 +79,8 @@ class FitResult:
     episode_true: np.ndarray
     episode_pred: np.ndarray
     seconds: dict[str, float]
+    events: dict = field(default_factory=dict)
+    """{event name: its learned ``surrogate.events.EventModel`` or None}, from the same data."""
 
 
 def check(job: FitJob) -> tuple[Any, Transitions | None]:
@@ -119,7 +127,7 @@ def fit_dynamics(job: FitJob, checked: tuple[Any, Transitions | None] | None = N
     seconds: dict[str, float] = {}
     t0, c0 = time.perf_counter(), time.process_time()
     if data is None:
-        data = collect(spec, job.policy or random_policy, job.n_transitions, job.epsilon, job.seed,
+        data = collect(spec, job.policy or random_policy, job.n_transitions, job.epsilon, seeds.reset_seed(job.seed, "collect"),
                        max_steps_per_episode=job.max_steps_per_episode, wrap_env=job.wrap_env)
     seconds["collect_wall"] = time.perf_counter() - t0
     seconds["collect_cpu"] = time.process_time() - c0
@@ -146,6 +154,11 @@ def fit_transitions(job: FitJob, library: Any, data: Transitions, test: tuple[st
     )
     seconds["fit_wall"] = model.fit_wall_seconds_
     seconds["fit_cpu"] = model.fit_cpu_seconds_
+    from sdrl_bench.surrogate.events import event_metrics, fit_events  # noqa: PLC0415
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    events = fit_events(spec.task, data, job.min_events, seed=job.seed) if job.learn_events else {}
+    seconds["events_wall"], seconds["events_cpu"] = time.perf_counter() - t0, time.process_time() - c0
 
     t0, c0 = time.perf_counter(), time.process_time()
     test_name, test = test if test is not None else held_out_test_set(spec)
@@ -155,13 +168,14 @@ def fit_transitions(job: FitJob, library: Any, data: Transitions, test: tuple[st
         from sdrl_bench.surrogate.fidelity import surrogate_fidelity  # noqa: PLC0415
 
         report.metrics.update(surrogate_fidelity(model, spec, test))
+        report.metrics.update(event_metrics(spec.task, events, test))
     ep_true, ep_pred = open_loop_episode(model, spec, test, int(test.episode[0]))
     seconds["evaluate_wall"] = time.perf_counter() - t0
     seconds["evaluate_cpu"] = time.process_time() - c0
     return FitResult(
         job=job, data=data, dataset_hash=data.content_hash(), n_fit_rows=int(keep.sum()),
         test_name=test_name, test=test, test_hash=test.content_hash(), model=model,
-        fidelity=report, episode_true=ep_true, episode_pred=ep_pred, seconds=seconds,
+        fidelity=report, episode_true=ep_true, episode_pred=ep_pred, seconds=seconds, events=events,
     )
 
 

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from sdrl_bench.data import held_out_test_set
-from sdrl_bench.envs import LunarLanderSpec, MountainCarSpec
+from sdrl_bench.envs.lunar_lander import LunarLanderSpec
+from sdrl_bench.envs.mountain_car import MountainCarSpec
 from sdrl_bench.fidelity import evaluate, rollouts
 from sdrl_bench.metrics import mse, pearson, r2
 

@@ -7,7 +7,7 @@ import pysindy as ps
 import pytest
 
 from sdrl_bench.data import heuristic_policy, held_out_test_set
-from sdrl_bench.envs import MountainCarSpec
+from sdrl_bench.envs.mountain_car import MountainCarSpec
 from sdrl_bench.fidelity import evaluate
 from sdrl_bench.models.libraries import LibraryPart, TrigLibrary
 from sdrl_bench.pipeline import FitJob, fit_dynamics

@@ -55,8 +55,10 @@ class _Printing:
             parts.append(f"screen {result.screen.mean:.1f}")
         if result.final is not None:
             parts.append(f"confirmation {result.final.mean:.1f}")
-        if result.events is not None:
-            parts.append(f"event model: {result.events.n_crashes}/{result.events.n_events} real touchdowns crashed")
+        for name, model in (result.events or {}).items():
+            if model is not None:
+                seen = ", ".join(f"{n} {o}" for o, n in model.counts.items())
+                parts.append(f"{name} model learned from {model.n_events} real events ({seen})")
         print("; ".join(parts) + (" -> solved" if result.solved else ""), flush=True)
         self.inner.round_done(result, agent)
 

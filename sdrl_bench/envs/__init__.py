@@ -1,14 +1,8 @@
-"""Per-environment knowledge: specs with bounds, action encodings and held-out test sets."""
+"""Per-environment knowledge. This package's generic modules (``base``: the spec every env
+gives; ``task``: what a surrogate needs of it; ``functional``: envs from YAML and plain
+functions) are all that code outside ``envs/`` may import; each env's own package
+(``envs/lunar_lander``, ``envs/mountain_car``, ...) is reached through its config's ``_target_``."""
 
 from sdrl_bench.envs.base import EnvSpec, Policy, TestSetRecipe
-from sdrl_bench.envs.lunar_lander.spec import LunarLanderContinuousSpec, LunarLanderSpec
-from sdrl_bench.envs.mountain_car import MountainCarSpec
 
-__all__ = [
-    "EnvSpec",
-    "LunarLanderContinuousSpec",
-    "LunarLanderSpec",
-    "MountainCarSpec",
-    "Policy",
-    "TestSetRecipe",
-]
+__all__ = ["EnvSpec", "Policy", "TestSetRecipe"]

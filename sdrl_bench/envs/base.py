@@ -1,44 +1,46 @@
 """Environment specs: what the project knows about a real Gymnasium environment.
 
-A spec is plain data plus a few pure, batched functions. It names the state variables, says
-which of them a dynamics model regresses (``target_names``) and which it takes as given inputs
-(``exogenous_names``, e.g. LunarLander's boolean leg contacts), encodes actions as model
-inputs, and applies the known state bounds the way the real environment applies them.
+``EnvSpec`` is the one required interface of an env, plain data checked at construction: it
+names the state variables, says which of them a dynamics model regresses (``target_names``) and
+which it takes as given inputs (``exogenous_names``, e.g. contact flags), encodes actions as
+model inputs, applies the known state bounds the way the real environment applies them, and names
+the fixed held-out test set. States vs observations: ``state_names`` are the coordinates the
+model regresses and the task functions see (a dataset records them); ``observation_names`` the
+real env's observation, which the agent sees; they differ only under an observation map
+(``angles``: an angle observed as (cos, sin)).
 
-A new environment needs only a YAML file and a few plain functions (reward, termination,
-initial states, a heuristic: ``reward_fn`` etc., dotted paths resolved at config time, see
-``envs.functional``) when this generic behaviour fits: box bounds that the env clips to, actions
-encoded one-hot, by index, as physical values or as they are (``action_encoding``), and angles
-observed as (cos, sin) pairs regressed as the angle itself (``angles``). Subclasses add
-per-environment knowledge (and may override ``observe`` / ``coordinates`` for other manifolds).
+Everything a surrogate needs besides the model is the env's **task** (``EnvSpec.task``, an
+``envs.task.Task``): reward and termination, the reset distribution, exogenous states, events,
+the pessimism of its uncertainty, optional kernels. The generic spec builds it from dotted paths
+of plain functions and the YAML's ``events`` / ``uncertainty`` / ``crash_reward``; a spec class
+with env knowledge (``envs/<env>/``) overrides ``build_task``. Optional data hooks with neutral
+defaults: ``regimes`` / ``fit_rows`` (per-regime fits and scores), ``noise_floor``,
+``task_fidelity``, ``heuristic_policy``, ``is_success``.
 
-States vs observations: ``state_names`` are the coordinates the model regresses and the task
-functions see (a dataset records them); ``observation_names`` the real env's observation, which
-the agent sees. They are the same unless an observation map (``angles``) is declared.
-
-Longer than the project's ~300-line habit on purpose: ``EnvSpec`` is the whole contract a user
-writes against (names, bounds, encodings, task, success, policy-map slices, test set), and it
-reads best as one class in one file.
+Envs are found by their config (``find_spec``: ``env/<name>.yaml`` of the config tree); generic
+code imports this module, ``envs.task`` and ``envs.functional``, never an env's own package (an
+import-linter contract and ``tests/test_env_agnostic.py`` keep it so).
 """
 
 from __future__ import annotations
 
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import dataclass, field, fields
 from functools import cached_property
-from typing import Any, ClassVar
+from typing import Any
 from collections.abc import Callable, Sequence
 
 import gymnasium as gym
 import numpy as np
 
-from sdrl_bench import ConfigError
+from sdrl_bench import ConfigError, seeds
 from sdrl_bench.envs import functional
 from sdrl_bench.envs.functional import resolve, spec_from_config
+from sdrl_bench.envs.task import Task, parse_events, parse_uncertainty
 
 Policy = Callable[[np.ndarray], Any]
 StepOne = Callable[[list, Any], tuple[np.ndarray, list, float, bool, bool]]
 """One surrogate step of one env in plain Python: (state, raw action) -> (observation,
-next state as floats, reward, terminated, diverged). See ``EnvSpec.make_step_one``."""
+next state as floats, reward, terminated, diverged). See ``surrogate.model_env``."""
 
 
 def _readonly(values: list[int]) -> np.ndarray:
@@ -116,10 +118,17 @@ class EnvSpec:
     termination_causes_fn: str | None = None
     """Dotted path of ``causes(states, actions, next_states) -> {name: (N,) bool}``: why the
     surrogate's rules end each transition (tracked per cause in fidelity metrics)."""
-
-    has_task: ClassVar[bool] = False
-    """Whether the spec defines the env's reward and termination (a surrogate needs them):
-    a class that implements ``reward`` (and ``terminated``) sets it to True."""
+    fit_regime: str | None = None
+    """Fit the dynamics model on this regime's rows only (a name ``regimes`` gives, e.g. a
+    lander's flight: the regime the model describes); None: all rows."""
+    events: tuple = ()
+    """The env's events (``envs.task.parse_events``: name, trigger, features, outcomes, prior):
+    what the dynamics model does not describe, learned from each run's own transitions."""
+    uncertainty: dict | None = None
+    """The surrogate's pessimism where an ensemble's members disagree (``envs.task.Uncertainty``:
+    ``{penalty, free, limit, scale}``); None: none."""
+    crash_reward: float | None = None
+    """The reward of a step the pessimism's limit ends (an env's crash value)."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "state_names", tuple(self.state_names))
@@ -152,6 +161,10 @@ class EnvSpec:
         self._check_observation_map()
         fns = {k: resolve(getattr(self, k), f"env.spec.{k}") for k in _TASK_FNS}
         object.__setattr__(self, "_fns", fns)
+        object.__setattr__(self, "events", tuple(self.events or ()))
+        object.__setattr__(self, "_events", parse_events(self.events, self))
+        if self.crash_reward is not None and (isinstance(self.crash_reward, bool) or not np.isfinite(self.crash_reward)):
+            raise ConfigError(f"env.spec.crash_reward: a finite number, got {self.crash_reward!r}")
         slices = tuple(_parse_slice(sl, i, self.state_names) for i, sl in enumerate(self.policy_map_slices))
         object.__setattr__(self, "policy_map_slices", slices)
         unknown = set(self.policy_map_hold) - set(self.state_names)
@@ -214,6 +227,11 @@ class EnvSpec:
         if missing:
             raise ConfigError(f"env.spec.state_names: {missing} are neither observed nor angles (env.spec.angles)")
         object.__setattr__(self, "_obs_source", tuple(source.get(n, ("state", n)) for n in obs))
+
+    def __reduce__(self):
+        """Pickled as its fields and rebuilt (checked again; the task's functions are rebuilt,
+        not pickled: some are closures)."""
+        return (_rebuild_spec, (type(self), {f.name: getattr(self, f.name) for f in fields(self) if f.init}))
 
     # ------------------------------------------------------------------ names and indices
     # Derived from frozen fields, so computed once (cached_property writes the instance dict,
@@ -382,14 +400,52 @@ class EnvSpec:
         return np.full(len(self.target_names), 1e3)
 
     # ------------------------------------------------------------------ the task (surrogate envs)
-    # Reward, termination, exogenous variables and resets as pure functions, so that a surrogate
-    # env (sdrl_bench.surrogate.env) can be built from any dynamics model. Batched: states and next
-    # states (N, n_state) in ``state_names`` order, raw actions (N, raw width).
+    @cached_property
+    def task(self) -> Task | None:
+        """The env's task for a surrogate (``envs.task.Task``: reward, termination, resets,
+        exogenous states, events, pessimism, kernels), built once and checked then; None when the
+        spec defines no reward (a surrogate then cannot be built: fits and real-env RL still can)."""
+        return self.build_task()
+
+    def build_task(self) -> Task | None:
+        """The generic task from the dotted paths of the YAML (``reward_fn``, ``termination_fn``,
+        ``initial_state_fn``, ``exogenous_fn``, ``termination_causes_fn``), ``events``,
+        ``uncertainty`` and ``crash_reward``. A spec class with its own task overrides this."""
+        fns = self._fns
+        if fns["reward_fn"] is None:
+            return None
+        if self.exogenous_names and fns["exogenous_fn"] is None:
+            raise ConfigError(f"env.spec.exogenous_fn: '{self.name}' does not say how to derive "
+                              f"{list(self.exogenous_names)} in a surrogate")
+        return Task(reward_terminated=self._reward_terminated, initial_states=self._checked_initial_states
+                    if fns["initial_state_fn"] is not None else None,
+                    exogenous=self._exogenous if fns["exogenous_fn"] is not None else None,
+                    termination_causes=fns["termination_causes_fn"], crash_reward=self.crash_reward,
+                    uncertainty=parse_uncertainty(self.uncertainty, None), events=self._events)
+
+    def _reward_terminated(self, states, actions, next_states) -> tuple[np.ndarray, np.ndarray]:
+        n = len(states)
+        reward = np.asarray(self._fns["reward_fn"](states, actions, next_states), dtype=float).reshape(n)
+        term_fn = self._fns["termination_fn"]
+        terminated = (np.zeros(n, dtype=bool) if term_fn is None
+                      else np.asarray(term_fn(states, actions, next_states), dtype=bool).reshape(n))
+        return reward, terminated
+
+    def _exogenous(self, states, actions, next_states) -> np.ndarray:
+        out = np.asarray(self._fns["exogenous_fn"](states, actions, next_states), dtype=float)
+        return out.reshape(len(states), len(self.exogenous_names))
+
+    def _checked_initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
+        out = np.asarray(self._fns["initial_state_fn"](rng, n), dtype=float)
+        if out.shape != (n, len(self.state_names)) or not np.all(np.isfinite(out)):
+            raise ConfigError(f"env.spec.initial_state_fn: returned shape {out.shape} (or non-finite values) "
+                              f"for n={n}; need finite ({n}, {len(self.state_names)}) states")
+        return out
+
     @property
     def defines_task(self) -> bool:
-        """Whether this spec knows the env's reward and termination (needed by a surrogate):
-        a subclass with ``has_task``, or ``reward_fn`` given."""
-        return self.has_task or self._fns["reward_fn"] is not None
+        """Whether a surrogate can be built for this env (it has a task)."""
+        return self.task is not None
 
     def is_success(self, episode_return: float, terminated: bool) -> bool:
         """Whether a finished episode counts as a success. Default: its return reaches
@@ -421,148 +477,43 @@ class EnvSpec:
                          for row in self._action_table)
         return tuple(str(i) for i in range(self.n_discrete_actions))
 
-    def termination_causes(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> dict[str, np.ndarray]:
-        """Why the surrogate's rules end each transition, per named cause (N,) bool; empty
-        when the spec does not tell causes apart."""
-        fn = self._fns["termination_causes_fn"]
-        return {} if fn is None else {str(k): np.asarray(v, dtype=bool) for k, v in fn(states, actions, next_states).items()}
-
-    def observed_termination_causes(self, rewards: np.ndarray, terminated: np.ndarray) -> dict[str, np.ndarray]:
-        """Why the real env ended each transition, per cause named in ``termination_causes``."""
-        return {}
-
-    def reward(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
-        """Reward of each transition (N,)."""
-        if self._fns["reward_fn"] is not None:
-            return np.asarray(self._fns["reward_fn"](states, actions, next_states), dtype=float).reshape(len(states))
-        raise ConfigError(
-            f"env.spec.reward_fn: '{self.name}' ({type(self).__name__}) defines no reward function; a "
-            "surrogate env needs env.spec.reward_fn (a dotted path) or an EnvSpec subclass with reward()"
-        )
-
-    def terminated(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
-        """Whether each transition ends the episode (N,) bool. Default: never."""
-        if self._fns["termination_fn"] is not None:
-            return np.asarray(self._fns["termination_fn"](states, actions, next_states), dtype=bool).reshape(len(states))
-        return np.zeros(len(states), dtype=bool)
-
-    def reward_terminated(
-        self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """``reward`` and ``terminated`` together (specs override it when they share work)."""
-        return self.reward(states, actions, next_states), self.terminated(states, actions, next_states)
-
-    def exogenous(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
-        """Values of the exogenous (not regressed) state variables after each transition,
-        (N, len(exogenous_names)); ``next_states`` holds the regressed values already."""
-        if self._fns["exogenous_fn"] is not None:
-            out = np.asarray(self._fns["exogenous_fn"](states, actions, next_states), dtype=float)
-            return out.reshape(len(states), len(self.exogenous_names))
-        if self.exogenous_names:
-            raise ConfigError(
-                f"env.spec.exogenous_names: '{self.name}' does not say how to derive "
-                f"{list(self.exogenous_names)} in a surrogate"
-            )
-        return np.zeros((len(states), 0))
-
-    def initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
-        """n states from the real env's initial-state distribution (N, n_state).
-
-        Default: drawn uniformly from states observed after resets of the real env
-        (``observed_initial_states``). ``initial_state_fn`` or a subclass knows the distribution.
-        """
-        if self._fns["initial_state_fn"] is not None:
-            out = np.asarray(self._fns["initial_state_fn"](rng, n), dtype=float)
-            if out.shape != (n, len(self.state_names)) or not np.all(np.isfinite(out)):
-                raise ConfigError(f"env.spec.initial_state_fn: returned shape {out.shape} (or non-finite values) "
-                                  f"for n={n}; need finite ({n}, {len(self.state_names)}) states")
-            return out
-        pool = observed_initial_states(self)
-        return pool[rng.integers(len(pool), size=n)]
-
-    def make_step_one(
-        self, predictor: Callable[..., Callable[[Sequence[float]], list]], obs_low=None, obs_high=None
-    ) -> StepOne | None:
-        """A fast plain-Python step of one env (or None: the surrogate then calls the batched
-        functions with N = 1). ``predictor(fixed=None)`` returns the model's one-state evaluator
-        (``sdrl_bench.models.fast.scalar_predictor``: inputs in ``input_names`` order, less
-        those held ``fixed`` at given values). The step follows
-        ``sdrl_bench.surrogate.env.Surrogate.transition`` (divergence check, bounds, exogenous variables,
-        clipping to the observation space ``[obs_low, obs_high]``, reward, termination) in the
-        same order. Must agree with the batched functions; the tests check it."""
-        return None
-
-    def make_step_batch(self, limit, obs_low, obs_high, rng=None) -> Callable | None:
-        """A fused batched step after the model's prediction (or None: the surrogate composes
-        ``apply_bounds``, ``exogenous``, clipping and ``reward_terminated`` with numpy).
-        ``rng()`` gives the surrogate's seeded generator, for what a spec draws per episode.
-        ``step(states (N, n_state), raw actions (N, w), predictions (n_target, N))`` returns
-        (next states (N, n_state), rewards, terminated, diverged), following
-        ``sdrl_bench.surrogate.env.Surrogate.transition`` with divergence ``limit`` and observation
-        bounds ``[obs_low, obs_high]``. Must agree with the composed functions; the tests check it."""
-        return None
-
     # ------------------------------------------------------------------ held-out test set
     def test_set_recipe(self) -> TestSetRecipe:
         """The fixed, named held-out test set every model of this env is scored on."""
         return TestSetRecipe(name=f"{self.name}-heldout-v1", seed=10_000, episodes=(("random", 1.0),) * 6)
 
-    # ------------------------------------------------------------------ regimes (hooks; neutral defaults)
+    # ------------------------------------------------------------------ data and fidelity hooks (neutral defaults)
     def regimes(self, episode: np.ndarray, states: np.ndarray, rewards: np.ndarray,
                 next_states: np.ndarray) -> dict[str, np.ndarray]:
-        """Named row masks of transitions (N,) by physical regime (e.g. LunarLander's flight and
+        """Named row masks of transitions (N,) by physical regime (e.g. a lander's flight and
         contact), for fitting a model on the regime it describes and scoring per regime.
         Default: none (one regime: all rows)."""
         return {}
 
     def fit_rows(self, episode: np.ndarray, states: np.ndarray, rewards: np.ndarray,
                  next_states: np.ndarray) -> np.ndarray | None:
-        """The rows a dynamics model is fitted on (a mask), or None: all of them."""
-        return None
-
-    def regime_dynamics(self, states: np.ndarray, actions: np.ndarray, predicted: np.ndarray) -> np.ndarray:
-        """The surrogate's next regressed values (n_target, N) from the model's ``predicted``
-        ones: a spec whose model describes one regime (LunarLander: flight) steps the others
-        here (its lander on its legs). Default: the model's prediction."""
-        return predicted
-
-    def uncertainty_scale(self) -> np.ndarray | None:
-        """Per regressed state, the scale (a standard deviation) the ensemble's disagreement is
-        measured in for the surrogate's uncertainty penalty; None: no penalty."""
-        return None
+        """The rows a dynamics model is fitted on (a mask): those of ``fit_regime``; None: all."""
+        if self.fit_regime is None:
+            return None
+        masks = self.regimes(episode, states, rewards, next_states)
+        if self.fit_regime not in masks:
+            raise ConfigError(f"env.spec.fit_regime: {self.fit_regime!r} is not one of {sorted(masks) or 'no regimes'}")
+        return masks[self.fit_regime]
 
     def noise_floor(self, test_name: str) -> dict[str, Sequence[float]] | None:
         """{regime ("all" and those of ``regimes``): per regressed state, the replay noise floor
         (variance) of one-step prediction on the named test set}, or None when unknown
-        (``fidelity.replay_noise_floor`` measures it; ``benchmarks/noise_floor.py``)."""
+        (``fidelity.replay_noise_floor`` measures it)."""
         return None
-
-    # ------------------------------------------------------------------ learned events (Dyna; hooks, neutral defaults)
-    event_feature_names: ClassVar[tuple[str, ...]] = ()
-    """Names of ``event_features``' columns (empty: the env has no learned events)."""
-
-    def event_data(self, data: Any) -> tuple[np.ndarray, np.ndarray] | None:
-        """(features (K, F), crashed (K,)) of the real events in ``data`` (a ``data.Transitions``
-        of whole or cut episodes) whose outcome the surrogate's rules leave open, for the learned
-        event model (``surrogate.events``); None: the env has no such events."""
-        return None
-
-    def event_rows(self, states: np.ndarray, next_states: np.ndarray, terminated: np.ndarray) -> np.ndarray | None:
-        """Mask (N,) of a surrogate step's rows where such an event happens and the rules did
-        not end the episode; None: no events."""
-        return None
-
-    def event_features(self, states: np.ndarray) -> np.ndarray:
-        """The learned event model's features of pre-event states (N, n_state)."""
-        raise NotImplementedError(f"env '{self.name}' has no learned events")
-
-    event_reward: ClassVar[float] = -100.0
-    """The reward of a step whose event the learned model ends in a crash."""
 
     def task_fidelity(self, test: Any) -> dict[str, float]:
         """Extra task-fidelity metrics of the surrogate's rules on real episodes (``test``: a
         ``data.Transitions`` of whole episodes); default: none."""
         return {}
+
+
+def _rebuild_spec(cls: type, values: dict) -> EnvSpec:
+    return cls(**values)
 
 
 def _parse_slice(value: Any, i: int, state_names: tuple[str, ...]) -> tuple:
@@ -605,25 +556,16 @@ def action_bounds(spec: EnvSpec) -> tuple[np.ndarray, np.ndarray]:
 
 
 def find_spec(name: str, config_dirs: Sequence[str] = ()) -> EnvSpec:
-    """The spec class whose ``name`` defaults to ``name`` (the built-in specs, or any user
-    subclass already imported), built with its defaults; else the spec of ``env/<name>.yaml``
-    in ``config_dirs``, ``$SDRL_BENCH_CONFIG_DIR`` or the package's configs
-    (``envs.functional.spec_from_config``). No registry is kept beside the configs."""
-    found: dict[str, type[EnvSpec]] = {}
-    todo = list(EnvSpec.__subclasses__())
-    while todo:
-        cls = todo.pop()
-        todo.extend(cls.__subclasses__())
-        default = next((f.default for f in fields(cls) if f.name == "name"), MISSING)
-        if isinstance(default, str):
-            found.setdefault(default, cls)
-    if name in found:
-        return found[name]()
+    """The spec of ``env/<name>.yaml`` in ``config_dirs``, ``$SDRL_BENCH_CONFIG_DIR`` or the
+    package's configs (``envs.functional.spec_from_config``): envs are found by their config,
+    never by importing an env's module here."""
     from_config = spec_from_config(name, config_dirs)
     if from_config is None:
-        raise ConfigError(f"spec: unknown env {name!r}: no spec class named so ({sorted(found)}) and no env/{name}.yaml "
-                          f"in {[str(d) for d in functional.config_dirs(config_dirs)]} (config_dir= or "
+        raise ConfigError(f"spec: unknown env {name!r}: no env/{name}.yaml in "
+                          f"{[str(d) for d in functional.config_dirs(config_dirs)]} (config_dir= or "
                           f"${functional.CONFIG_DIR_VAR})")
+    if not isinstance(from_config, EnvSpec):
+        raise ConfigError(f"spec '{name}': its _target_ builds a {type(from_config).__name__}, not an EnvSpec")
     return from_config
 
 
@@ -645,14 +587,15 @@ class TestSetRecipe:
 _INITIAL_POOLS: dict[tuple, np.ndarray] = {}
 
 
-def observed_initial_states(spec: EnvSpec, n: int = 200, seed: int = 1_000_000) -> np.ndarray:
-    """Observations right after ``n`` resets of the real env (seeds ``seed`` .. ``seed + n - 1``,
-    disjoint from the collectors' and test sets' seeds), cached per env and process."""
-    key = (spec.gym_id, repr(sorted(spec.gym_kwargs.items())), n, seed)
+def observed_initial_states(spec: EnvSpec, run_seed: int = 0, n: int = 200) -> np.ndarray:
+    """Observations right after ``n`` resets of the real env (as states), reset seeds of the
+    run's ``reset_pool`` stream (``seeds``: no other run or purpose uses them), cached per env,
+    run seed and process. Resets only: no env step is taken."""
+    key = (spec.gym_id, repr(sorted(spec.gym_kwargs.items())), int(run_seed), n)
     if key not in _INITIAL_POOLS:
         env = spec.make_env()
         try:
-            pool = np.array([env.reset(seed=seed + i)[0] for i in range(n)], dtype=float)
+            pool = np.array([env.reset(seed=seeds.reset_seed(run_seed, "reset_pool", i))[0] for i in range(n)], dtype=float)
             pool = np.array(spec.coordinates(pool), dtype=float)  # states (a copy only with a map)
         finally:
             env.close()

@@ -108,3 +108,26 @@ def spec_from_config(name: str, dirs: Sequence[str | Path] = ()) -> Any | None:
         raise ConfigError(f"{path}: {exc}") from exc
     except TypeError as exc:
         raise ConfigError(f"{path}: spec: {one_line(exc)}") from exc
+
+
+# ---------------------------------------------------------------------- what the report knows of an env
+def references(dirs: Sequence[str | Path] = ()) -> dict[str, dict]:
+    """{env name: the mapping of ``reference/<name>.yaml``} over the config dirs (the first dir
+    that has a name wins): the paper's figures for the env, the paper pack's choices, and notes
+    that only the env explains, for the report to set beside the env's runs. A user's env gets
+    the same by putting ``reference/<name>.yaml`` in its config dir."""
+    import yaml  # PyYAML, a dependency of hydra-core and of this package
+
+    out: dict[str, dict] = {}
+    for d in config_dirs(dirs):
+        for path in sorted((d / "reference").glob("*.yaml")) if (d / "reference").is_dir() else ():
+            if path.stem in out:
+                continue
+            try:
+                node = yaml.safe_load(path.read_text()) or {}
+            except (OSError, yaml.YAMLError) as exc:
+                raise ConfigError(f"reference '{path.stem}': cannot read {path}: {one_line(exc)}") from exc
+            if not isinstance(node, dict):
+                raise ConfigError(f"reference '{path.stem}': {path} is not a mapping")
+            out[path.stem] = node
+    return out

@@ -173,47 +173,56 @@ def _ci_text(ci: tuple[float, float, float, str], empty: str = NOT_RUN) -> str:
 FIDELITY_DIFFERENCES = (
     "Differences explained: the paper gives one MSE and correlation per state and states neither its units "
     "nor its test set. Ours are in the observation's raw units, on a fixed held-out set of fresh real episodes "
-    "(`<env>-heldout-v1`; MountainCar and LunarLander: twelve episodes of the env's heuristic at eps 0, 0.2 and "
-    "0.5 and of uniform random actions, seeds the fits never see), one fit per seed on that seed's "
-    "paper-protocol data (the trained expert, eps 0.2; Pendulum, not in the paper: random actions). MountainCar is deterministic: it has no noise floor, and an exact law's residual is the "
-    "float32 rounding of the env's observations (about 1e-16 on x). LunarLander's surrogate is the per-equation "
-    "flight law fitted on flight rows (contact is the surrogate's touchdown event and settle rules), so its "
-    "one-step error over all rows includes contact rows it does not model; the noise-floor column divides the "
-    "flight rows' MSE by the replay noise floor of those rows (the best any deterministic model can do: 1). "
-    "The 50-step columns are not in the paper: open-loop rollouts from every 5th step of each test episode "
-    "with the real actions fed in, the MSE of the state after 50 steps over the rollouts that stayed finite, "
-    "and the fraction that diverged. They, and the open-loop panels of the predicted-vs-true figures, run "
-    "the regressed law alone: after a LunarLander touchdown the real lander is held by the ground, which the "
-    "surrogate env models with its contact rules, not with the law, so those rollouts drift off after contact.")
+    "(`<env>-heldout-v1`, reset seeds the fits never see), one fit per seed. Where an env is stochastic, the "
+    "noise-floor column divides the MSE of the floor regime's rows by the replay noise floor of those rows (the "
+    "best any deterministic model can do: 1). The 50-step columns are not in the paper: open-loop rollouts "
+    "from every 5th step of each test episode with the real actions fed in, the MSE of the state after 50 "
+    "steps over the rollouts that stayed finite, and the fraction that diverged. They, and the open-loop panels "
+    "of the predicted-vs-true figures, run the regressed law alone, without the rules of the surrogate's task.")
 ABLATION_DIFFERENCES = (
     "Differences explained: the paper gives one MSE per library and env without saying how the states are "
     "combined or in what units; ours is the mean over states of the raw-unit MSE (so it is dominated by the "
-    "state with the largest spread: v for MountainCar, angvel for LunarLander). Its 'trigonometric' library is "
-    "our `poly_trig` (polynomial plus sin and cos terms). These LunarLander rows fit the paper's way, one "
-    "shared library on all rows (`env.spec.fit_regime=null`); `lunar_lander_flight` is ours, the per-equation "
-    "law on flight rows, which the RL rows use. Degree 1 polynomials on LunarLander (degree 2 overfits 1000 "
-    "transitions); the 50-step columns are ours.")
+    "state with the largest spread). Its 'trigonometric' library is our `poly_trig` (polynomial plus sin and "
+    "cos terms); the 50-step columns are ours.")
 NN_DIFFERENCES = (
-    "Differences explained: the paper compares the two on MountainCar's velocity only (SINDy 3.11e-06 against "
-    "NN 4.45e-06, ~95% less training compute) and does not describe its network. Ours is an MLP on normalized "
-    "(state, action) predicting the state change (one hidden tanh layer of 64, AdamW, early stopping; chosen "
-    "by an Optuna search on data and test sets disjoint from these), trained on the same transitions as the "
-    "SINDy fit of the same seed. Compute is the fit's wall and CPU seconds on this machine (one thread), "
-    "collection and scoring excluded. Parameters: SINDy's nonzero coefficients against the NN's weights and "
-    "biases.")
+    "Differences explained: ours is an MLP on normalized (state, action) predicting the state change (one "
+    "hidden tanh layer of 64, AdamW, early stopping; chosen by an Optuna search on data and test sets disjoint "
+    "from these), trained on the same transitions as the SINDy fit of the same seed. Compute is the fit's wall "
+    "and CPU seconds on this machine (one thread), collection and scoring excluded. Parameters: SINDy's nonzero "
+    "coefficients against the NN's weights and biases.")
 TRANSFER_DIFFERENCES = (
-    "Differences explained: the paper reports total steps (65,075 against 100,000 on MountainCar; 801,000 "
-    "against 1,000,000 on LunarLander) and says the surrogate-trained agents perform comparably, without a "
-    "final return, seeds or intervals. Ours, per seed: the agent trained only in the surrogate, then the real "
-    "env's return over 20 fresh deterministic episodes; beside it the same algorithm trained in the real env "
-    "on the same seeds (with the NN surrogate the finished real arm of the same seed is reused, not retrained, "
-    "so its rows repeat the SINDy group's). MountainCar (SAC, zoo settings) takes the paper's budgets as caps "
-    "and stops each arm at its first real evaluation (5 episodes every 5,000 steps) at 90, so its total steps "
-    "are what solving took; LunarLander (PPO, zoo settings, 16 envs) runs the paper's fixed budgets. "
-    "`ppo_fast` rows: the fast recipe (many vectorized envs, short rollouts), stopped at the first 10-episode "
-    "evaluation at the threshold, not in the paper. Real transitions count the model's data and real "
-    "training steps, not the evaluation episodes (reported in the runs as `eval_steps`). Wall seconds are "
-    "training only, measured with two jobs sharing two cores.")
+    "Differences explained: the paper reports total steps and says the surrogate-trained agents perform "
+    "comparably, without a final return, seeds or intervals. Ours, per seed: the agent trained only in the "
+    "surrogate, then the real env's return over 20 fresh deterministic episodes; beside it the same algorithm "
+    "trained in the real env on the same seeds (with the NN surrogate the finished real arm of the same seed is "
+    "reused, not retrained, so its rows repeat the SINDy group's). An arm run with `rl.stop_when_solved=true` "
+    "stops at its first real evaluation at the threshold, so its total steps are what solving took; without it "
+    "the budgets are fixed. `ppo_fast` rows: the fast recipe (many vectorized envs, short rollouts), not in the "
+    "paper. Real transitions count the model's data and real training steps, not the evaluation episodes "
+    "(reported in the runs as `eval_steps`). Wall seconds are training only.")
+
+
+def _with_notes(text: str, envs: Sequence[str], section: str) -> Para:
+    """A section's paragraph: its generic text, then what each env present explains (``reference/<env>.yaml``)."""
+    notes = [n.strip() for n in (rt.note(e, section) for e in dict.fromkeys(envs)) if n]
+    return Para(" ".join([text, *notes]))
+
+
+def _collectors(runs: Sequence[Mapping[str, Any]]) -> str:
+    """The collectors of each env's fits in the fidelity table, read from the runs' tags."""
+    records = rt.fit_records(runs)
+    parts = []
+    for env in rt.envs_of(records):
+        used = sorted({str(f["collector"]) for f in rt.main_fits(records, env) if f.get("collector")})
+        if used:
+            parts.append(f"{env}: {', '.join(used)}")
+    return f" The fits' data came from these collectors (their runs' tags): {'; '.join(parts)}." if parts else ""
+
+
+def _total_steps_note(envs: Sequence[str]) -> str:
+    parts = [f"{int(t['surrogate']):,} total steps for the surrogate arm against {int(t['real']):,} for the real arm "
+             f"on {e}" for e in dict.fromkeys(envs) if {"surrogate", "real"} <= set(t := rt.paper(e, "total_steps"))]
+    return f" The paper reports {'; '.join(parts)}." if parts else ""
 
 
 def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
@@ -232,10 +241,11 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                          "One fit per seed: the fits inside the paper packs' SINDy transfer runs (else fit runs), "
                          "scored on the named held-out test set. Statistic over seeds: the IQM with a 95% percentile "
                          "bootstrap CI (scipy.stats.bootstrap, 2000 resamples), the mean below 5 seeds. The noise "
-                         "floor exists where the env is stochastic (LunarLander's engine dispersion)."))
-    out.append(Para(FIDELITY_DIFFERENCES))
+                         "floor exists where the env is stochastic."))
+    out.append(_with_notes(FIDELITY_DIFFERENCES + _collectors(runs), list(fid["env"]) if len(fid) else [], "fidelity"))
     out.append(Heading(2, "2. Library ablation (paper Table 1, bottom)"))
-    out.append(_df_table(rt.ablation_table(runs), [("env", "env", "text"), ("library", "library", "text"),
+    abl = rt.ablation_table(runs)
+    out.append(_df_table(abl, [("env", "env", "text"), ("library", "library", "text"),
                                                    ("test_set", "test set", "text"), ("n_fits", "seeds", "int"),
                                                    ("mse_mean", "one-step MSE, mean over states (raw) [95% CI]", "eci"),
                                                    ("mse_norm_mean", "normalized", "e"),
@@ -243,20 +253,20 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                                                    ("diverged", f"{rt.HORIZON}-step diverged", "pct"),
                                                    ("n_terms", "active terms", "g"),
                                                    ("paper_mse", "paper MSE", "paper:e")], link,
-                         "SINDy fit runs per library, one per seed, on the paper's data (the expert, eps 0.2); "
-                         "IQM over seeds with a 95% bootstrap CI (the mean below 5 seeds)."))
-    out.append(Para(ABLATION_DIFFERENCES))
+                         "SINDy fit runs per library, one per seed; IQM over seeds with a 95% bootstrap CI (the mean "
+                         "below 5 seeds)."))
+    out.append(_with_notes(ABLATION_DIFFERENCES, list(abl["env"]) if len(abl) else [], "ablation"))
     out.append(Heading(2, "3. SINDy vs NN surrogate"))
-    out.append(_df_table(rt.sindy_vs_nn_table(runs), [("env", "env", "text"), ("quantity", "quantity", "text"),
+    nn = rt.sindy_vs_nn_table(runs)
+    out.append(_df_table(nn, [("env", "env", "text"), ("quantity", "quantity", "text"),
                                                       ("sindy", "SINDy [95% CI]", "gci|n_sindy", "runs_sindy"),
                                                       ("nn", "NN [95% CI]", "gci|n_nn", "runs_nn"),
                                                       ("sindy_over_nn", "SINDy / NN", "g|-"),
                                                       ("n_sindy", "SINDy fits", "int", "runs_sindy"),
                                                       ("n_nn", "NN fits", "int", "runs_nn")], link,
                          "Fit runs on the same data per seed; IQM over seeds with a 95% bootstrap CI (the mean "
-                         "below 5 seeds). Paper (MountainCar velocity): SINDy MSE 3.11e-06 vs NN 4.45e-06, ~95% "
-                         "less compute."))
-    out.append(Para(NN_DIFFERENCES))
+                         "below 5 seeds)."))
+    out.append(_with_notes(NN_DIFFERENCES, list(nn["env"]) if len(nn) else [], "nn"))
     out.append(Heading(2, "4. RL transfer (real-environment evaluation)"))
     tr = rt.transfer_table(runs)
     rows = []
@@ -278,12 +288,13 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                      "Finished transfer runs only (one per seed). Total steps as the paper counts them: surrogate "
                      "steps + real transitions. Return: IQM over seeds (the mean below 5) of each seed's mean "
                      "over 20 real episodes, with a 95% percentile bootstrap CI over seeds (scipy.stats.bootstrap, "
-                     "2000 resamples, seed 0). Success: the share of those episodes that reached the goal "
-                     "(MountainCar) or returned >= 200 (LunarLander). Steps and seconds to solved: at the first real "
+                     "2000 resamples, seed 0). Success: the share of those episodes the env counts as a success "
+                     "(its goal, or a return at its threshold). Steps and seconds to solved: at the first real "
                      "evaluation at the threshold, the real transitions spent (a surrogate arm: its model's "
                      "data; the real arm: its training steps) and the wall seconds (training, plus collection "
                      "and fit for a surrogate arm; evaluations excluded), mean over the seeds that reached it."))
-    out.append(Para(TRANSFER_DIFFERENCES))
+    envs = list(tr["env"]) if len(tr) else []
+    out.append(_with_notes(TRANSFER_DIFFERENCES + _total_steps_note(envs), envs, "transfer"))
     out += dyna_blocks(runs, link)
     return out
 
@@ -312,14 +323,14 @@ def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
     out.append(Table(["env", "method", "agent", "solved", "median real transitions to solve", "real steps by phase (mean)",
                       "model data (mean)", "surrogate steps (mean)", "wall s (mean)", "last 20-episode return [95% CI]",
                       "audit return [95% CI]", "runs"], rows,
-                     "Dyna (rl/dyna.py): rounds of collecting with the agent, refitting the surrogate and a learned "
-                     "touchdown-crash model on all real data, and training the same agent on in the refreshed surrogate; "
+                     "Dyna (rl/dyna.py): rounds of collecting with the agent, refitting the surrogate and the env's "
+                     "learned event models on all real data, and training the same agent on in the refreshed surrogate; "
                      "solved when 20 fresh real episodes average the threshold. Every real step counts: collections, "
                      "screens and confirmations. The real arm: the same agent in real envs, stopped at its first "
                      "evaluation at the threshold; its cost is its training steps plus those evaluations. An unsolved "
                      "seed counts as infinitely many transitions in the median. The audit: the final Dyna agent on "
                      "fresh real episodes after the loop (not counted in its cost)."))
-    out.append(Para("Differences explained: the paper fits once (75 or 1000 transitions) and counts only the model "
+    out.append(Para("Differences explained: the paper fits once and counts only the model "
                     "data and the surrogate steps; it reports no real steps spent on evaluation, which here decide "
                     "when Dyna stops and are counted."))
     return out

@@ -3,7 +3,7 @@
 Every table is a ``pandas.DataFrame`` with numeric values (NaN where the store holds nothing:
 the renderer prints "not run") and a ``runs`` column listing the run ids behind the row, so
 each number can link to its run. The paper's numbers (Table 1, the step counts, the NN
-comparison) are constants here and sit in their own columns beside ours.
+comparison) come from the env's ``reference/<env>.yaml`` and sit in their own columns beside ours.
 """
 
 from __future__ import annotations
@@ -12,36 +12,47 @@ import math
 from collections import Counter
 from typing import Any
 from collections.abc import Iterable, Mapping, Sequence
+from functools import cache
 
 import numpy as np
 import pandas as pd
 from scipy import stats
 
+from sdrl_bench.envs import functional
+
 Run = Mapping[str, Any]
 
-#: Paper Table 1 top: (MSE, correlation) per env and state (units and test set not stated).
-PAPER_FIDELITY: dict[str, dict[str, tuple[float, float]]] = {
-    "mountain_car": {"x": (7.21e-4, 0.999), "v": (3.11e-6, 0.997)},
-    "lunar_lander": {"x": (1.42e-6, 1.000), "y": (9.64e-6, 1.000), "vx": (1.58e-5, 1.000),
-                     "vy": (3.38e-5, 0.999), "angle": (1.03e-5, 0.999), "angvel": (1.24e-4, 0.989)},
-}
-#: Paper Table 1 bottom: MSE per library (one number per env; the paper does not say how
-#: states are combined; we report the mean over states, ``mse/mean``).
-PAPER_ABLATION: dict[str, dict[str, float]] = {
-    "mountain_car": {"polynomial": 5.32e-3, "poly_trig": 3.11e-6, "rational": 4.15e-4},
-    "lunar_lander": {"polynomial": 1.58e-4, "poly_trig": 1.62e-4, "rational": 1.87e-4},
-}
 ABLATION_LIBRARIES = ("polynomial", "poly_trig", "rational")
-#: Paper: total steps, surrogate arm vs real arm.
-PAPER_TOTAL_STEPS: dict[str, dict[str, float]] = {
-    "mountain_car": {"surrogate": 65_075, "real": 100_000},
-    "lunar_lander": {"surrogate": 801_000, "real": 1_000_000},
-}
 ARMS = ("surrogate", "real")
-#: The library each paper pack uses (conf/experiment/paper_*.yaml): preferred for Table 1 top.
-PAPER_LIBRARY = {"mountain_car": "poly_trig", "lunar_lander": "lunar_lander_flight"}
-#: The agent each paper pack trains (conf/experiment/paper_*.yaml).
-PAPER_AGENT = {"mountain_car": "sac", "lunar_lander": "ppo"}
+
+
+@cache
+def references() -> dict[str, dict]:
+    """What the report knows of each env beyond its runs: ``reference/<env>.yaml`` of the config
+    tree (``envs.functional.references``): the paper's figures, the paper pack's choices, notes."""
+    return functional.references()
+
+
+def paper(env: str, key: str) -> dict:
+    """The paper's figures of ``env`` (``fidelity``: {state: [MSE, corr]}, ``ablation``:
+    {library: MSE}, ``total_steps``: {arm: steps}); empty where the paper has none."""
+    return dict((references().get(env, {}).get("paper") or {}).get(key) or {})
+
+
+def pack(env: str, key: str) -> str | None:
+    """The paper pack's ``library`` or ``agent`` for ``env`` (preferred for the fidelity table)."""
+    return (references().get(env, {}).get("pack") or {}).get(key)
+
+
+def note(env: str, section: str) -> str | None:
+    """What only ``env`` explains about a section's numbers (``notes.<section>``)."""
+    return (references().get(env, {}).get("notes") or {}).get(section)
+
+
+def paper_envs() -> list[str]:
+    return [e for e, ref in references().items() if ref.get("paper")]
+
+
 #: Open-loop rollout horizon of the fidelity tables (fits log ``rollout<k>_mse/<state>``).
 HORIZON = 50
 
@@ -74,7 +85,7 @@ def fit_records(runs: Iterable[Run]) -> list[dict[str, Any]]:
         out.append({"run_id": r["run_id"], "source": kind, "env": tags.get("env"), "library": tags.get("library"),
                     "surrogate": tags.get("surrogate", "sindy"), "collector": tags.get("collector"),
                     "seed": tags.get("seed"), "test_set": tags.get("test_set", "?"), "agent": tags.get("agent"),
-                    "start_time": r.get("start_time") or 0, "metrics": metrics})
+                    "fit_regime": tags.get("fit_regime"), "start_time": r.get("start_time") or 0, "metrics": metrics})
     return out
 
 
@@ -92,14 +103,14 @@ def one_per_seed(fits: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
 def states_of(records: Sequence[Mapping[str, Any]], env: str) -> list[str]:
     """State names of an env: the paper's order, then any others the records' metrics name."""
     found = {k[4:] for r in records if r["env"] == env for k in r["metrics"] if k.startswith("mse/") and k != "mse/mean"}
-    known = list(PAPER_FIDELITY.get(env, {}))
+    known = list(paper(env, "fidelity"))
     return [s for s in known if s in found or not found] + sorted(found - set(known))
 
 
 def envs_of(records: Iterable[Mapping[str, Any]]) -> list[str]:
     """The paper's envs first, then any others present."""
     found = {r["env"] for r in records if r.get("env")}
-    return [e for e in PAPER_FIDELITY] + sorted(found - set(PAPER_FIDELITY))
+    return paper_envs() + sorted(found - set(paper_envs()))
 
 
 def main_fits(records: Sequence[Mapping[str, Any]], env: str, surrogate: str = "sindy") -> list[Mapping[str, Any]]:
@@ -109,9 +120,9 @@ def main_fits(records: Sequence[Mapping[str, Any]], env: str, surrogate: str = "
     mine = [r for r in records if r["env"] == env and r["surrogate"] == surrogate]
     mine = [r for r in mine if r["source"] == "transfer"] or mine
     # the paper packs' runs when there are any: a fast recipe's runs fit the same data again
-    mine = [r for r in mine if r["agent"] in (None, PAPER_AGENT.get(env))] or mine
+    mine = [r for r in mine if r["agent"] in (None, pack(env, "agent"))] or mine
     if surrogate == "sindy":
-        mine = [r for r in mine if r["library"] == PAPER_LIBRARY.get(env)] or mine
+        mine = [r for r in mine if r["library"] == pack(env, "library")] or mine
     if not mine:
         return []
     key = Counter((r["library"], r["test_set"]) for r in mine).most_common(1)[0][0]
@@ -131,11 +142,13 @@ def _values(fits: Sequence[Mapping[str, Any]], key: str) -> list[float]:
 
 def floor_regime(fits: Sequence[Mapping[str, Any]], state: str) -> str | None:
     """The regime whose replay noise floor the fits were scored against for ``state``
-    (``floor_ratio_<regime>/<state>``): "flight" (the regressed dynamics) when logged, else "all",
-    else the first found; None when the env has no floor."""
+    (``floor_ratio_<regime>/<state>``): the regime the fits' model was fitted on (their
+    ``fit_regime``: the dynamics the model regresses) when logged, else "all", else the first
+    found; None when the env has no floor."""
     found = sorted({k.split("/")[0][len("floor_ratio_"):] for f in fits for k in f["metrics"]
                     if k.startswith("floor_ratio_") and k.endswith(f"/{state}")})
-    for regime in ("flight", "all"):
+    fitted = [f.get("fit_regime") for f in fits if f.get("fit_regime")]
+    for regime in ([Counter(fitted).most_common(1)[0][0]] if fitted else []) + ["all"]:
         if regime in found:
             return regime
     return found[0] if found else None
@@ -153,7 +166,7 @@ def fidelity_table(runs: Iterable[Run]) -> pd.DataFrame:
     for env in envs_of(records):
         fits = main_fits(records, env)
         for state in states_of(records, env):
-            paper = PAPER_FIDELITY.get(env, {}).get(state, (math.nan, math.nan))
+            ref = paper(env, "fidelity").get(state, (math.nan, math.nan))
             one = bootstrap_ci(_values(fits, f"mse/{state}"))
             rollouts = _values(fits, f"rollout{HORIZON}_mse/{state}")  # NaN: every rollout of that seed diverged
             roll = bootstrap_ci(rollouts)
@@ -171,7 +184,7 @@ def fidelity_table(runs: Iterable[Run]) -> pd.DataFrame:
                 "rollout": roll[0], "rollout_lo": roll[1], "rollout_hi": roll[2],
                 "rollout_n": int(np.isfinite(rollouts).sum()),
                 "diverged": _mean(_values(fits, f"rollout{HORIZON}/diverged_fraction")),
-                "paper_mse": paper[0], "paper_corr": paper[1],
+                "paper_mse": ref[0], "paper_corr": ref[1],
                 "runs": [f["run_id"] for f in fits],
             })
     return pd.DataFrame(rows, columns=["env", "state", "library", "test_set", "n_fits", "statistic", "mse", "mse_lo",
@@ -196,7 +209,7 @@ def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
     rows = []
     for env in envs_of(records):
         # the paper's libraries ("not run" where missing) for the paper's envs; others: what was fitted
-        paper_libs = list(ABLATION_LIBRARIES) if env in PAPER_ABLATION else []
+        paper_libs = list(ABLATION_LIBRARIES) if paper(env, "ablation") else []
         libraries = paper_libs + sorted({r["library"] for r in records if r["env"] == env and r["library"]} - set(paper_libs))
         for lib in libraries:
             fits = one_per_seed([r for r in records if r["env"] == env and r["library"] == lib])
@@ -208,7 +221,7 @@ def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
                          "rollout_mean": bootstrap_ci([_state_mean(f["metrics"], f"rollout{HORIZON}_mse") for f in fits])[0],
                          "diverged": _mean(_values(fits, f"rollout{HORIZON}/diverged_fraction")),
                          "n_terms": _mean(_values(fits, "n_parameters")),
-                         "paper_mse": PAPER_ABLATION.get(env, {}).get(lib, math.nan),
+                         "paper_mse": paper(env, "ablation").get(lib, math.nan),
                          "runs": [f["run_id"] for f in fits]})
     return pd.DataFrame(rows, columns=["env", "library", "n_fits", "test_set", "statistic", "mse_mean", "mse_mean_lo",
                                        "mse_mean_hi", "mse_norm_mean", "rollout_mean", "diverged", "n_terms", "paper_mse",
@@ -285,7 +298,7 @@ def transfer_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
     for env in envs_of({"env": r["tags"].get("env")} for r in done):
         # the paper pack's agent first, then the others (a fast recipe)
         agents = sorted({r["tags"].get("agent", "?") for r in done if r["tags"].get("env") == env},
-                        key=lambda a: (a != PAPER_AGENT.get(env), a)) or ["-"]
+                        key=lambda a: (a != pack(env, "agent"), a)) or ["-"]
         for kind, agent in ((k, a) for k in ("sindy", "nn") for a in agents):
             # one row group per agent: a store with the zoo recipe and a fast one keeps them apart
             group = [r for r in done if r["tags"].get("env") == env and r["tags"].get("surrogate", "sindy") == kind
@@ -301,8 +314,8 @@ def transfer_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                 row["real_transitions"] = row["real_transitions_model"] + row["real_transitions_train"]
                 row["n_solved"] = sum(f"{arm}/solved_real_steps" in r["metrics"] for r in have)
                 # the paper's step counts belong to its recipe: beside the paper pack's agent only
-                row["paper_total_steps"] = (PAPER_TOTAL_STEPS.get(env, {}).get(arm, math.nan)
-                                            if agent in (PAPER_AGENT.get(env), "?", "-") else math.nan)
+                row["paper_total_steps"] = (paper(env, "total_steps").get(arm, math.nan)
+                                            if agent in (pack(env, "agent"), "?", "-") else math.nan)
                 row["runs"] = [r["run_id"] for r in have]
                 rows.append(row)
     cols = ["env", "surrogate", "arm", "agent", "n_seeds", "real_transitions", "surrogate_steps", "total_steps", "paper_total_steps",

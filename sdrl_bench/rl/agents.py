@@ -78,7 +78,8 @@ class StepCounter(gym.Wrapper):
 
 
 def real_vec_env(spec: EnvSpec, n_envs: int, seed: int, counts: Counter, phase: str = "train") -> VecEnv:
-    """n copies of the real env, each counted and monitored, seeded ``seed + i``."""
+    """n copies of the real env, each counted and monitored, first reset with ``seed + i`` (a
+    reset seed: ``seeds.reset_seed``; ``make_agent`` keeps it, where SB3 would put its own)."""
 
     def make(i: int):
         return lambda: Monitor(StepCounter(spec.make_env(), counts, phase))
@@ -116,7 +117,8 @@ def evaluate_real(
     phase: str = "evaluate", deterministic: bool = True, wrap_env: Callable[[gym.Env, int], gym.Env] | None = None,
     max_steps: int | None = None,
 ) -> EvalResult:
-    """Play ``n_episodes`` in the real env (reset seeds ``seed + i``) with ``policy.predict``.
+    """Play ``n_episodes`` in the real env (reset seeds ``seed + i``: pass the first of a
+    purpose's reset seeds, ``seeds.reset_seed``) with ``policy.predict``.
 
     The episodes run side by side, one env each, stepped in lockstep with one batched
     ``predict`` per step: a predict call costs more than a real MountainCar step, and a fast
@@ -263,11 +265,12 @@ class TrainResult:
 
 def train(
     agent: AgentConfig, env: VecEnv, steps: int, seed: int, callback: RealEvalCallback | None = None,
-    logger: Any = None, progress_bar: bool | str = False,
+    logger: Any = None, progress_bar: bool | str = False, env_seed: int | None = None,
 ) -> TrainResult:
-    """Build the agent around ``env`` and train it for ``steps`` env steps. ``progress_bar``:
-    a string shows a progress bar named by it (e.g. "surrogate arm, SAC")."""
-    model = make_agent(agent, env, seed, logger)
+    """Build the agent around ``env`` (agent seed ``seed``, env seed ``env_seed``: see
+    ``make_agent``) and train it for ``steps`` env steps. ``progress_bar``: a string shows a
+    progress bar named by it (e.g. "surrogate arm, SAC")."""
+    model = make_agent(agent, env, seed, logger, env_seed)
     callbacks: Any = callback
     if isinstance(progress_bar, str) and progress_bar:
         callbacks = [c for c in (callback, named_progress_bar(progress_bar)) if c is not None]
@@ -282,10 +285,13 @@ def train(
                        callback.eval_wall_seconds, callback.rollout_wall_seconds)
 
 
-def make_agent(agent: AgentConfig, env: VecEnv, seed: int, logger: Any = None) -> BaseAlgorithm:
+def make_agent(agent: AgentConfig, env: VecEnv, seed: int, logger: Any = None, env_seed: int | None = None) -> BaseAlgorithm:
     """The untrained SB3 agent around ``env`` (inside ``VecNormalize`` when the config normalizes
-    rewards). Without ``logger`` the agent logs nowhere: SB3's default logger would make an empty
-    ``SB3-<time>`` folder in the temp dir at every ``learn`` call (a Dyna run calls it every round)."""
+    rewards), seeded with ``seed`` (torch, numpy, its action space). SB3 also seeds the env with
+    the agent's seed; ``env_seed`` puts the env's own seed back (a real env's reset seeds are a
+    purpose of their own: ``seeds``). Without ``logger`` the agent logs nowhere: SB3's default
+    logger would make an empty ``SB3-<time>`` folder in the temp dir at every ``learn`` call (a
+    Dyna run calls it every round)."""
     from stable_baselines3.common.logger import Logger
 
     if agent.normalize_reward:
@@ -294,6 +300,8 @@ def make_agent(agent: AgentConfig, env: VecEnv, seed: int, logger: Any = None) -
         keywords = getattr(agent.algo, "keywords", {})
         env = VecNormalize(env, norm_obs=False, norm_reward=True, gamma=float(keywords.get("gamma", 0.99)))
     model = agent.algo(env=env, seed=seed, verbose=0)
+    if env_seed is not None:
+        model.get_env().seed(env_seed)
     model.set_logger(logger if logger is not None else Logger(folder=None, output_formats=[]))
     return model
 

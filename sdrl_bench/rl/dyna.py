@@ -31,19 +31,16 @@ from __future__ import annotations
 
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
 import numpy as np
 
-from sdrl_bench import ConfigError
+from sdrl_bench import ConfigError, seeds
 from sdrl_bench.data import TransitionRecorder, Transitions, collect, concat, held_out_test_set, random_policy, recorded
 from sdrl_bench.pipeline import FitJob, FitResult, check, fit_transitions
 from sdrl_bench.rl.agents import AgentConfig, EvalResult, StepCounter, evaluate_real, make_agent
-from sdrl_bench.surrogate.events import EventModel, fit_event_model
 
-# reset seeds of the loop's real episodes, per phase, far from the initial collection (seed + i)
-SCREEN_SEED, FINAL_SEED, COLLECT_SEED, AUDIT_SEED = 3_000_000, 4_000_000, 5_000_000, 6_000_000
 LOOP_PHASES = ("collect", "evaluate", "final")
 """The phases whose real steps the loop counts (the audit is reported apart)."""
 
@@ -74,9 +71,10 @@ class DynaConfig:
     data_from_evaluations: bool = True
     """The screens' and confirmations' episodes join the model data."""
     learn_events: bool = True
-    """Fit the learned event model (``surrogate.events``) every round; False: the rules alone."""
+    """Refit the env's learned event models (``surrogate.events``) every round; False: the
+    task's rules alone decide events."""
     min_events: int = 8
-    """Real events needed before an event model is fitted."""
+    """Real events needed before an event model is fitted (every declared event)."""
     audit_episodes: int = 100
     """Real episodes of the post-loop audit (0: none)."""
 
@@ -131,7 +129,6 @@ class RoundResult:
 
     round: int
     fit: FitResult
-    events: EventModel | None
     new_data: Transitions
     """The real rows this round added to the model data."""
     counts: dict[str, int]
@@ -143,12 +140,17 @@ class RoundResult:
     screen: EvalResult | None = None
     final: EvalResult | None = None
     solved: bool = False
-    learned_crashes: int = 0
-    """Surrogate events the learned model ended in a crash during this round's training."""
+    learned_events: dict = field(default_factory=dict)
+    """{event: {outcome: count}}: the learned event models' draws in this round's training."""
     screened_at: int = 0
     """Real steps of the loop when this round's screen ended (the learning curve's x)."""
     refit: bool = True
     """Whether this round refitted (the last round does not: ``fit`` is the previous round's)."""
+
+    @property
+    def events(self) -> dict:
+        """{event name: its learned model or None} of this round's fit."""
+        return self.fit.events
 
     @property
     def real_transitions(self) -> int:
@@ -159,11 +161,10 @@ class RoundResult:
             "round": self.round, "real_transitions_total": self.real_transitions,
             "real_transitions_model": len(self.fit.data), "surrogate_steps": self.surrogate_steps,
             **{f"real_steps_{p}": self.counts.get(p, 0) for p in LOOP_PHASES},
-            "new_rows": len(self.new_data), "learned_crashes": self.learned_crashes, "solved": float(self.solved),
+            "new_rows": len(self.new_data), "solved": float(self.solved),
             **{f"{k}_seconds": v for k, v in self.seconds.items()},
+            **{f"surrogate_events/{e}/{o}": n for e, outs in self.learned_events.items() for o, n in outs.items()},
         }
-        if self.events is not None:
-            m.update({f"events/{k}": v for k, v in self.events.metrics().items()})
         for name, res in (("screen", self.screen), ("final", self.final)):
             if res is not None:
                 m.update({f"{name}_return_mean": res.mean, f"{name}_return_std": res.std,
@@ -220,6 +221,10 @@ class _Loop:
         self.counts: Counter = Counter()
         self.data: Transitions | None = None
         self.next_episode = 0
+        self.collected_episodes = 0
+        """Episodes the agent's collections have played (their reset seeds go on from here)."""
+        self.finals = 0
+        """Confirmations so far (each takes the next ``final_episodes`` reset seeds)."""
         self.test = held_out_test_set(job.fit.spec)
 
     def real_steps(self) -> int:
@@ -231,6 +236,7 @@ class _Loop:
 
     def evaluate(self, agent: Any, n: int, seed: int, phase: str, max_steps: int | None = None
                  ) -> tuple[EvalResult, Transitions | None]:
+        """``n`` real episodes with reset seeds ``seed + i``, recorded as model data."""
         spec, recorders = self.job.fit.spec, []
 
         def wrap(env, i):
@@ -242,12 +248,11 @@ class _Loop:
         self.next_episode += n
         return res, recorded(recorders)
 
-    def refit(self, clock: _Clock) -> tuple[FitResult, EventModel | None]:
+    def refit(self, clock: _Clock) -> FitResult:
+        """The model and the learned event models on all real data so far."""
         job = self.job
-        fit = clock.run("fit", fit_transitions, job.fit, self.library, self.data, test=self.test)
-        events = (clock.run("events", fit_event_model, job.fit.spec, self.data, job.dyna.min_events)
-                  if job.dyna.learn_events else None)
-        return fit, events
+        fit_job = replace(job.fit, learn_events=job.dyna.learn_events, min_events=job.dyna.min_events)
+        return clock.run("fit", fit_transitions, fit_job, self.library, self.data, test=self.test)
 
 
 def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | None = None) -> DynaOutcome:
@@ -258,47 +263,51 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
     loop = _Loop(job, checked)
     clock = _Clock()
     fj = job.fit
-    loop.data = clock.run("collect", collect, spec, fj.policy or random_policy, fj.n_transitions, fj.epsilon, fj.seed,
-                          max_steps_per_episode=fj.max_steps_per_episode, wrap_env=loop.counted("collect"))
+    loop.data = clock.run("collect", collect, spec, fj.policy or random_policy, fj.n_transitions, fj.epsilon,
+                          seeds.reset_seed(fj.seed, "collect"), max_steps_per_episode=fj.max_steps_per_episode,
+                          wrap_env=loop.counted("collect"))
     loop.next_episode = int(loop.data.episode.max()) + 1
-    first, events = loop.refit(clock)
-    venv = SurrogateVecEnv(first.model, spec, job.agent.n_envs, seed=seed, event_model=events)
-    agent = make_agent(job.agent, venv, seed, recorder.sb3_logger() if recorder is not None else None)
-    rounds = [RoundResult(0, first, events, first.data, dict(loop.counts), 0, clock.seconds)]
+    first = loop.refit(clock)
+    venv = SurrogateVecEnv(first.model, spec, job.agent.n_envs, seed=seed, events=first.events)
+    agent = make_agent(job.agent, venv, seeds.int_seed(seed, "agent"), recorder.sb3_logger() if recorder is not None else None,
+                       env_seed=seed)
+    rounds = [RoundResult(0, first, first.data, dict(loop.counts), 0, clock.seconds)]
     if recorder is not None:
         recorder.round_done(rounds[0], agent)
     curve: list[tuple[int, float, float]] = []
     for k in range(1, cfg.max_rounds + 1):
         clock = _Clock()
-        crashes0 = venv.n_learned_crashes
+        drawn0 = {e: dict(outs) for e, outs in venv.event_counts.items()}
         steps = cfg.first_round_steps if k == 1 else cfg.surrogate_steps_per_round
         clock.run("train", agent.learn, total_timesteps=int(steps), reset_num_timesteps=False)
         screen, new = clock.run("evaluate", loop.evaluate, agent, cfg.eval_episodes,
-                                SCREEN_SEED + seed * 10_000 + k * cfg.eval_episodes, "evaluate", cfg.screen_max_steps)
+                                seeds.reset_seed(seed, "dyna_screen", (k - 1) * cfg.eval_episodes), "evaluate",
+                                cfg.screen_max_steps)
         new_parts = [new] if cfg.data_from_evaluations else []
         screened_at = loop.real_steps()
         curve.append((screened_at, screen.mean, screen.std))
         final = None
         if screen.mean >= spec.solved_threshold:
             final, new = clock.run("final", loop.evaluate, agent, cfg.final_episodes,
-                                   FINAL_SEED + seed * 10_000 + k * cfg.final_episodes, "final")
+                                   seeds.reset_seed(seed, "dyna_final", loop.finals * cfg.final_episodes), "final")
+            loop.finals += 1
             new_parts += [new] if cfg.data_from_evaluations else []
         left = cfg.max_real_transitions - loop.real_steps()
         solved = final is not None and final.mean >= spec.solved_threshold and left >= 0
         last = solved or left <= 0 or k == cfg.max_rounds
         if not last and cfg.collect_per_round:
-            got = clock.run("collect", _collect, loop, agent, min(cfg.collect_per_round, left),
-                            COLLECT_SEED + seed * 10_000 + k * 100)
+            got = clock.run("collect", _collect, loop, agent, min(cfg.collect_per_round, left))
             new_parts.append(got)
         new_parts = [p for p in new_parts if p is not None and len(p)]
         new_rows = concat(new_parts) if new_parts else loop.data.subset(slice(0, 0))
         if len(new_rows):
             loop.data = concat([loop.data, new_rows])
-        fit, events = (rounds[-1].fit, rounds[-1].events) if last else loop.refit(clock)
+        fit = rounds[-1].fit if last else loop.refit(clock)
         if not last:
-            venv.swap_model(fit.model, events, seed=seed * 1000 + k)
-        result = RoundResult(k, fit, events, new_rows, dict(loop.counts), int(agent.num_timesteps), clock.seconds,
-                             screen, final, solved, venv.n_learned_crashes - crashes0, screened_at, not last)
+            venv.swap_model(fit.model, fit.events, seed=int(seeds.generator(seed, "surrogate", 100 + k).integers(2**31)))
+        drawn = {e: {o: n - drawn0.get(e, {}).get(o, 0) for o, n in outs.items()} for e, outs in venv.event_counts.items()}
+        result = RoundResult(k, fit, new_rows, dict(loop.counts), int(agent.num_timesteps), clock.seconds,
+                             screen, final, solved, drawn, screened_at, not last)
         rounds.append(result)
         if recorder is not None:
             recorder.round_done(result, agent)
@@ -306,14 +315,18 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
             break
     audit = None
     if cfg.audit_episodes:
-        audit = evaluate_real(agent, spec, cfg.audit_episodes, AUDIT_SEED + seed * 10_000, loop.counts, "audit")
+        audit = evaluate_real(agent, spec, cfg.audit_episodes, seeds.reset_seed(seed, "dyna_audit"), loop.counts, "audit")
     return DynaOutcome(rounds, agent, summarize(rounds, audit, spec.solved_threshold, cfg), audit, curve)
 
 
-def _collect(loop: _Loop, agent: Any, n: int, seed: int) -> Transitions:
+def _collect(loop: _Loop, agent: Any, n: int) -> Transitions:
+    """``n`` real transitions with the agent, episodes reset with the run's ``dyna_collect``
+    seeds in order (each collection goes on where the last one stopped)."""
     job = loop.job
-    got = collect(job.fit.spec, agent_policy(agent), n, job.dyna.epsilon, seed, first_episode=loop.next_episode,
+    got = collect(job.fit.spec, agent_policy(agent), n, job.dyna.epsilon,
+                  seeds.reset_seed(job.seed, "dyna_collect", loop.collected_episodes), first_episode=loop.next_episode,
                   wrap_env=loop.counted("collect"))
+    loop.collected_episodes += len(np.unique(got.episode))
     loop.next_episode = int(got.episode.max()) + 1
     return got
 

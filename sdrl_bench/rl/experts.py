@@ -18,7 +18,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sdrl_bench import ConfigError
+from sdrl_bench import ConfigError, seeds
 from sdrl_bench.envs.base import EnvSpec, Policy
 from sdrl_bench.rl.agents import AgentConfig, check_budget, real_vec_env, train
 
@@ -65,8 +65,10 @@ class ExpertPolicy:
             self.agent.name, spec.name, self.seed, self.budget,
         )
         t0 = time.perf_counter()
-        venv = real_vec_env(spec, self.agent.n_envs, self.seed, Counter(), "expert")
-        result = train(self.agent, venv, self.budget, self.seed, progress_bar=self.progress_bar)
+        env_seed = seeds.reset_seed(self.seed, "expert")
+        venv = real_vec_env(spec, self.agent.n_envs, env_seed, Counter(), "expert")
+        result = train(self.agent, venv, self.budget, seeds.int_seed(self.seed, "agent"), progress_bar=self.progress_bar,
+                       env_seed=env_seed)
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_suffix(".tmp.zip")
         result.model.save(tmp)

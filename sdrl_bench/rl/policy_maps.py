@@ -82,6 +82,6 @@ def figure(maps_by_arm: dict[str, list[PolicyMap]], spec: EnvSpec, title: str) -
         cbar.set_ticks(range(spec.n_discrete_actions))
         cbar.set_ticklabels(spec.discrete_action_labels())
     else:
-        cbar.set_label("action (force / main throttle)")
+        cbar.set_label(f"action: {spec.action_names[0]}")  # the maps show the first action component
     fig.suptitle(title)
     return fig

@@ -18,7 +18,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from sdrl_bench import ConfigError
+from sdrl_bench import ConfigError, seeds
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.pipeline import FitJob, FitResult, check, fit_dynamics
 from sdrl_bench.plots import learning_curves
@@ -26,8 +26,6 @@ from sdrl_bench.rl.policy_maps import PolicyMap, agreement, compute_maps, figure
 from sdrl_bench.rl.agents import AgentConfig, Curve, RealEvalCallback, StepCounter, check_budget, evaluate_real, real_vec_env, train
 
 ARMS = ("surrogate", "real")
-# reset seeds of the real-env evaluations, far from the collection seeds (seed + episode)
-CURVE_EVAL_SEED, FINAL_EVAL_SEED = 1_000_000, 2_000_000
 
 
 @dataclass(frozen=True)
@@ -54,7 +52,9 @@ class TransferJob:
     """End an arm's training at its first learning-curve evaluation at the solved threshold
     (time-to-solve runs; the final evaluation still follows)."""
     seed: int = 0
-    """Seed of agents and evaluations (the fit has its own, usually the same)."""
+    """The run seed: every stream of the run derives from it (``seeds``: the agent, the real
+    arm's envs, the curve's and the final evaluation's reset seeds; the fit has its own seed,
+    usually the same)."""
     progress_bar: bool = False
 
     def check(self) -> tuple[Any, Any]:
@@ -128,18 +128,20 @@ class ArmResult:
         return {k: float(v) for k, v in m.items()}
 
 
-def surrogate_vec_env(model: Any, spec: EnvSpec, n_envs: int, seed: int):
+def surrogate_vec_env(model: Any, spec: EnvSpec, n_envs: int, seed: int, events: dict | None = None):
     """The default env of the surrogate arm: n copies stepped by one batched model call."""
     from sdrl_bench.surrogate.vec import SurrogateVecEnv  # noqa: PLC0415
 
-    return SurrogateVecEnv(model, spec, n_envs, seed=seed)
+    return SurrogateVecEnv(model, spec, n_envs, seed=seed, events=events)
 
 
-def evaluate_surrogate(policy: Any, model: Any, spec: EnvSpec, n_episodes: int, seed: int) -> np.ndarray:
-    """Returns of ``policy`` (deterministic) in the surrogate of ``model``, reset seeds ``seed + i``."""
+def evaluate_surrogate(policy: Any, surrogate: Any, n_episodes: int, seed: int) -> np.ndarray:
+    """Returns of ``policy`` (deterministic) in ``surrogate`` (a ``ModelEnv``: the same step the
+    agent trained in, noise, pessimism and learned events included), episode i reset with seed
+    ``seed + i``."""
     from sdrl_bench.surrogate.env import SurrogateEnv  # noqa: PLC0415
 
-    env, rets = SurrogateEnv(model, spec), []
+    env, rets = SurrogateEnv(surrogate), []
     for i in range(n_episodes):
         obs, _ = env.reset(seed=seed + i)
         total, done = 0.0, False
@@ -172,32 +174,37 @@ def run_arm(
         if on_fit is not None:
             on_fit(fit_result)
         seconds.update({k: v for k, v in fit_result.seconds.items() if not k.startswith("evaluate")})
-        venv = (make_surrogate or surrogate_vec_env)(fit_result.model, spec, job.agent.n_envs, job.seed)
-        steps = job.surrogate_steps
+        venv = (make_surrogate or surrogate_vec_env)(fit_result.model, spec, job.agent.n_envs, job.seed,
+                                                     events=fit_result.events)
+        steps, env_seed = job.surrogate_steps, job.seed
     else:
-        venv = real_vec_env(spec, job.agent.n_envs, job.seed, counts, "train")
+        env_seed = seeds.reset_seed(job.seed, "real_train")
+        venv = real_vec_env(spec, job.agent.n_envs, env_seed, counts, "train")
         steps = job.real_steps
     callback = RealEvalCallback(
-        spec, job.eval_every, job.eval_episodes, seed=CURVE_EVAL_SEED + job.seed * 1000, counts=counts,
+        spec, job.eval_every, job.eval_episodes, seed=seeds.reset_seed(job.seed, "curve_eval"), counts=counts,
         on_point=(lambda s, m, sd: on_point(arm, s, m, sd)) if on_point else None,
         stop_when_solved=job.stop_when_solved,
     )
     logger = logger_factory(arm) if logger_factory else None
     bar = f"{arm} arm, {job.agent.name.upper()}" if job.progress_bar else False
-    result = train(job.agent, venv, steps, job.seed, callback, logger, bar)
+    result = train(job.agent, venv, steps, seeds.int_seed(job.seed, "agent"), callback, logger, bar, env_seed=env_seed)
     counts["eval_episodes"] = job.eval_episodes * len(result.curve.steps)
     seconds.update(train_wall=result.wall_seconds, train_cpu=result.cpu_seconds, curve_eval_wall=result.eval_wall_seconds,
                    train_rollout_wall=result.rollout_wall_seconds)
-    if arm == "surrogate" and hasattr(venv, "n_diverged"):
+    sur = getattr(venv, "surrogate", None)
+    if arm == "surrogate" and sur is not None:
         stats = {"diverged_episodes": float(sum(venv.n_diverged))}
+        stats.update({f"events/{e}/{o}": float(n) for e, outs in sur.event_counts.items() for o, n in outs.items()})
     venv.close()
     t0, c0 = time.perf_counter(), time.process_time()
-    final = evaluate_real(result.model, spec, job.final_episodes, seed=FINAL_EVAL_SEED + job.seed * 1000, counts=counts, phase="final")
+    final = evaluate_real(result.model, spec, job.final_episodes, seed=seeds.reset_seed(job.seed, "final_eval"),
+                          counts=counts, phase="final")
     seconds.update(evaluate_wall=time.perf_counter() - t0, evaluate_cpu=time.process_time() - c0)
-    if arm == "surrogate" and fit_result is not None and spec.defines_task:
-        # the optimism gap: the agent's return in its own surrogate (same reset seeds, same
-        # episode count) minus its return in the real env
-        own = evaluate_surrogate(result.model, fit_result.model, spec, job.final_episodes, FINAL_EVAL_SEED + job.seed * 1000)
+    if sur is not None:
+        # the optimism gap: the agent's return in its own surrogate (the same step, same episode
+        # count) minus its return in the real env
+        own = evaluate_surrogate(result.model, sur, job.final_episodes, seeds.int_seed(job.seed, "surrogate_eval"))
         stats.update(return_mean=float(own.mean()), optimism_gap=float(own.mean() - final.returns.mean()))
     maps = compute_maps(result.model, spec)
     return ArmResult(

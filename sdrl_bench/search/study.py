@@ -24,7 +24,7 @@ from collections.abc import Callable, Mapping
 import numpy as np
 import optuna
 
-from sdrl_bench import ConfigError, raise_pending_stop, stop_signal_received, stop_signals_held, tracking
+from sdrl_bench import ConfigError, raise_pending_stop, stop_signal_received, stop_signals_held, seeds, tracking
 from sdrl_bench.data import Transitions, collect, random_policy
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.models.libraries import build_library
@@ -142,10 +142,11 @@ def check_settings(s: StudySettings) -> None:
 
 
 def study_data(job: FitJob, k_folds: int) -> StudyData:
-    """Collect (or load) the study's data once, as ``pipeline.fit_dynamics`` would."""
+    """Collect (or load) the study's data once, as ``pipeline.fit_dynamics`` would (the same
+    reset seeds: the data of ``sdrl-bench seed=<study seed>``)."""
     _, loaded = check(job)
     data = loaded if loaded is not None else collect(
-        job.spec, job.policy or random_policy, job.n_transitions, job.epsilon, job.seed,
+        job.spec, job.policy or random_policy, job.n_transitions, job.epsilon, seeds.reset_seed(job.seed, "collect"),
         max_steps_per_episode=job.max_steps_per_episode,
     )
     return StudyData(
@@ -186,7 +187,7 @@ def _evaluate(job: FitJob, sd: StudyData, report: Callable[[int, float], bool] |
 
 
 def make_sampler(s: StudySettings) -> optuna.samplers.BaseSampler:
-    seed = s.seed + s.worker
+    seed = int(seeds.generator(s.seed, "search", s.worker).integers(2**31))  # each worker its own sampler stream
     if s.sampler == "grid":
         return optuna.samplers.GridSampler(grid_values(s.space), seed=seed)
     if s.sampler == "random":

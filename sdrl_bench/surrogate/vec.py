@@ -8,8 +8,11 @@ wrappers (VecMonitor, VecNormalize, ...) use it as they use a DummyVecEnv of rea
   ``TimeLimit.truncated`` (truncated by the step limit or the divergence guard, and not
   terminated), plus ``surrogate_diverged`` when the model diverged. Envs still running share
   one empty, read-only info dict (``RUNNING_INFO``; SB3 only writes into finished envs' infos).
-* Seeding: ``seed(s)`` (or the ``seed`` argument) seeds one generator that draws every initial
-  state of every copy, at the next ``reset()``; same seed and actions, same trajectories.
+* One step for all copies: ``ModelEnv.step`` (or its one-state step per copy for a few copies),
+  the same step the single env and Dyna use: noise, pessimism and learned events included.
+* Seeding: ``seed(s)`` (or the ``seed`` argument) seeds the surrogate's streams at the next
+  ``reset()`` (resets of every copy, step noise, event draws); same seed and actions, same
+  trajectories.
 * ``get_attr`` / ``set_attr`` / ``env_method`` act on light per-copy views (``SurrogateEnvView``:
   ``state``, ``elapsed_steps``, ``n_diverged``, ``reset()``, the spaces, the model and spec);
   ``env_is_wrapped`` is False (no gymnasium wrappers inside).
@@ -24,7 +27,7 @@ import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv, VecEnvIndices
 
 from sdrl_bench.envs.base import EnvSpec
-from sdrl_bench.surrogate.env import Surrogate
+from sdrl_bench.surrogate.model_env import ModelEnv
 
 
 SCALAR_MAX_ENVS = 8
@@ -82,72 +85,60 @@ class SurrogateEnvView:
     def reset(self, seed: int | None = None, options: dict | None = None) -> tuple[np.ndarray, dict]:
         """Start this copy's episode again (from ``options["state"]`` if given)."""
         v = self._venv
-        rng = np.random.default_rng(seed) if seed is not None else v._rng
-        self.state = options["state"] if options and "state" in options else v.surrogate.initial_states(rng, 1)[0]
+        rng = np.random.default_rng(seed) if seed is not None else None
+        self.state = options["state"] if options and "state" in options else v.surrogate.initial_states(1, rng)[0]
         v._t[self._index] = 0
         return v.surrogate.observation(v._states[self._index][None])[0], {}
 
 
 class SurrogateVecEnv(VecEnv):
-    """``n_envs`` surrogate envs of (model, spec); see the module docstring for the contract.
+    """``n_envs`` surrogate envs over one ``ModelEnv``; see the module docstring for the contract.
 
     Parameters
     ----------
-    model, spec, initial_states : as for ``sdrl_bench.surrogate.env.Surrogate`` (or pass a built
-        ``Surrogate`` as ``model`` and leave ``spec`` None).
+    model, spec, initial_states, events : as for ``sdrl_bench.surrogate.model_env.ModelEnv`` (or
+        pass a built ``ModelEnv`` as ``model`` and leave ``spec`` None).
     n_envs : number of copies.
-    seed : seed of the initial-state generator (None: fresh entropy).
+    seed : the run seed (reset pool, random streams; None: fresh entropy).
+    scalar_max_envs : up to this many copies, each steps by the one-state step
+        (``ModelEnv.step_one``; same results to rounding), else all by the batched one.
     """
 
     def __init__(self, model: Any, spec: EnvSpec | str | None = None, n_envs: int = 1, *,
-                 seed: int | None = None, initial_states: np.ndarray | None = None, event_model: Any = None):
-        if isinstance(model, Surrogate) and spec is None:
+                 seed: int | None = None, initial_states: np.ndarray | None = None, events: dict | None = None,
+                 scalar_max_envs: int = SCALAR_MAX_ENVS):
+        if isinstance(model, ModelEnv) and spec is None:
             self.surrogate = model
+            if seed is not None:
+                model.seed(seed)
         else:
-            self.surrogate = Surrogate(model, spec, initial_states)
+            self.surrogate = ModelEnv(model, spec, initial_states, events=events, seed=seed)
         if int(n_envs) < 1:
             raise ValueError(f"n_envs must be >= 1, got {n_envs}")
         n = int(n_envs)
         sur = self.surrogate
         self._views = [SurrogateEnvView(self, i) for i in range(n)]
         super().__init__(n, sur.observation_space, sur.action_space)
-        self._rng = np.random.default_rng(seed)
-        if seed is not None:
-            self.surrogate.seed_noise([seed, 1])
-        self._states = np.asarray(sur.initial_states(self._rng, n), order=sur.state_order)
+        self._scalar = n <= scalar_max_envs
+        self._states = np.asarray(sur.initial_states(n), order=sur.state_order)
         self._t = np.zeros(n, dtype=np.int64)
         self._max_steps = sur.spec.max_episode_steps
         self.n_diverged = np.zeros(n, dtype=np.int64)
         """Episodes ended by the divergence guard, per copy."""
         self._actions: np.ndarray | None = None
         self.closed = False
-        self.event_model = event_model
-        """A learned event model (``surrogate.events.EventModel``) or None: the spec's rules alone."""
-        self._event_rng = np.random.default_rng(None if seed is None else [seed, 2])
-        self.n_learned_crashes = 0
-        """Events the learned event model ended in a crash (all copies)."""
 
-    def swap_model(self, model: Any, event_model: Any = None, seed: int | None = None) -> None:
-        """Step on with a refitted ``model`` (and event model): Dyna swaps the surrogate under an
-        agent that keeps training. Episodes under way go on from their current states; ``seed``
-        seeds the new surrogate's step noise."""
-        old = self.surrogate
-        self.surrogate = Surrogate(model, old.spec, old._initial)
-        if seed is not None:
-            self.surrogate.seed_noise([seed, 1])
+    def swap_model(self, model: Any, events: dict | None = None, seed: int | None = None) -> None:
+        """Step on with a refitted ``model`` (and learned event models): Dyna swaps the surrogate
+        under an agent that keeps training. Episodes under way go on from their current states;
+        the surrogate's flags stay; ``seed`` reseeds its streams (``ModelEnv.swap``)."""
+        self.surrogate.swap(model, events, seed)
         self._states = np.asarray(self._states, order=self.surrogate.state_order)
-        self.event_model = event_model
 
-    def _learned_events(self, nxt: np.ndarray, rewards: np.ndarray, terminated: np.ndarray) -> None:
-        """Ends, in place, the events the learned model draws as crashes (see ``surrogate.events``)."""
-        spec = self.surrogate.spec
-        rows = spec.event_rows(self._states, nxt, terminated)
-        idx = np.flatnonzero(rows) if rows is not None else ()
-        if len(idx):
-            p = self.event_model.probability(spec.event_features(self._states[idx]))
-            hit = idx[self._event_rng.random(len(idx)) < p]
-            rewards[hit], terminated[hit] = spec.event_reward, True
-            self.n_learned_crashes += len(hit)
+    @property
+    def event_counts(self) -> dict[str, dict[str, int]]:
+        """Learned-event outcomes drawn so far (``ModelEnv.event_counts``)."""
+        return self.surrogate.event_counts
 
     @property
     def env_spec(self) -> EnvSpec:
@@ -156,11 +147,9 @@ class SurrogateVecEnv(VecEnv):
     # ------------------------------------------------------------------ the VecEnv API
     def reset(self) -> np.ndarray:
         seeds = [s for s in self._seeds if s is not None]
-        if seeds:
-            self._rng = np.random.default_rng(seeds)
-            self.surrogate.seed_noise([*seeds, 1])  # the step noise: its own stream
-        self._states = np.asarray(self.surrogate.initial_states(self._rng, self.num_envs),
-                                  order=self.surrogate.state_order)
+        if seeds:  # SB3 seeds copy i with seed + i: the first copy's seed seeds the streams
+            self.surrogate.seed(seeds[0])
+        self._states = np.asarray(self.surrogate.initial_states(self.num_envs), order=self.surrogate.state_order)
         self._t[:] = 0
         self._reset_seeds()
         self._reset_options()
@@ -171,7 +160,7 @@ class SurrogateVecEnv(VecEnv):
         self._actions = self.surrogate.raw_actions(actions, self.num_envs)
 
     def _transition_each(self, actions: np.ndarray) -> tuple[np.ndarray, ...]:
-        """``Surrogate.transition`` by the one-state step, env by env: for a few envs, numpy's
+        """``ModelEnv.step`` by the one-state step, env by env: for a few envs, numpy's
         per-call overhead costs more than the plain-Python step (same results to rounding)."""
         step_one, rows = self.surrogate.step_one, self._states.tolist()
         acts = actions.astype(int).ravel().tolist() if self.surrogate.spec.n_discrete_actions else actions
@@ -183,14 +172,11 @@ class SurrogateVecEnv(VecEnv):
     def step_wait(self):
         if self._actions is None:
             raise RuntimeError("step_wait() called without step_async()")
-        if self.num_envs <= SCALAR_MAX_ENVS:
+        if self._scalar:
             nxt, rewards, terminated, diverged = self._transition_each(self._actions)
         else:
-            nxt, rewards, terminated, diverged = self.surrogate.transition(self._states, self._actions)
+            nxt, rewards, terminated, diverged = self.surrogate.step(self._states, self._actions)
         self._actions = None
-        if self.event_model is not None:
-            rewards, terminated = np.array(rewards, dtype=float), np.array(terminated, dtype=bool)
-            self._learned_events(nxt, rewards, terminated)
         self._t += 1
         truncated = (self._t >= self._max_steps) | diverged
         dones = terminated | truncated
@@ -205,7 +191,7 @@ class SurrogateVecEnv(VecEnv):
                 if div:
                     infos[i]["surrogate_diverged"] = True
             self.n_diverged += diverged
-            fresh = self.surrogate.initial_states(self._rng, len(idx))
+            fresh = self.surrogate.initial_states(len(idx))
             nxt[idx] = fresh
             obs[idx] = self.surrogate.observation(fresh)
             self._t[idx] = 0

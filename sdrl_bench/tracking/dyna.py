@@ -2,7 +2,7 @@
 
 Each child holds that round's refit as a fit run holds it (metrics, model, equations, figures;
 its data file holds the rows the round added, so the rounds' files together are the model
-data, each row stored once), the learned event model, the agent's real
+data, each row stored once), the learned event models, the agent's real
 returns and the running account of real steps. The parent holds the learning curve against
 real transitions (``dyna/curve_return_mean`` at step = real transitions so far), the summary,
 the final agent, the audit, and a figure of the curve beside the real arm's when the store has
@@ -40,8 +40,6 @@ class DynaRunRecorder:
                     spec = result.fit.job.spec
                     child.log_artifact(save_csv(result.new_data, spec, Path(tmp) / f"{spec.name}_unfitted_rows.csv"), "data")
             child.log_metrics(result.metrics())
-            if result.events is not None:
-                child.log_dict(result.events.to_dict(), "events/event_model.json")
             for name, res in (("screen", result.screen), ("final", result.final)):
                 if res is not None:
                     import pandas as pd

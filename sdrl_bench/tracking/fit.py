@@ -46,9 +46,8 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
     elif params is not None:
         run.log_params(params)
     run.log_metrics({f"{prefix}{k}": v for k, v in fit_metrics(result).items()})
-    run.set_tags(
-        {"dataset_sha256": result.dataset_hash, "test_set": result.test_name, "test_set_sha256": result.test_hash}
-    )
+    run.set_tags({"dataset_sha256": result.dataset_hash, "test_set": result.test_name, "test_set_sha256": result.test_hash,
+                  "fit_regime": spec.fit_regime or "all"})
     set_description(run, fit_description(result))
     with tempfile.TemporaryDirectory() as tmp:
         csv = save_csv(result.data if rows is None else rows, spec, Path(tmp) / f"{spec.name}_transitions.csv")
@@ -71,6 +70,9 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
     run.log_figure(fig, "figures/predicted_vs_true.png")
     if result.fidelity.pred_std is not None:
         run.log_text(uncertainty_table(result).to_csv(index=False), "fidelity/uncertainty.csv")
+    for name, event_model in (result.events or {}).items():  # the learned event models, as plain numbers
+        if event_model is not None:
+            run.log_dict(event_model.to_dict(), f"events/{name}.json")
     describe_experiment(run.uri, experiment_id_of(run))
 
 

@@ -63,7 +63,7 @@ def test_episode_cut_splits_the_collection_into_episodes(store):
 
 def _dataset(tmp_path, mutate):
     from sdrl_bench.data import collect, heuristic_policy, save_csv
-    from sdrl_bench.envs import MountainCarSpec
+    from sdrl_bench.envs.mountain_car import MountainCarSpec
 
     spec = MountainCarSpec()
     path = save_csv(collect(spec, heuristic_policy, 40, 0.2, 0), spec, tmp_path / "d.csv")

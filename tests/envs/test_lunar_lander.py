@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from sdrl_bench.data import collect, heuristic_policy
-from sdrl_bench.envs import LunarLanderSpec
+from sdrl_bench.envs.lunar_lander import LunarLanderSpec
 from sdrl_bench.envs.lunar_lander import task
 from sdrl_bench.envs.lunar_lander.task import LanderRules
 from sdrl_bench.models.per_equation import PerEquationLibrary, PerEquationModel
@@ -115,21 +115,21 @@ def test_regimes_split_episodes_at_the_first_touchdown():
 
 def test_one_state_step_agrees_with_the_batched_step_with_the_penalty(flight_model):
     """Flight, touchdowns and the settle step, with the ensemble penalty on (noise off)."""
-    from sdrl_bench.surrogate.env import Surrogate
+    from sdrl_bench.surrogate.model_env import ModelEnv
 
-    spec = LunarLanderSpec(fit_regime="flight", uncertainty_penalty=1.0, uncertainty_free=0.0)
-    sur, rng = Surrogate(flight_model, spec, noise=False), np.random.default_rng(2)
-    states = sur.initial_states(rng, 200)
+    spec = LunarLanderSpec(fit_regime="flight", uncertainty={"penalty": 1.0, "free": 0.0})
+    sur, rng = ModelEnv(flight_model, spec, noise=False), np.random.default_rng(2)
+    states = sur.initial_states(200, rng)
     states[:, 1] = rng.uniform(-0.03, 0.1, 200)
     states[:, 2:6] = rng.normal(0, 0.3, (200, 4))
     states[:, 6:8] = rng.integers(0, 2, (200, 1))
     actions = rng.integers(0, 4, (200, 1))
-    nxt, rewards, terminated, diverged = sur.transition(states, actions)
+    nxt, rewards, terminated, diverged = sur.step(states, actions)
     one = [sur.step_one(states[i].tolist(), int(actions[i, 0])) for i in range(200)]
     assert np.allclose([o[1] for o in one], nxt, rtol=0, atol=1e-6)
     assert np.allclose([o[2] for o in one], rewards, rtol=0, atol=1e-6)
     assert [o[3] for o in one] == terminated.tolist() and 0 < terminated.sum() < 200
-    plain = Surrogate(flight_model, LunarLanderSpec(), noise=False).transition(states, actions)[1]
+    plain = ModelEnv(flight_model, LunarLanderSpec(), noise=False).step(states, actions)[1]
     flight = (states[:, 6] == 0) & ~terminated
     assert np.all(rewards[flight] < plain[flight]) and np.array_equal(rewards[~flight], plain[~flight])
 
@@ -156,13 +156,13 @@ def test_with_terrain_a_lander_touches_down_on_the_ground_under_its_legs(flight_
     there, stands on it (the floor follows the ground), and a new episode draws new ground;
     the same seed draws the same ground."""
     from sdrl_bench.envs.lunar_lander.kernels import LEG_X, ground_at
-    from sdrl_bench.surrogate.env import Surrogate
+    from sdrl_bench.surrogate.model_env import ModelEnv
 
     spec = LunarLanderSpec(fit_regime="flight", terrain=True)
 
     def ground(seed):  # a surrogate seeded like an env reset, one step to draw the row's terrain
-        sur = Surrogate(flight_model, spec)
-        sur.seed_noise(seed)
+        sur = ModelEnv(flight_model, spec)
+        sur.seed(seed)
         s = np.array([[-0.6, 1.0, 0, 0, 0, 0, 0, 0]])
         nxt = sur._step_batch(s, np.zeros((1, 1)), s[:, :6].T.copy())[0]
         return sur, sur._step_batch.memory["ground"][0].copy(), nxt

@@ -111,7 +111,7 @@ def test_user_env_by_name_for_gym_make(user_dir, tmp_path):
 
     assert find_spec("oscillator", [str(conf)]) == spec
     assert find_spec("cartpole").action_encoding == "values"  # the package's own YAML
-    with pytest.raises(ConfigError, match=r"spec: unknown env 'nowhere': no spec class named so .* no env/nowhere.yaml"):
+    with pytest.raises(ConfigError, match=r"spec: unknown env 'nowhere': no env/nowhere.yaml"):
         gym.make("sdrl/Surrogate-v0", model=None, spec="nowhere")
 
 

@@ -202,7 +202,7 @@ def test_nn_surrogate_passes_the_env_checks():
 
     from sdrl_bench.data import collect, heuristic_policy
     from sdrl_bench import surrogate
-    from sdrl_bench.envs import MountainCarSpec
+    from sdrl_bench.envs.mountain_car import MountainCarSpec
     from sdrl_bench.surrogate.vec import SurrogateVecEnv
 
     spec = MountainCarSpec()

@@ -73,7 +73,7 @@ def test_tables_equal_the_runs_metrics_read_through_the_client(fits_store: str) 
         row = fid.loc[("mountain_car", state)]
         assert row["mse"] == pytest.approx(np.mean([m[f"mse/{state}"] for m in sindy]), rel=1e-12)
         assert row["corr"] == pytest.approx(np.mean([m[f"corr/{state}"] for m in sindy]), rel=1e-12)
-        assert row["paper_mse"] == rt.PAPER_FIDELITY["mountain_car"][state][0]
+        assert row["paper_mse"] == rt.paper("mountain_car", "fidelity")[state][0] == {"x": 7.21e-4, "v": 3.11e-6}[state]
         assert row["library"] == "poly_trig" and row["n_fits"] == 2
     abl = rt.ablation_table(runs).set_index(["env", "library"])
     poly = _client_metrics(fits_store, "tags.library = 'polynomial'")
@@ -328,7 +328,8 @@ def _ll_fit(uri: str, library: str, surrogate: str, seed: int, kind: str = "fit"
     one-step and 50-step MSE per state, the flight regime's noise-floor ratio, divergence."""
     states = ("x", "y", "vx", "vy", "angle", "angvel")
     tags = {"sdrl.kind": kind, "env": "lunar_lander", "library": library, "surrogate": surrogate, "seed": seed,
-            "collector": "expert", "test_set": "lunar_lander-heldout-v1", "agent": "ppo", "arms": "surrogate,real"}
+            "collector": "expert", "test_set": "lunar_lander-heldout-v1", "agent": "ppo", "arms": "surrogate,real",
+            "fit_regime": "flight" if library == "lunar_lander_flight" else "all"}
     rng = np.random.default_rng(seed + (100 if surrogate == "nn" else 0))
     m: dict[str, float] = {}
     for i, s in enumerate(states):

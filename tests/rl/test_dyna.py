@@ -13,9 +13,8 @@ from gymnasium.envs.box2d.lunar_lander import heuristic
 from helpers import compose_cfg, run_cli, search
 from sdrl_bench import ConfigError
 from sdrl_bench.cli.build import build_dyna_job, build_fit_job
-from sdrl_bench.envs import LunarLanderSpec
 from sdrl_bench.rl.dyna import LOOP_PHASES, run_dyna
-from sdrl_bench.surrogate.events import fit_event_model
+from sdrl_bench.surrogate.events import fit_event_model, label_events, score_events
 from sdrl_bench.surrogate.vec import SurrogateVecEnv
 from sdrl_bench.tracking.client import start_run
 from sdrl_bench.tracking.dyna import DynaRunRecorder
@@ -153,33 +152,47 @@ def _episodes(touchdowns):
     return _stack(rows)
 
 
+def _touchdown(spec):
+    return next(e for e in spec.task.events if e.name == "touchdown")
+
+
 def test_touchdown_outcomes_are_labelled_and_learned_off_the_pad():
-    """event_data finds each episode's first touchdown and labels it from how the episode ended;
-    touchdowns the rules already crash (too fast) and cut episodes are left out; the fitted
-    model gives off-pad touchdowns a higher crash probability than on-pad ones."""
-    spec = LunarLanderSpec()
+    """The generic event code finds each episode's first touchdown (the declared trigger) and
+    labels it from how the episode ended; touchdowns the prior already crashes (too fast) are
+    left to the prior and cut episodes are left out; the fitted model gives off-pad touchdowns a
+    higher crash probability than on-pad ones."""
+    spec = build_fit_job(compose_cfg("env=lunar_lander")).spec
+    event = _touchdown(spec)
     rng = np.random.default_rng(0)
     xs = rng.uniform(-0.8, 0.8, 40)
     episodes = [(x, -0.05, "crash" if abs(x) > 0.35 else "rest", 5 if abs(x) > 0.35 else 40) for x in xs]
     episodes += [(0.0, -0.05, "cut", 10),     # stops 10 rows after its touchdown: outcome unknown
-                 (0.0, -0.9, "crash", 2),     # 6.75 m/s down: the rules' crash, not the model's
+                 (0.0, -0.9, "crash", 2),     # 6.75 m/s down: the prior's crash, not the model's
                  (0.5, -0.05, "crash", 45)]   # -100 long after the touchdown: not the touchdown's crash
     data = _episodes(episodes)
-    feats, crashed = spec.event_data(data)
-    assert len(crashed) == 41
-    assert crashed[:40].tolist() == [abs(x) > 0.35 for x in xs] and not crashed[40]
+    events = label_events(event, data)
+    assert len(events) == 42 and events.prior.tolist() == [0] * 40 + [1, 0]
+    crash = event.outcome_names.index("crash")
+    assert (events.outcome[:40] == crash).tolist() == [abs(x) > 0.35 for x in xs] and events.outcome[41] != crash
+    feats = event.features(events.pre)
     np.testing.assert_allclose(feats[:40, 0], xs)
     np.testing.assert_allclose(feats[:40, 2], np.maximum(np.abs(xs) - 0.2, 0.0))
-    model = fit_event_model(spec, data, min_events=8)
-    assert model is not None and (model.n_events, model.n_crashes) == (41, int(crashed.sum()))
+    model = fit_event_model(event, data, min_events=8)
+    assert model is not None and model.n_events == 41 and model.counts["crash"] == int(sum(abs(xs) > 0.35))
     states = np.zeros((3, 8))
     states[:, 0], states[:, 3] = [0.0, 0.3, 0.7], -0.05
-    p = model.probability(spec.event_features(states))
+    p = model.probabilities(event.features(states))[:, crash]
     assert p[0] < 0.2 < 0.8 < p[2] and p[0] < p[1] < p[2]
     assert model.train_accuracy >= 0.85  # one event (x = 0.5, crashed 45 steps later) is off the boundary
+    assert 0.8 <= model.cv_accuracy <= 1.0
     # too few events, or one outcome only: no model (the rules alone decide)
-    assert fit_event_model(spec, _episodes(episodes[:5]), min_events=8) is None
-    assert fit_event_model(spec, _episodes([e for e in episodes[:40] if e[2] == "rest"]), min_events=8) is None
+    assert fit_event_model(event, _episodes(episodes[:5]), min_events=8) is None
+    assert fit_event_model(event, _episodes([e for e in episodes[:40] if e[2] == "rest"]), min_events=8) is None
+    # the score on held-out events: the prior decides the fast one, the model the rest
+    held = _episodes([(0.0, -0.05, "rest", 40), (0.7, -0.05, "crash", 3), (0.0, -0.9, "crash", 2)])
+    score = score_events(event, model, held)
+    assert score["n"] == 3 and score["accuracy"] == 1.0 and score["prior_accuracy"] == pytest.approx(2 / 3)
+    assert score["log_loss"] < 0.5
 
 
 def test_learned_crashes_end_surrogate_touchdowns_with_the_crash_reward():
@@ -196,12 +209,15 @@ def test_learned_crashes_end_surrogate_touchdowns_with_the_crash_reward():
     job = build_fit_job(cfg)
     fit = fit_dynamics(job)
     spec = job.spec
-    x = np.zeros((2, len(spec.event_feature_names)))
-    always = EventModel(make_pipeline(StandardScaler(), DummyClassifier(strategy="constant", constant=True)).fit(x, [True, True]),
-                        spec.event_feature_names, 2, 2, 1.0, 0.0)
+    event = _touchdown(spec)
+    crash = event.outcome_names.index("crash")
+    x = np.zeros((2, len(event.feature_names)))
+    always = EventModel("touchdown", event.outcome_names, event.feature_names,
+                        make_pipeline(StandardScaler(), DummyClassifier(strategy="constant", constant=crash)).fit(x, [crash, crash]),
+                        2, {"survive": 0, "crash": 2}, 1.0, 0.0)
     outcomes = {}
-    for name, events in (("none", None), ("always", always)):
-        venv = SurrogateVecEnv(fit.model, spec, 16, seed=3, event_model=events)
+    for name, events in (("none", None), ("always", {"touchdown": always})):
+        venv = SurrogateVecEnv(fit.model, spec, 16, seed=3, events=events)
         env = spec.make_env()
         rewards = []
         obs = venv.reset()
@@ -209,7 +225,7 @@ def test_learned_crashes_end_surrogate_touchdowns_with_the_crash_reward():
             actions = np.array([heuristic(env.unwrapped, o) for o in obs])
             obs, r, done, infos = venv.step(actions)
             rewards.append(r)
-        outcomes[name] = (venv.n_learned_crashes, np.concatenate(rewards))
+        outcomes[name] = (venv.event_counts["touchdown"]["crash"], np.concatenate(rewards))
     assert outcomes["none"][0] == 0
     assert outcomes["always"][0] > 0
     assert np.sum(outcomes["always"][1] == -100) >= outcomes["always"][0]

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sdrl_bench.envs import LunarLanderSpec, MountainCarSpec
+from sdrl_bench.envs.lunar_lander import LunarLanderSpec
+from sdrl_bench.envs.mountain_car import MountainCarSpec
 from sdrl_bench.rl.policy_maps import agreement, compute_maps, figure
 
 

@@ -16,7 +16,7 @@ from helpers import compose_cfg, search
 from sdrl_bench import ConfigError
 from sdrl_bench.cli.build import build_fit_job
 from sdrl_bench.cli.train import run_train
-from sdrl_bench.envs import MountainCarSpec
+from sdrl_bench.envs.mountain_car import MountainCarSpec
 from sdrl_bench.rl.agents import AgentConfig, RealEvalCallback, real_vec_env, train
 
 TINY_FAST = [

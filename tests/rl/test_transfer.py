@@ -74,7 +74,7 @@ def test_bad_rl_config_fails_before_training(store, overrides, message):
 
 
 def test_expert_is_trained_once_then_reused(tmp_path):
-    from sdrl_bench.envs import MountainCarSpec
+    from sdrl_bench.envs.mountain_car import MountainCarSpec
 
     cfg = compose_cfg("collector=expert", "env.expert.budget=64", f"collector.policy.cache_dir={tmp_path}",
                       "progress_bar=false", *[o.replace("agent.", "env.expert.agent.") for o in TINY_SAC[:4]])

@@ -20,11 +20,14 @@ from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 import sdrl_bench  # noqa: F401  (registers sdrl/Surrogate-v0)
 from sdrl_bench import ConfigError
 from sdrl_bench.data import collect, heuristic_policy, random_policy
-from sdrl_bench.envs import EnvSpec, LunarLanderContinuousSpec, LunarLanderSpec, MountainCarSpec
+from sdrl_bench.envs import EnvSpec
+from sdrl_bench.envs.lunar_lander import LunarLanderContinuousSpec, LunarLanderSpec
+from sdrl_bench.envs.mountain_car import MountainCarSpec
 from sdrl_bench.models.fast import batch_predictor, scalar_predictor
 from sdrl_bench.models.libraries import LibraryPart, TrigLibrary, build_library
 from sdrl_bench.models.sindy import SindyModel
-from sdrl_bench.surrogate.env import Surrogate, SurrogateEnv
+from sdrl_bench.surrogate.env import SurrogateEnv
+from sdrl_bench.surrogate.model_env import ModelEnv
 from sdrl_bench.surrogate.fidelity import surrogate_fidelity
 from sdrl_bench.surrogate.vec import RUNNING_INFO, SurrogateVecEnv
 
@@ -106,8 +109,8 @@ def test_fast_evaluators_match_sindy_predict(models, spec):
 
 @pytest.mark.parametrize("spec", ["mountain_car", "lunar_lander", "lunar_lander_continuous"])
 def test_one_state_step_agrees_with_batched_step(models, spec):
-    sur, rng = Surrogate(models[spec], spec), np.random.default_rng(2)
-    states = sur.initial_states(rng, 300)
+    sur, rng = ModelEnv(models[spec], spec), np.random.default_rng(2)
+    states = sur.initial_states(300, rng)
     if spec == "mountain_car":
         states[:, 0] = rng.uniform(-1.2, 0.6, 300)
         states[:, 1] = rng.uniform(-0.07, 0.07, 300)
@@ -117,7 +120,7 @@ def test_one_state_step_agrees_with_batched_step(models, spec):
         states[:, 2:6] = rng.normal(0, 0.3, (300, 4))
         states[:, 6:8] = rng.integers(0, 2, (300, 2))
         actions = rng.integers(0, 4, (300, 1)) if spec == "lunar_lander" else rng.uniform(-1.2, 1.2, (300, 2))
-    nxt, rewards, terminated, diverged = sur.transition(states, actions.astype(float))
+    nxt, rewards, terminated, diverged = sur.step(states, actions.astype(float))
     for i in range(300):
         a = int(actions[i, 0]) if spec == "lunar_lander" else actions[i]
         obs, n1, r1, t1, d1 = sur.step_one(states[i].tolist(), a)
@@ -131,9 +134,9 @@ def test_fused_batched_step_agrees_with_the_composed_task_functions(models, spec
     """LunarLander's compiled step (``make_step_batch``) against the numpy composition of the
     spec's pure functions (apply_bounds, exogenous, clipping, reward_terminated), on states near
     the ground and predictions that include NaN, inf and out-of-limit values."""
-    sur, rng = Surrogate(models[spec], spec), np.random.default_rng(3)
+    sur, rng = ModelEnv(models[spec], spec), np.random.default_rng(3)
     n, spec_ = 400, sur.spec
-    states = sur.initial_states(rng, n)
+    states = sur.initial_states(n, rng)
     states[:, 1] = rng.uniform(-0.1, 0.2, n)
     states[:, 2:6] = rng.normal(0, 0.3, (n, 4))
     states[:, 6:8] = rng.integers(0, 2, (n, 2))
@@ -148,16 +151,16 @@ def test_fused_batched_step_agrees_with_the_composed_task_functions(models, spec
     assert np.array_equal(diverged, ~ok)
     ref = states.copy()
     ref[:, :6] = spec_.apply_bounds(states, pred)
-    ref[:, 6:8] = spec_.exogenous(states, actions, ref)
+    ref[:, 6:8] = spec_.task.exogenous(states, actions, ref)
     ref = np.clip(ref, sur.obs_low, sur.obs_high)
-    ref_r, ref_t = spec_.reward_terminated(states, actions, ref)
+    ref_r, ref_t = spec_.task.reward_terminated(states, actions, ref)
     assert np.array_equal(nxt[ok], ref[ok]) and np.array_equal(nxt[~ok], states[~ok])
     assert np.allclose(rewards[ok], ref_r[ok], rtol=0, atol=1e-9)
     assert np.array_equal(terminated[ok], ref_t[ok])
     assert np.all(rewards[~ok] == 0) and not terminated[~ok].any()
     assert 0 < terminated.sum() < n and np.any(nxt[:20, 4] == sur.obs_high[4])
     # the whole transition (model included), fused and composed
-    fused, composed = sur.transition(states, actions), Surrogate(models[spec], spec, fused=False).transition(states, actions)
+    fused, composed = sur.step(states, actions), ModelEnv(models[spec], spec, fused=False).step(states, actions)
     assert np.array_equal(fused[0], composed[0]) and np.allclose(fused[1], composed[1], rtol=0, atol=1e-9)
     assert np.array_equal(fused[2], composed[2]) and np.array_equal(fused[3], composed[3])
 

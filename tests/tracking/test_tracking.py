@@ -11,7 +11,7 @@ from mlflow.tracking import MlflowClient
 from helpers import compose_cfg, search
 from sdrl_bench.cli.main import run_fit
 from sdrl_bench.data import load_csv
-from sdrl_bench.envs import MountainCarSpec
+from sdrl_bench.envs.mountain_car import MountainCarSpec
 from sdrl_bench.models.sindy import SindyModel
 
 

@@ -12,16 +12,17 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import ClassVar
 from collections.abc import Callable
 
 import numpy as np
 from gymnasium.envs.box2d.lunar_lander import heuristic
 
-from sdrl_bench.envs.lunar_lander import task
 from sdrl_bench import ConfigError
 from sdrl_bench.envs.base import EnvSpec, Policy, StepOne, TestSetRecipe
+from sdrl_bench.envs.lunar_lander import task
+from sdrl_bench.envs.lunar_lander.events import in_flight
 from sdrl_bench.envs.lunar_lander.task import LanderRules
+from sdrl_bench.envs.task import Task, parse_uncertainty
 
 STATE_NAMES = ("x", "y", "vx", "vy", "angle", "angvel", "leg_left", "leg_right")
 LEGS = ("leg_left", "leg_right")
@@ -51,18 +52,8 @@ class LunarLanderSpec(EnvSpec):
     solved_threshold: float | None = 200.0
     rules: LanderRules = LanderRules()
     """Constants of the surrogate's task rules (touchdown event, settle, rest)."""
-    fit_regime: str | None = None
-    """Fit the dynamics model on this regime's rows only ("flight": rows before each episode's
-    first touchdown; ``regimes``); None: all rows."""
-    uncertainty_penalty: float = 0.0
-    """MOPO-style penalty: reward minus this x the ensemble's disagreement beyond
-    ``uncertainty_free`` (max over states of the members' standard deviation in units of
-    ``uncertainty_scale``), in flight."""
-    uncertainty_free: float = 0.35
-    """Disagreement left unpenalized: the data's own level (the 99th percentile on held-out
-    flight rows of seed 0's fit: 0.33)."""
-    uncertainty_limit: float = float("inf")
-    """Disagreement beyond which a flight step ends the episode as a crash (-100)."""
+    crash_reward: float | None = -100.0
+    """The real env's crash reward (a knowledge prior: the documented reward)."""
     terrain: bool = False
     """Random terrain off the pad in the surrogate, drawn per episode as the real env draws it
     (``task.draw_terrain``); off: the flat world at the pad's height."""
@@ -76,7 +67,21 @@ class LunarLanderSpec(EnvSpec):
                                 ("angle", (-0.8, 0.8), "angvel", (-1.0, 1.0)))
     policy_map_hold: dict = field(default_factory=lambda: {"y": 0.7, "vy": -0.3})
 
-    has_task: ClassVar[bool] = True
+    def build_task(self) -> Task:
+        """The surrogate's task: the rules of ``task`` (leg flags, the touchdown prior, settling,
+        rest, the shaped reward) in this env's kernels; the flight law's regime (both legs up)
+        is where the ensemble's disagreement is penalized, in units of the flight noise floor's
+        standard deviation (unless the config names a scale); the touchdown event as declared."""
+        discrete = bool(self.n_discrete_actions)
+        return Task(
+            reward_terminated=lambda s, a, ns: task.reward_terminated(self.rules, discrete, s, a, ns),
+            exogenous=lambda s, a, ns: task.leg_contacts(self.rules, s, ns),
+            regime_dynamics=self.regime_dynamics, model_regime=in_flight,
+            step_one=self.make_step_one, step_batch=self.make_step_batch,
+            termination_causes=self.termination_causes, observed_causes=self.observed_termination_causes,
+            crash_reward=self.crash_reward,
+            uncertainty=parse_uncertainty(self.uncertainty, np.sqrt(np.array(FLIGHT_NOISE_FLOOR)).tolist()),
+            events=self._events)
 
     def heuristic_policy(self, env) -> Policy:
         """gymnasium's built-in heuristic lander controller."""
@@ -91,15 +96,6 @@ class LunarLanderSpec(EnvSpec):
         return np.array([25.0, 25.0, 100.0, 100.0, 100.0, 100.0])
 
     # ------------------------------------------------------------------ the task
-    def reward(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
-        return task.reward(self.rules, bool(self.n_discrete_actions), states, actions, next_states)
-
-    def terminated(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
-        return task.terminated(self.rules, states, actions, next_states)
-
-    def reward_terminated(self, states, actions, next_states) -> tuple[np.ndarray, np.ndarray]:
-        return task.reward_terminated(self.rules, bool(self.n_discrete_actions), states, actions, next_states)
-
     def termination_causes(self, states, actions, next_states) -> dict[str, np.ndarray]:
         """Why the surrogate ends each transition: crash (or |x'| >= 1) and rest (one step of
         the sleep counter: rest only when ``rules.rest_frames`` <= 1; ``task.sleep_counts``
@@ -110,10 +106,6 @@ class LunarLanderSpec(EnvSpec):
     def observed_termination_causes(self, rewards: np.ndarray, terminated: np.ndarray) -> dict[str, np.ndarray]:
         """Why the real env ended each transition, read off its reward (-100 crash or out, +100 rest)."""
         return {"crash": terminated & (rewards == -100), "rest": terminated & (rewards == 100)}
-
-    def exogenous(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
-        """Leg contacts derived from height and attitude (never regressed)."""
-        return task.leg_contacts(self.rules, states, next_states)
 
     def make_step_one(self, predictor: Callable[..., Callable], obs_low=None, obs_high=None) -> StepOne | None:
         if self.terrain:  # per-episode terrain lives in the batched step (the surrogate uses it with N = 1)
@@ -148,66 +140,6 @@ class LunarLanderSpec(EnvSpec):
             h = np.flatnonzero(hit[a:b])
             flight[a:a + (h[0] if len(h) else b - a)] = True
         return {"flight": flight, "contact": ~flight}
-
-    def fit_rows(self, episode, states, rewards, next_states) -> np.ndarray | None:
-        if self.fit_regime is None:
-            return None
-        masks = self.regimes(episode, states, rewards, next_states)
-        if self.fit_regime not in masks:
-            raise ConfigError(f"env.spec.fit_regime: {self.fit_regime!r} is not one of {sorted(masks)}")
-        return masks[self.fit_regime]
-
-    # The learned touchdown event (Dyna, ``surrogate.events``): where off the pad a touchdown the
-    # rules let survive ends in a crash is learned from the agent's own real touchdowns.
-    event_feature_names: ClassVar[tuple[str, ...]] = ("x", "|x|", "off_pad", "y", "vx", "|vx|", "vy", "angle", "|angle|",
-                                                      "angvel", "|angvel|")
-    PAD_HALF_WIDTH: ClassVar[float] = 0.2
-    """The helipad spans |x| <= 0.2 in observation units (the real env's source: chunks 4 to 6
-    of 11 over 20 m; a prior). ``off_pad`` = max(|x| - 0.2, 0): where the random terrain begins."""
-    EVENT_WINDOW: ClassVar[int] = 30
-    """A real touchdown crashed when its episode ends with -100 within this many steps of it
-    (``touchdowns.CRASH_WINDOW``)."""
-
-    def event_features(self, states: np.ndarray) -> np.ndarray:
-        """The pre-impact state with the magnitudes a crash depends on either way (position off
-        the pad, lateral speed, tilt, spin): the logistic model is linear in its features."""
-        s = np.asarray(states, dtype=float)
-        x = s[:, 0]
-        return np.column_stack([x, np.abs(x), np.maximum(np.abs(x) - self.PAD_HALF_WIDTH, 0.0), s[:, 1], s[:, 2],
-                                np.abs(s[:, 2]), s[:, 3], s[:, 4], np.abs(s[:, 4]), s[:, 5], np.abs(s[:, 5])])
-
-    def event_rows(self, states, next_states, terminated) -> np.ndarray:
-        """Touchdowns: s in flight (no leg flag), s' with a leg flag, not ended by the rules."""
-        s, ns = np.asarray(states), np.asarray(next_states)
-        return (s[:, 6] < 0.5) & (s[:, 7] < 0.5) & ((ns[:, 6] > 0.5) | (ns[:, 7] > 0.5)) & ~np.asarray(terminated, dtype=bool)
-
-    def event_data(self, data) -> tuple[np.ndarray, np.ndarray]:
-        """Each recorded episode's first touchdown (the first contact row, ``regimes``) that the
-        rules' touchdown event lets survive; crashed when the episode ends with -100 within
-        ``EVENT_WINDOW`` steps. A touchdown whose recorded episode stops sooner without ending
-        (a cut collection) has no known outcome and is left out."""
-        from sdrl_bench.envs.lunar_lander.touchdowns import event_crash
-
-        flight = self.regimes(data.episode, data.states, data.rewards, data.next_states)["flight"]
-        ep = np.asarray(data.episode)
-        starts = np.flatnonzero(np.r_[True, ep[1:] != ep[:-1]])
-        pre, crashed = [], []
-        for a, b in zip(starts, np.r_[starts[1:], len(ep)], strict=True):
-            hit = np.flatnonzero(~flight[a:b])
-            if not len(hit):
-                continue
-            i = a + hit[0]
-            ended = np.flatnonzero(data.terminated[i:b] | data.truncated[i:b])
-            end = i + ended[0] if len(ended) else None
-            if end is None and b - i < self.EVENT_WINDOW:
-                continue
-            crash = end is not None and end - i < self.EVENT_WINDOW and data.rewards[end] == -100 and data.terminated[end]
-            pre.append(data.states[i]), crashed.append(bool(crash))
-        if not pre:
-            return np.empty((0, len(self.event_feature_names))), np.empty(0, dtype=bool)
-        pre_arr, out = np.asarray(pre, dtype=float), np.asarray(crashed)
-        open_ = ~event_crash(self.rules, pre_arr)
-        return self.event_features(pre_arr[open_]), out[open_]
 
     def regime_dynamics(self, states, actions, predicted) -> np.ndarray:
         """Landers on their legs take the settle step (``task``); in flight, the model's prediction.
@@ -248,13 +180,6 @@ class LunarLanderSpec(EnvSpec):
             m.update({f"touchdown/{k}": v for k, v in touchdowns.score_events(rules, d, held).items()})
             m.update({f"touchdown/rest_{k}": v for k, v in touchdowns.score_rest(rules, d).items()})
         return m
-
-    def uncertainty_scale(self) -> np.ndarray | None:
-        """The replay noise floor's standard deviation per state in flight (held-out set,
-        ``benchmarks/noise_floor.py``): disagreement is counted in units of the irreducible noise."""
-        if self.uncertainty_penalty == 0.0 and not np.isfinite(self.uncertainty_limit):
-            return None
-        return np.sqrt(np.array(FLIGHT_NOISE_FLOOR))
 
 
 @dataclass(frozen=True)

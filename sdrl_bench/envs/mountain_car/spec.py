@@ -11,12 +11,12 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import ClassVar
 from collections.abc import Callable
 
 import numpy as np
 
 from sdrl_bench.envs.base import EnvSpec, Policy, StepOne, TestSetRecipe
+from sdrl_bench.envs.task import Task
 
 MIN_POSITION, MAX_POSITION, MAX_SPEED = -1.2, 0.6, 0.07
 GOAL_POSITION = 0.45
@@ -37,7 +37,11 @@ class MountainCarSpec(EnvSpec):
     solved_threshold: float | None = 90.0
     policy_map_slices: tuple = (("x", (MIN_POSITION, MAX_POSITION), "v", (-MAX_SPEED, MAX_SPEED)),)
 
-    has_task: ClassVar[bool] = True
+    def build_task(self) -> Task:
+        """The exact task: reward and goal in the real env's arithmetic, its reset distribution,
+        and a one-state kernel that replays the real env bit for bit under the exact law."""
+        return Task(reward_terminated=self.reward_terminated, initial_states=self.initial_states,
+                    step_one=self.make_step_one)
 
     def is_success(self, episode_return: float, terminated: bool) -> bool:
         """The goal was reached: the episode terminated (a return of 90 can miss it)."""
@@ -69,12 +73,9 @@ class MountainCarSpec(EnvSpec):
         return np.clip(super().encode_actions(actions), -1.0, 1.0)
 
     # ------------------------------------------------------------------ the task
-    def reward(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+    def reward_terminated(self, states, actions, next_states) -> tuple[np.ndarray, np.ndarray]:
         """100 on reaching the goal, minus 0.1 a^2 of the *unclipped* action (the env's order of
         operations, so the values are bit-identical)."""
-        return self.reward_terminated(states, actions, next_states)[0]
-
-    def reward_terminated(self, states, actions, next_states) -> tuple[np.ndarray, np.ndarray]:
         a = np.asarray(actions, dtype=float).reshape(len(states), -1)[:, 0]
         terminated = self.terminated(states, actions, next_states)
         return 100.0 * terminated - a * a * 0.1, terminated
@@ -91,7 +92,7 @@ class MountainCarSpec(EnvSpec):
         return np.stack([x, np.zeros(n)], axis=1)
 
     def make_step_one(self, predictor: Callable[..., Callable], obs_low=None, obs_high=None) -> StepOne:
-        """``apply_bounds``, ``terminated`` and ``reward`` for one state, in the real env's own
+        """``apply_bounds``, ``terminated`` and the reward for one state, in the real env's own
         arithmetic (the bounds are the observation space's: no further clipping needed).
 
         gymnasium's step computes with numpy scalars: the float64 start after a reset, the
