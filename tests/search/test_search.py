@@ -19,7 +19,7 @@ import optuna
 import pytest
 from mlflow.tracking import MlflowClient
 
-from sdrl_bench import ConfigError, tracking
+from sdrl_bench import ConfigError, seeds, tracking
 from sdrl_bench.cli.build import build_fit_job, compose
 from sdrl_bench.cli.search import make_build_job, run_refine, run_search
 from sdrl_bench.data import collect, heuristic_policy, held_out_test_set
@@ -150,7 +150,7 @@ def test_objective_is_k_fold_on_the_collected_data_and_reproducible(mc_study):
     cfg, result, summary, _ = mc_study
     sd = result.data
     spec = sd.spec
-    assert sd.sha256 == collect(spec, heuristic_policy, 75, 0.2, 0).content_hash()
+    assert sd.sha256 == collect(spec, heuristic_policy, 75, 0.2, seeds.reset_seed(0, "collect")).content_hash()
     assert sd.sha256 != held_out_test_set(spec)[1].content_hash()
     rows = sorted(i for f in sd.folds for i in f.valid.tolist())
     assert rows == list(range(75)) and len(sd.folds) == 3
@@ -230,7 +230,8 @@ def _env() -> dict:
 
 def test_sigkill_mid_study_then_rerun_loses_and_duplicates_nothing(tmp_path, uri):
     storage = f"sqlite:///{tmp_path}/optuna.db"
-    args = _cli(tmp_path, uri, "study.name=killed", "search.n_trials=16", "study.heartbeat_grace=1")
+    total = 48  # enough that the kill lands mid-study even when trials run fast
+    args = _cli(tmp_path, uri, "study.name=killed", f"search.n_trials={total}", "study.heartbeat_grace=1")
     proc = subprocess.Popen(args, cwd=tmp_path, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         deadline = time.monotonic() + 240
@@ -248,13 +249,13 @@ def test_sigkill_mid_study_then_rerun_loses_and_duplicates_nothing(tmp_path, uri
         proc.send_signal(signal.SIGKILL)
         proc.wait()
     before = {t.number: (t.state, t.params, t.values) for t in study.get_trials() if counted(t)}
-    assert 4 <= len(before) < 16
-    result, summary = run_search(search_cfg(tmp_path, uri, "study.name=killed", "search.n_trials=16",
+    assert 4 <= len(before) < total
+    result, summary = run_search(search_cfg(tmp_path, uri, "study.name=killed", f"search.n_trials={total}",
                                             "study.heartbeat_grace=1", "study.final_score=false"), quiet=True)
     trials = result.study.get_trials()
     assert {t.number: (t.state, t.params, t.values) for t in trials if t.number in before} == before
-    assert summary.n_trials == sum(map(counted, trials)) == 16
-    assert len(result.trials) == 16 - len(before)  # the rerun ran exactly what was missing
+    assert summary.n_trials == sum(map(counted, trials)) == total
+    assert len(result.trials) == total - len(before)  # the rerun ran exactly what was missing
     lost = [t for t in trials if not counted(t)]  # the killed trial: FAIL once its heartbeat went
     # stale (RUNNING if the kill came before its first heartbeat: Optuna cannot tell it from a live one)
     assert len(lost) <= 1 and all("error" not in t.user_attrs for t in lost)
