@@ -49,7 +49,6 @@ class SurrogateEnv(gym.Env):
         self.action_space = self.surrogate.action_space
         self.render_mode = None
         self.n_diverged = 0
-        self._step_one = self.surrogate.step_one
         self._max_steps = self.surrogate.spec.max_episode_steps
         self._state: list | None = None
         self._t = 0
@@ -57,13 +56,6 @@ class SurrogateEnv(gym.Env):
     @property
     def env_spec(self) -> EnvSpec:
         return self.surrogate.spec
-
-    def __getstate__(self) -> dict:  # the compiled step is rebuilt, not pickled
-        return {k: v for k, v in self.__dict__.items() if k != "_step_one"}
-
-    def __setstate__(self, state: dict) -> None:
-        self.__dict__.update(state)
-        self._step_one = self.surrogate.step_one
 
     @property
     def state(self) -> np.ndarray | None:
@@ -88,7 +80,7 @@ class SurrogateEnv(gym.Env):
     def step(self, action: Any):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        obs, nxt, reward, terminated, diverged = self._step_one(self._state, action)
+        obs, nxt, reward, terminated, diverged = self.surrogate.step_one(self._state, action)
         self._t += 1
         if diverged:
             self.n_diverged += 1

@@ -220,6 +220,8 @@ class ModelEnv:
         self._predict_rows = batch_predictor(model)
         kernel = task.step_one(self.predictor, self.obs_low, self.obs_high) if task.step_one is not None else None
         self._step_one_kernel = kernel
+        # the kernel itself when nothing wraps it: a single env's step is then one call
+        self.step_one = kernel if kernel is not None and not (self._members or self._learned) else self._step_one
         self._step_batch = (task.step_batch(self.limit, self.obs_low, self.obs_high, rng=lambda: self.init_rng)
                             if fused and task.step_batch is not None else None)
         self.state_order = "F" if self._step_batch is None else "C"
@@ -255,6 +257,7 @@ class ModelEnv:
             self._members = [batch_predictor(mb) for mb in shim]
 
     def __reduce__(self):  # compiled functions are rebuilt, not pickled
+        # (``step_one``: the task's kernel, or ``_step_one`` around it; set by ``swap``)
         fused, noise, penalty = self._flags
         return (_rebuild, (self.model, self.spec, self._initial, fused, noise, penalty, self.events, self._seed))
 
@@ -429,10 +432,10 @@ class ModelEnv:
                         rewards[hit] = outcome.reward
         return rewards, terminated
 
-    def step_one(self, state: list, action: Any) -> tuple[np.ndarray, list, float, bool, bool]:
-        """One state: (observation, next state as a list, reward, terminated, diverged). The
-        task's one-state kernel when it has one (plain Python: no numpy per step), else ``step``
-        with N = 1; pessimism and events as in ``step``."""
+    def _step_one(self, state: list, action: Any) -> tuple[np.ndarray, list, float, bool, bool]:
+        """``step_one(state, action)``: one state -> (observation, next state as a list, reward,
+        terminated, diverged). The task's one-state kernel when it has one (plain Python: no
+        numpy per step), else ``step`` with N = 1; pessimism and events as in ``step``."""
         kernel = self._step_one_kernel
         if kernel is None:
             s = np.asarray([state], dtype=float)
