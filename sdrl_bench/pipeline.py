@@ -150,7 +150,8 @@ def fit_transitions(job: FitJob, library: Any, data: Transitions, test: tuple[st
     if keep.sum() == 0:
         raise ConfigError("dataset: every transition lies on a state bound or outside the fitted regime; nothing to fit")
     model = build_model(job, library).fit(
-        x[keep], u[keep], x_next[keep], state_names=spec.target_names, control_names=spec.control_names
+        x[keep], u[keep], x_next[keep], state_names=spec.target_names, control_names=spec.control_names,
+        bounds=spec.target_bounds(),
     )
     seconds["fit_wall"] = model.fit_wall_seconds_
     seconds["fit_cpu"] = model.fit_cpu_seconds_

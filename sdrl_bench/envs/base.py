@@ -387,6 +387,14 @@ class EnvSpec:
             out = np.clip(out, low, high)
         return self.round_obs(out)
 
+    def target_bounds(self) -> dict[str, tuple[float, float]]:
+        """{regressed state: (low, high)} of the regressed states the env bounds (one side may be
+        infinite): a model that composes next values (primed terms) applies them in between."""
+        low = self.state_low or (-np.inf,) * len(self.state_names)
+        high = self.state_high or (np.inf,) * len(self.state_names)
+        return {n: (float(low[i]), float(high[i])) for n, i in zip(self.target_names, self.target_index, strict=True)
+                if np.isfinite(low[i]) or np.isfinite(high[i])}
+
     def round_obs(self, values: np.ndarray) -> np.ndarray:
         """Round to the real env's observation dtype (as float64 values)."""
         return np.asarray(values).astype(self.obs_dtype).astype(float)

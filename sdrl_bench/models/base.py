@@ -33,7 +33,11 @@ class DynamicsModel(Protocol):
     summary_file: str
 
     def fit(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray, *,
-            state_names: Sequence[str], control_names: Sequence[str]) -> DynamicsModel: ...
+            state_names: Sequence[str], control_names: Sequence[str],
+            bounds: dict[str, tuple[float, float]] | None = None) -> DynamicsModel: ...
+    """``bounds``: the env's bounds per regressed state (``EnvSpec.target_bounds``); a model
+    that composes next values from others (a per-equation model's primed terms) applies them in
+    between, as the env does; others may ignore them (the surrogate bounds every prediction)."""
 
     def predict(self, x: np.ndarray, u: np.ndarray) -> np.ndarray: ...
 

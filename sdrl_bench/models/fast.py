@@ -228,6 +228,8 @@ def scalar_predictor(model: Any, fixed: dict[int, float] | None = None) -> Scala
     """
     n_states, n_inputs = len(model.state_names_), len(model.state_names_) + len(model.control_names_)
     terms, coef = getattr(model, "terms_", None), getattr(model, "coef_", None)
+    if terms is not None and coef is not None and getattr(model, "stages_", None):
+        return _staged_scalar(terms, np.asarray(coef, dtype=float), model.stages_, fixed)
     if terms is not None and coef is not None:
         return compile_scalar(terms, coef, n_inputs, fixed)
     fixed = dict(fixed or {})
@@ -243,6 +245,36 @@ def scalar_predictor(model: Any, fixed: dict[int, float] | None = None) -> Scala
     return predict
 
 
+def _staged_scalar(terms: Sequence[Term], coef: np.ndarray, stages: dict, fixed: dict[int, float] | None) -> ScalarPredict:
+    """A staged model (a per-equation model whose primed terms read bounded next values,
+    ``PerEquationModel.stages_``) for one state: each stage a generated function over the
+    inputs and the bounded next values computed so far."""
+    n, parts = stages["n_inputs"], []
+    n_ext = n + sum(len(st["clips"]) for st in stages["stages"])
+    for st in stages["stages"]:
+        parts.append((st["rows"], compile_scalar(terms, coef[st["rows"]], n_ext), st["clips"]))
+    fixed = dict(fixed or {})
+    free = [i for i in range(n) if i not in fixed]
+    m = coef.shape[0]
+
+    def predict(z: Sequence[float]) -> list:
+        ext = [0.0] * n_ext
+        for i, v in zip(free, z, strict=True):
+            ext[i] = v
+        for i, v in fixed.items():
+            ext[i] = v
+        out = [0.0] * m
+        for rows, fn, clips in parts:
+            for r, v in zip(rows, fn(ext), strict=True):
+                out[r] = v
+            for r, col, lo, hi in clips:
+                v = out[r]
+                ext[col] = lo if v < lo else (hi if v > hi else v)
+        return out
+
+    return predict
+
+
 BatchPredict = Callable[[np.ndarray], np.ndarray]
 
 
@@ -250,13 +282,38 @@ def batch_predictor(model: Any) -> BatchPredict:
     """``predict(z) -> (n_outputs, N)`` for inputs ``z`` of shape (n_inputs, N): the model's
     inputs (states, then controls) as rows. Constant and linear terms are one product with ``z``;
     only the other terms are computed as feature rows. Models without structured terms are
-    wrapped around their ``predict(x, u)``."""
+    wrapped around their ``predict(x, u)``; a staged model (``stages_``) runs stage by stage."""
     n_states = len(model.state_names_)
     n_inputs = n_states + len(model.control_names_)
     terms, coef = getattr(model, "terms_", None), getattr(model, "coef_", None)
     if terms is None or coef is None:
         return lambda z: np.asarray(model.predict(z[:n_states].T, z[n_states:].T)).T
     coef = np.asarray(coef, dtype=float)
+    stages = getattr(model, "stages_", None)
+    if stages:
+        return _staged_batch(terms, coef, stages)
+    return _batch(terms, coef, n_inputs)
+
+
+def _staged_batch(terms: Sequence[Term], coef: np.ndarray, stages: dict) -> BatchPredict:
+    n = stages["n_inputs"]
+    n_ext = n + sum(len(st["clips"]) for st in stages["stages"])
+    parts = [(st["rows"], _batch(terms, coef[st["rows"]], n_ext), st["clips"]) for st in stages["stages"]]
+
+    def predict(z: np.ndarray) -> np.ndarray:
+        ext = np.zeros((n_ext, z.shape[1]))
+        ext[:n] = z
+        out = np.empty((coef.shape[0], z.shape[1]))
+        for rows, fn, clips in parts:
+            out[rows] = fn(ext)
+            for r, col, lo, hi in clips:
+                np.clip(out[r], lo, hi, out=ext[col])
+        return out
+
+    return predict
+
+
+def _batch(terms: Sequence[Term], coef: np.ndarray, n_inputs: int) -> BatchPredict:
     bias = np.zeros((coef.shape[0], 1))
     linear = np.zeros((coef.shape[0], n_inputs))
     other: list[int] = []

@@ -114,8 +114,10 @@ class MLPDynamics:
 
     # ------------------------------------------------------------------ fit
     def fit(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray, *,
-            state_names: Sequence[str], control_names: Sequence[str]) -> MLPDynamics:
-        """Fit on rows (x_t, u_t) -> x_{t+1} (rows independent)."""
+            state_names: Sequence[str], control_names: Sequence[str],
+            bounds: dict[str, tuple[float, float]] | None = None) -> MLPDynamics:
+        """Fit on rows (x_t, u_t) -> x_{t+1} (rows independent; ``bounds`` not used: the
+        surrogate bounds every prediction)."""
         x, u, x_next = (np.asarray(a, dtype=float) for a in (x, u, x_next))
         if x.shape[1] != len(state_names) or u.shape[1] != len(control_names) or x_next.shape != x.shape:
             raise ValueError("x / u / x_next columns do not match state_names / control_names")

@@ -266,19 +266,28 @@ class PerEquationModel:
             cols.append(c)
         return np.column_stack(cols)
 
-    def _bind(self, state_names: Sequence[str], control_names: Sequence[str]) -> None:
+    def _bind(self, state_names: Sequence[str], control_names: Sequence[str],
+              bounds: dict[str, Sequence[float]] | None = None) -> None:
         self.state_names_, self.control_names_ = list(state_names), list(control_names)
         names = self.state_names_ + self.control_names_
+        primed = {f[0] for eq in self.library.parsed.values() for term in eq for f in term if f[3]}
+        self.clipped_ = {s: (float(lo), float(hi)) for s, (lo, hi) in (bounds or {}).items()
+                         if s in primed and (np.isfinite(lo) or np.isfinite(hi))}
+        """{state: (low, high)}: primed references to these states read the bounded next value."""
         self._terms = {t: tuple(tuple((names.index(n) if not pr else self.state_names_.index(n), op, p, pr)
                                       for n, op, p, pr in term) for term in eq)
                        for t, eq in self.library.parsed.items()}
 
     def fit(self, x: np.ndarray, u: np.ndarray, x_next: np.ndarray, *, state_names: Sequence[str],
-            control_names: Sequence[str]) -> PerEquationModel:
+            control_names: Sequence[str], bounds: dict[str, tuple[float, float]] | None = None) -> PerEquationModel:
+        """Fit each equation on its own features (primed factors read the observed next values,
+        which the env has already bounded). ``bounds``: the env's bounds of regressed states; a
+        primed reference to a bounded state then reads its next value *after* the bound, in
+        ``predict`` and in the compiled evaluators (``clipped_``)."""
         x, u, x_next = (np.asarray(a, dtype=float) for a in (x, u, x_next))
         self.library.check_inputs(state_names, control_names)
         t0, c0 = time.perf_counter(), time.process_time()
-        self._bind(state_names, control_names)
+        self._bind(state_names, control_names, bounds)
         z = np.concatenate([x, u], axis=1)
         self.eq_coef_ = self._fit_rows(z, x_next)
         self.snap_digits_ = self._snap(z, x_next)
@@ -331,9 +340,21 @@ class PerEquationModel:
         return digits
 
     # ------------------------------------------------------------------ flattening
+    @property
+    def _n_inputs(self) -> int:
+        return len(self.state_names_) + len(self.control_names_)
+
+    def _extra_index(self, state: str) -> int:
+        """The input column standing for the bounded next value of ``state`` (after the model's inputs)."""
+        return self._n_inputs + list(self.clipped_).index(state)
+
     def _expansions(self, eq_coef: dict[str, np.ndarray]) -> dict[str, Expansion]:
-        """Each equation as {term: coefficient} over plain (unprimed) terms, s'_i itself."""
+        """Each equation as {term: coefficient} over plain (unprimed) terms, s'_i itself. A primed
+        factor of a bounded state (``clipped_``) stays a factor: the input column of its bounded
+        next value (``_extra_index``), filled stage by stage in ``predict``."""
         exp: dict[str, Expansion] = {}
+        for s in self.clipped_:
+            exp[f"{s}'"] = {((self._extra_index(s), "pow", 1.0),): 1.0}
         for t in self.library.order:
             i = self.state_names_.index(t)
             e: Expansion = {((i, "pow", 1.0),): 1.0} if self.library.form == "delta" else {}
@@ -344,9 +365,10 @@ class PerEquationModel:
                 parts: Expansion = {(): float(c)}
                 for j, _, p, pr in term:
                     if pr:
+                        name = self.state_names_[j]
+                        sub = exp[f"{name}'"] if name in self.clipped_ else exp[name]
                         for _ in range(p):
-                            parts = {_canon(a + b): ca * cb for a, ca in parts.items()
-                                     for b, cb in exp[self.state_names_[j]].items()}
+                            parts = {_canon(a + b): ca * cb for a, ca in parts.items() for b, cb in sub.items()}
                 for term2, v in parts.items():
                     key = _canon(plain + list(term2))
                     e[key] = e.get(key, 0.0) + v
@@ -365,6 +387,28 @@ class PerEquationModel:
         self.terms_ = list(terms)
         self.coef_ = self._flat_coef(self.eq_coef_, exps)
         self._active_coef_t = np.ascontiguousarray(self.coef_.T)
+        self.stages_ = self._stages() if self.clipped_ else None
+
+    def _stages(self) -> dict:
+        """The staged evaluation a bounded prime needs (``models.fast`` reads it): ``n_inputs``,
+        and per stage the output rows it computes and the bounds it then applies, {row, extra
+        input column, low, high}. A row's stage follows the extra columns its terms read."""
+        n, extra = self._n_inputs, {self._extra_index(s): s for s in self.clipped_}
+        stage: dict[int, int] = {}
+        rows_of = {i: {j for k, t in enumerate(self.terms_) if self.coef_[i, k] != 0 for j, *_ in t if j >= n}
+                   for i in range(len(self.state_names_))}
+        while len(stage) < len(rows_of):
+            for i, needs in rows_of.items():
+                src = [self.state_names_.index(extra[j]) for j in needs]
+                if i not in stage and all(r in stage for r in src):
+                    stage[i] = 1 + max((stage[r] for r in src), default=-1)
+        out = []
+        for k in range(max(stage.values()) + 1):
+            rows = [i for i in stage if stage[i] == k]
+            clips = [(self.state_names_.index(s), self._extra_index(s), *self.clipped_[s]) for s in self.clipped_
+                     if stage[self.state_names_.index(s)] == k]
+            out.append({"rows": rows, "clips": clips})
+        return {"n_inputs": n, "stages": out}
 
     def _flat_coef(self, eq_coef: dict[str, np.ndarray], exps: dict[str, Expansion] | None = None) -> np.ndarray:
         exps = exps or self._expansions(eq_coef)
@@ -383,11 +427,27 @@ class PerEquationModel:
 
     def predict(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         z = np.concatenate([np.atleast_2d(x), np.atleast_2d(u)], axis=1)
-        return matmul_rows(evaluate_terms(self.terms_, z), self._active_coef_t)
+        if self.stages_ is None:
+            return matmul_rows(evaluate_terms(self.terms_, z), self._active_coef_t)
+        return self._staged(z, self.coef_)
+
+    def _staged(self, z: np.ndarray, coef: np.ndarray) -> np.ndarray:
+        """Stage by stage: the rows of a stage, then the bounds of the states whose bounded next
+        value a later stage reads (the env's own order: clip v', then x' = x + dt v')."""
+        z_ext = np.concatenate([z, np.zeros((len(z), len(self.clipped_)))], axis=1)
+        out = np.empty((len(z), len(self.state_names_)))
+        for st in self.stages_["stages"]:
+            rows = st["rows"]
+            out[:, rows] = evaluate_terms(self.terms_, z_ext) @ coef[rows].T
+            for i, col, lo, hi in st["clips"]:
+                z_ext[:, col] = np.clip(out[:, i], lo, hi)
+        return out
 
     def predict_members(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
         """(K, N, n_states) predictions of the ensemble members (K = 0 without an ensemble)."""
         z = np.concatenate([np.atleast_2d(x), np.atleast_2d(u)], axis=1)
+        if self.stages_ is not None:
+            return np.array([self._staged(z, np.asarray(m)) for m in self.members_]).reshape(len(self.members_), len(z), -1)
         theta = evaluate_terms(self.terms_, z)
         return np.array([theta @ np.asarray(m).T for m in self.members_]).reshape(len(self.members_), len(z), -1)
 
@@ -429,6 +489,7 @@ class PerEquationModel:
             "snap_digits": self.snap_digits_, "noise": self.noise_,
             "members": [{t: [float(c) for c in v] for t, v in m.items()} for m in self._member_coefs],
             "optimizer": self.optimizer_description_, "n_fit_samples": self.n_fit_samples_,
+            "bounds": {k: list(v) for k, v in self.clipped_.items()},
         }
 
     def save(self, path: str | Path) -> Path:
@@ -444,7 +505,7 @@ class PerEquationModel:
                                      ensemble=int(lc.get("ensemble", 1)), key=f"{source}: library")
             model = cls(lib)
             lib.check_inputs(d["state_names"], d["control_names"])
-            model._bind(d["state_names"], d["control_names"])
+            model._bind(d["state_names"], d["control_names"], {k: tuple(v) for k, v in d.get("bounds", {}).items()})
             model.eq_coef_ = {t: np.asarray(d["coefficients"][t], dtype=float) for t in lib.parsed}
             for t, c in model.eq_coef_.items():
                 if c.shape != (len(lib.parsed[t]),) or not np.all(np.isfinite(c)):

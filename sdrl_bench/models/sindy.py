@@ -69,8 +69,10 @@ class SindyModel:
         *,
         state_names: Sequence[str],
         control_names: Sequence[str],
+        bounds: dict[str, tuple[float, float]] | None = None,
     ) -> SindyModel:
-        """Fit on rows (x_t, u_t) -> x_{t+1}; rows are independent (``x_next`` is explicit)."""
+        """Fit on rows (x_t, u_t) -> x_{t+1}; rows are independent (``x_next`` is explicit).
+        ``bounds`` is not used: an ordinary library composes no next values."""
         x, u, x_next = (np.asarray(a, dtype=float) for a in (x, u, x_next))
         names = list(state_names) + list(control_names)
         if x.shape[1] != len(state_names) or u.shape[1] != len(control_names):

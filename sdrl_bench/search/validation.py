@@ -66,7 +66,8 @@ def fit_model(
         raise ConfigError("dataset: every transition lies on a state bound; nothing to fit")
     x, u = spec.model_inputs(data.states[keep], data.actions[keep])
     x_next = data.next_states[keep][:, spec.target_index]
-    return make_model().fit(x, u, x_next, state_names=spec.target_names, control_names=spec.control_names)
+    return make_model().fit(x, u, x_next, state_names=spec.target_names, control_names=spec.control_names,
+                            bounds=spec.target_bounds())
 
 
 def normalized_errors(

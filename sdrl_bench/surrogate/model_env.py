@@ -253,7 +253,8 @@ class ModelEnv:
         if penalty and unc is not None and unc.active and len(members) > 1:
             self._scale = np.asarray(unc.scale, dtype=float)[:, None]
             shim = [type("Member", (), {"terms_": model.terms_, "coef_": np.asarray(c), "state_names_": model.state_names_,
-                                        "control_names_": model.control_names_})() for c in members]
+                                        "control_names_": model.control_names_,
+                                        "stages_": getattr(model, "stages_", None)})() for c in members]
             self._members = [batch_predictor(mb) for mb in shim]
 
     def __reduce__(self):  # compiled functions are rebuilt, not pickled

@@ -75,13 +75,11 @@ def test_angle_map_round_trip_and_unwrapping():
 
 
 def test_pendulum_exact_law_and_a_surrogate_on_the_circle():
-    """The shipped example: 200 random transitions give the exact law; the surrogate's
-    observations stay on the unit circle and pass the checkers."""
+    """The shipped example: 200 random transitions give the exact law (th from the *clipped*
+    next velocity); the surrogate's observations stay on the unit circle and pass the checkers."""
     res = fit_dynamics(build_fit_job(compose_cfg("env=pendulum", "collector=random")))
-    coef = res.model.coefficients_by_name()
-    nz = {eq: {t: c for t, c in terms.items() if c != 0} for eq, terms in coef.items()}
-    assert nz == {"th": {"th": 1.0, "thdot": 0.05, "torque": 0.0075, "sin(1 th)": 0.0375},
-                  "thdot": {"thdot": 1.0, "torque": 0.15, "sin(1 th)": 0.75}}
+    assert set(res.model.describe().splitlines()) == {"th' = th +0.05 thdot'", "thdot' = thdot +0.75 sin(th) +0.15 torque"}
+    assert res.model.clipped_ == {"thdot": (-8.0, 8.0)}
     env = SurrogateEnv(res.model, res.job.spec)
     check_env(env)
     obs, _ = env.reset(seed=0)
@@ -93,6 +91,41 @@ def test_pendulum_exact_law_and_a_surrogate_on_the_circle():
     for _ in range(50):
         obs, *_ = venv.step(np.ones((16, 1), dtype=np.float32))
     assert obs.shape == (16, 3) and np.all(np.abs(np.hypot(obs[:, 0], obs[:, 1]) - 1) < 1e-6)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_pendulum_clipped_velocity_reaches_the_angle_exactly(seed, tmp_path):
+    """Pendulum-v1 clips thdot' to +-8 and then moves th by the clipped value. The per-equation
+    law reads thdot' after the env's bound: held-out one-step MSE <= 1e-10 on every state (and
+    on the observation's cos and sin) from 200 random transitions, on the rows where the clip is
+    active too; the compiled evaluators (one state, batched) and a saved-and-loaded model agree."""
+    res = fit_dynamics(build_fit_job(compose_cfg("env=pendulum", "collector=random", f"seed={seed}", "n_transitions=200")))
+    m, test, spec = res.fidelity.metrics, res.test, res.job.spec
+    assert m["mse/th"] <= 1e-10 and m["mse/thdot"] <= 1e-10
+    clip = np.abs(test.next_states[:, 1]) >= 8.0
+    assert clip.sum() >= 3  # the held-out set holds clipped steps
+    from sdrl_bench.fidelity import step
+
+    pred = step(res.model, spec, test.states, test.actions)
+    err = (pred - test.next_states[:, spec.target_index]) ** 2
+    assert err[clip].mean(axis=0).max() <= 1e-10
+    obs_err = (spec.observe(pred) - spec.observe(test.next_states)) ** 2
+    assert obs_err.mean(axis=0).max() <= 1e-10
+    # the same model unclipped (the bound left out of the primed term) misses exactly those rows
+    from sdrl_bench.models.fast import batch_predictor, scalar_predictor
+    from sdrl_bench.models.per_equation import PerEquationModel
+
+    x, u = spec.model_inputs(test.states, test.actions)
+    ref = res.model.predict(x, u)
+    z = np.concatenate([x, u], axis=1)
+    np.testing.assert_allclose(batch_predictor(res.model)(z.T).T, ref, rtol=0, atol=1e-12)
+    one = scalar_predictor(res.model)
+    np.testing.assert_allclose([one(row) for row in z.tolist()], ref, rtol=0, atol=1e-12)
+    loaded = PerEquationModel.load(res.model.save(tmp_path / "p.json"))
+    np.testing.assert_array_equal(loaded.predict(x, u), ref)
+    free = PerEquationModel.from_dict({**res.model.to_dict(), "bounds": {}})
+    gap = (free.predict(x, u)[:, 0] - ref[:, 0]) ** 2
+    assert gap[clip].min() > 1e-8 and gap[~clip].max() < 1e-20
 
 
 def test_cartpole_force_encoding_gives_a_sparse_law():
