@@ -55,7 +55,8 @@ def instantiate_key(node: Any, key: str) -> Any:
         while root.__cause__ is not None and root.__cause__ is not root and not isinstance(root, ConfigError):
             root = root.__cause__
         if isinstance(root, ConfigError):
-            raise ConfigError(f"{key}: {' '.join(str(root).split())}") from None
+            text = " ".join(str(root).split())
+            raise ConfigError(text if text.startswith(key) else f"{key}: {text}") from None
         target = node.get("_target_") if isinstance(node, (dict, DictConfig)) else None
         if target and (isinstance(exc.__cause__, ImportError) or isinstance(root, (ImportError, SyntaxError))):
             raise ConfigError(f"{key}: cannot import {target!r}: {one_line(root)}") from None

@@ -39,6 +39,19 @@ def test_negative_threshold_exits_2_with_one_line(store, tmp_path):
     assert no_running_runs(store) == 0
 
 
+@pytest.mark.parametrize("override,line", [
+    ("+env.spec.touchdown_set=/no/such.npz", "env.spec.touchdown_set: no such file: /no/such.npz"),
+    ("dataset.path=/no/such.csv", "dataset.path: no such file: /no/such.csv"),
+])
+def test_a_file_the_config_names_must_exist(store, tmp_path, override, line):
+    """A missing file is one line naming the key, exit 2, before any collection or run."""
+    env = "env=lunar_lander" if "touchdown" in override else "env=mountain_car"
+    res = run_cli(env, override, f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode == 2
+    assert [ln for ln in res.stderr.splitlines() if ln.strip()] == [f"sdrl-bench: error: {line}"]
+    assert no_running_runs(store) == 0
+
+
 def test_fewer_transitions_than_library_terms(store):
     with pytest.raises(ConfigError, match=r"n_transitions=10: fewer transitions than the 12 terms of library 'poly_trig'"):
         run_fit(compose_cfg("n_transitions=10", f"tracking.uri={store}"))

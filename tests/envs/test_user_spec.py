@@ -161,7 +161,7 @@ def test_task_module_that_fails_to_import_names_file_and_cause(user_dir):
     with pytest.raises(ConfigError) as err:
         build_fit_job(user_cfg(conf, "env.spec.reward_fn=bad_task.reward"))
     msg = str(err.value)
-    assert "\n" not in msg and msg.startswith("env.spec: env.spec.reward_fn: cannot import module 'bad_task'")
+    assert "\n" not in msg and msg.startswith("env.spec.reward_fn: cannot import module 'bad_task'")
     assert "ImportError: cannot import name 'no_such_thing'" in msg and "bad_task.py:2" in msg
 
 

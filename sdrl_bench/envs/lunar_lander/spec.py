@@ -59,13 +59,18 @@ class LunarLanderSpec(EnvSpec):
     (``task.draw_terrain``); off: the flat world at the pad's height."""
     touchdown_set: str | None = None
     """Path of a saved touchdown test set (``touchdowns.TouchdownSet``, made by
-    ``benchmarks/touchdown_set.py``): when it exists, every fit scores the touchdown event and
-    the sleep counter on it."""
+    ``benchmarks/touchdown_set.py``): every fit scores the touchdown prior and the sleep counter
+    on it. A path that names no file is a config error."""
     action_labels: tuple[str, ...] = ("noop", "left engine", "main engine", "right engine")
     # policy maps: a lander descending slowly above the pad, legs up, over three slices
     policy_map_slices: tuple = (("x", (-1.0, 1.0), "y", (0.0, 1.4)), ("vx", (-1.0, 1.0), "vy", (-1.5, 0.5)),
                                 ("angle", (-0.8, 0.8), "angvel", (-1.0, 1.0)))
     policy_map_hold: dict = field(default_factory=lambda: {"y": 0.7, "vy": -0.3})
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.touchdown_set is not None and not Path(self.touchdown_set).is_file():
+            raise ConfigError(f"env.spec.touchdown_set: no such file: {self.touchdown_set}")
 
     def build_task(self) -> Task:
         """The surrogate's task: the rules of ``task`` (leg flags, the touchdown prior, settling,
@@ -172,7 +177,7 @@ class LunarLanderSpec(EnvSpec):
              "rest_counter_recall": tp / real.sum() if real.any() else float("nan"),
              "rest_counter_n_real": float(real.sum()),
              "rest_counter_timing_abs_mean": float(np.mean(np.abs(errs))) if errs else float("nan")}
-        if self.touchdown_set and Path(self.touchdown_set).is_file():
+        if self.touchdown_set:
             from sdrl_bench.envs.lunar_lander import touchdowns  # noqa: PLC0415
 
             d = touchdowns.TouchdownSet.load(self.touchdown_set)
