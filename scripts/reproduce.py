@@ -9,7 +9,7 @@ with ``--jobs`` processes at a time, one thread each. The stages, in order:
 
   experts      the paper's collectors, trained once with their zoo settings (SAC on MountainCar,
                50k steps; PPO on LunarLander, 1M steps), both at once; then LunarLander's touchdown
-               test set (benchmarks/touchdown_set.py), which every LunarLander fit is scored on.
+               test set (studies/touchdown_set.py), which every LunarLander fit is scored on.
                The warm-up fits that train the experts go to experiment ``rebuild-setup``, not
                to the report's.
   fits         SINDy per library (polynomial, poly_trig, rational; LunarLander also its
@@ -64,7 +64,7 @@ def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
     return [
         ("experts", [
             ["parallel:", *[f"experiment={EXPERT_PACK[e]}" for e in ("mountain_car", "lunar_lander")]],
-            ["python:", "benchmarks/touchdown_set.py", "--out", touchdowns],
+            ["python:", "studies/touchdown_set.py", "--out", touchdowns],
         ]),
         ("fits", [
             ["-m", "env=mountain_car", "collector=expert", "library=polynomial,poly_trig,rational", s],

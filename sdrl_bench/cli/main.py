@@ -59,16 +59,15 @@ def run_fit(cfg: DictConfig, parent: str | None = None, extra_tags: dict[str, st
     tracking.check_writable(uri)
     names = job.names
     tags = {
-        "sdrl.kind": "fit", "env": names["env"], "library": names["library"],
-        "optimizer": names["optimizer"], "collector": names["collector"],
-        "surrogate": names["surrogate"], "seed": job.seed, **tracking.standard_tags("sdrl-bench task=fit"),
-        **(extra_tags or {}),
+        "env": names["env"], "library": names["library"], "optimizer": names["optimizer"],
+        "collector": names["collector"], "surrogate": names["surrogate"], "seed": job.seed, **(extra_tags or {}),
     }
     model_name = f"{names['library']}-{names['optimizer']}" if names["surrogate"] == "sindy" else names["surrogate"]
     run_name = f"fit-{names['env']}-{model_name}-s{job.seed}"
-    with tracking.start_run(uri, cfg.tracking.experiment, run_name, tags, parent) as run:
+    with tracking.tracked_run(uri, cfg.tracking.experiment, run_name, "fit", tags, parent,
+                              config=OmegaConf.to_container(cfg, resolve=True)) as run:
         result = fit_dynamics(job, checked)
-        tracking.log_fit(run, result, config=OmegaConf.to_container(cfg, resolve=True))
+        tracking.log_fit(run, result)
     _print_summary(result, uri, run.run_id, tracking.ensure_experiment(uri, cfg.tracking.experiment))
     return result
 
@@ -125,7 +124,7 @@ def main(cfg: DictConfig) -> float:
         if cfg.task == "fit":
             return float(run_fit(cfg, parent=parent, extra_tags=tags).fidelity.metrics["mse_norm/mean"])
         if cfg.task == "dyna":
-            from sdrl_bench.cli.dyna import run_dyna_task
+            from sdrl_bench.cli.dyna_task import run_dyna_task
 
             summary = run_dyna_task(cfg, fit_job, parent, extra_tags=tags)
             return float(summary.get("audit_return_mean", summary.get("final_return_mean", 0.0)))

@@ -22,23 +22,21 @@ def run_train(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict[str
     spec, names = job.fit.spec, job.fit.names
     key = real_arm_key(cfg)
     tags = {
-        "sdrl.kind": "transfer", "env": spec.name, "agent": job.agent.name, "surrogate": names["surrogate"],
+        "env": spec.name, "agent": job.agent.name, "surrogate": names["surrogate"],
         "library": names["library"], "optimizer": names["optimizer"], "collector": names["collector"],
         "seed": job.seed, "arms": ",".join(job.arms), "real_arm_key": key,
-        "solved_threshold": spec.solved_threshold, **tracking.standard_tags("sdrl-bench task=train"),
-        **(extra_tags or {}),
+        "solved_threshold": spec.solved_threshold, **(extra_tags or {}),
     }
     run_name = f"train-{spec.name}-{job.agent.name}-{names['surrogate']}-s{job.seed}"
-    with tracking.start_run(uri, cfg.tracking.experiment, run_name, tags, parent) as run, \
+    intro = (f"**{spec.name}**: {job.agent.name.upper()} trained in the {names['surrogate']} surrogate and/or the real "
+             f"env (arms: {', '.join(job.arms)}), seed {job.seed}.")
+    with tracking.tracked_run(uri, cfg.tracking.experiment, run_name, "transfer", tags, parent, task="train",
+                              config=OmegaConf.to_container(cfg, resolve=True), description=intro, system=True) as run, \
             tempfile.TemporaryDirectory() as tmp:
         exp_id = tracking.ensure_experiment(uri, cfg.tracking.experiment)
         _start_banner(run_name, run.run_id, uri, exp_id, job)
-        tracking.log_config(run, OmegaConf.to_container(cfg, resolve=True), uri, task="train")
-        tracking.set_description(run, f"**{spec.name}**: {job.agent.name.upper()} trained in the {names['surrogate']} "
-                                      f"surrogate and/or the real env (arms: {', '.join(job.arms)}), seed {job.seed}.")
         recorder = RunRecorder(run, cfg.tracking.experiment, key, tmp)
-        with tracking.system_metrics(run):
-            outcome = run_transfer(job, checked, recorder, reuse_real_arm=bool(cfg.rl.reuse_real_arm))
+        outcome = run_transfer(job, checked, recorder, reuse_real_arm=bool(cfg.rl.reuse_real_arm))
         tracking.set_description(run, _description(outcome.summary, job, outcome.model_text))
     _print(outcome.summary, uri, run.run_id, job, outcome.model_text, exp_id)
     return outcome.summary

@@ -338,7 +338,7 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
     bootstrap CI over seeds."""
     runs = list(runs)
     dyna = finished(runs, "dyna")
-    # the real arm: every transfer run that trained one of the same agent (alone, as benchmarks/dyna.py
+    # the real arm: every transfer run that trained one of the same agent (alone, as studies/dyna_real_steps.py
     # runs it, or beside a surrogate arm); a reused real arm is the same run's and is not counted twice
     real = [r for r in finished(runs, "transfer") if "real/final_return_mean" in r["metrics"]
             and not r["tags"].get("real_arm_reused_from")]

@@ -24,7 +24,7 @@ stops at its first lucky confirmation shows it there. The audit is outside the l
 and reported apart.
 
 Plain functions over typed arguments; ``run_dyna`` hands each round to a ``DynaRecorder``
-(``tracking.dyna.DynaRunRecorder``: a parent run with a child run per round).
+(``tracking.dyna_runs.DynaRunRecorder``: a parent run with a child run per round).
 """
 
 from __future__ import annotations

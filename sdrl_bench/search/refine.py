@@ -153,8 +153,9 @@ def _score(sd, parts, families, optimizers, seed, out: Refinement):
 
 def log_refinement(uri: str, experiment: str, parent: str, name: str, stage: int, candidates: list[Candidate]) -> None:
     """One MLflow child run per stage: the candidates tried, their scores, what was accepted."""
-    tags = {"sdrl.kind": "refine-stage", "sdrl.study": name, "stage": stage}
-    with tracking.start_run(uri, experiment, f"{name}-stage-{stage}", tags, parent) as run:
+    tags = {"sdrl.study": name, "stage": stage}
+    with tracking.tracked_run(uri, experiment, f"{name}-stage-{stage}", "refine-stage", tags, parent,
+                              source="sdrl-bench-search search=refine") as run:
         best = min(candidates, key=lambda c: c.error)
         chosen = next((c for c in candidates if c.accepted), None)
         run.log_params({"stage": stage, "tried": ",".join("+".join(c.families) or "base" for c in candidates)})
@@ -188,7 +189,8 @@ def run_refinement(
         opt = dict(optimizers)[final.optimizer]
         parts = tuple(base_job.library_parts) + tuple(p for f in final.families for p in families[f])
         fit = fit_dynamics(dataclasses.replace(base_job, library_parts=parts, optimizer=opt))
-        with tracking.start_run(uri, experiment, f"{name}-final", {"sdrl.kind": "fit"}, parent) as run:
+        with tracking.tracked_run(uri, experiment, f"{name}-final", "fit", {"sdrl.study": name}, parent,
+                                  source="sdrl-bench-search search=refine") as run:
             tracking.log_fit(run, fit, {"library": "+".join((library_label, *final.families)), "optimizer": final.optimizer})
         run = tracking.Run(uri, parent)
         tried = [c for stage in out.stages for c in stage]

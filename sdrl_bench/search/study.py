@@ -294,14 +294,14 @@ def _objective(s: StudySettings, build_job: BuildJob, sd: StudyData, uri: str, p
     def objective(trial: optuna.Trial) -> float | tuple[float, float]:
         params = suggest(trial, s.space)
         trial.set_user_attr("worker", s.worker)
-        tags = {"sdrl.kind": "trial", "sdrl.study": s.name, "optuna.trial": trial.number,
-                "sdrl.worker": s.worker, "env": sd.spec.name}
+        tags = {"sdrl.study": s.name, "optuna.trial": trial.number, "sdrl.worker": s.worker, "env": sd.spec.name}
 
         def report(step: int, value: float) -> bool:
             trial.report(value, step)
             return trial.should_prune()
 
-        with tracking.start_run(uri, s.experiment, f"{s.name}-trial-{trial.number}", tags, parent) as run:
+        with tracking.tracked_run(uri, s.experiment, f"{s.name}-trial-{trial.number}", "trial", tags, parent,
+                                  source="sdrl-bench-search") as run:
             trial.set_user_attr("mlflow_run_id", run.run_id)
             run.log_params({**{k: v for k, v in s.context.items()}, **params})
             try:

@@ -149,9 +149,10 @@ def _describe_best(summary: StudySummary, best, done, context: Mapping[str, Any]
 def _final_score(summary: StudySummary, result: WorkerResult, build_job: BuildJob, best) -> None:
     s = result.settings
     fit = fit_dynamics(build_job(best.params))
-    tags = {"sdrl.kind": "fit", "sdrl.study": s.name, "optuna.trial": best.number, "sdrl.role": "best-refit",
-            "env": fit.job.spec.name}
-    with tracking.start_run(result.tracking_uri, s.experiment, f"{s.name}-best-refit", tags, result.parent_run_id) as run:
+    tags = {"sdrl.study": s.name, "optuna.trial": best.number, "sdrl.role": "best-refit", "env": fit.job.spec.name,
+            "seed": fit.job.seed}
+    with tracking.tracked_run(result.tracking_uri, s.experiment, f"{s.name}-best-refit", "fit", tags, result.parent_run_id,
+                              source="sdrl-bench-search") as run:
         tracking.log_fit(run, fit, {**_flat(s.context), **best.params})
     summary.test_name = fit.test_name
     summary.test_metrics = {k: float(v) for k, v in fit.fidelity.metrics.items()}

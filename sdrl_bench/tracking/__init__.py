@@ -1,7 +1,8 @@
 """The one door to MLflow: the only package that imports mlflow.
 
 ``from sdrl_bench import tracking`` and call ``tracking.<function>``. The submodules:
-``client`` (where the store is, creating it safely, one run's writes), ``fit`` (a fit's
+``client`` (where the store is, creating it safely, one run's writes), ``lifecycle`` (the run
+lifecycle every tracked job shares), ``fit`` (a fit's
 metrics, dataset, model and figures), ``transfer`` (an RL run's arms, curves, agents and the
 reuse of a finished real arm), ``sb3`` (SB3's logger into a run), ``meta`` (standard tags, lean params, descriptions, system
 metrics, UI links), ``model`` (datasets and the pyfunc model), ``sweep`` (a sweep parent's summary) and ``read`` (runs as plain
@@ -31,6 +32,7 @@ from sdrl_bench.tracking.client import (
     use_wal,
 )
 from sdrl_bench.tracking.fit import fit_metrics, log_fit, uncertainty_table
+from sdrl_bench.tracking.lifecycle import tracked_run
 from sdrl_bench.tracking.read import (
     child_statuses,
     download_artifact,
@@ -64,7 +66,7 @@ __all__ = [
     "delete_run", "display_uri", "download_artifact", "end_run", "end_runs_of_this_process", "end_stale_runs", "owner_alive", "process_tags", "ensure_experiment", "find_real_arm", "find_runs",
     "fit_metrics", "flatten", "git_commit", "list_artifacts", "list_experiments", "log_arm", "log_curve_point",
     "log_fit", "log_report", "mlflow_client", "resolve_uri", "reuse_real_arm", "run_exists", "sb3_logger", "sqlite_path",
-    "start_run", "uncertainty_table", "use_wal",
+    "start_run", "tracked_run", "uncertainty_table", "use_wal",
     "browse_hint", "compare_url", "describe_experiment", "log_config", "run_url", "runs_url", "set_description",
     "standard_tags", "summarize_sweep", "system_metrics", "ui_base", "used_params",
 ]

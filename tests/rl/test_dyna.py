@@ -17,7 +17,7 @@ from sdrl_bench.rl.dyna import LOOP_PHASES, run_dyna
 from sdrl_bench.surrogate.events import fit_event_model, label_events, score_events
 from sdrl_bench.surrogate.vec import SurrogateVecEnv
 from sdrl_bench.tracking.client import start_run
-from sdrl_bench.tracking.dyna import DynaRunRecorder
+from sdrl_bench.tracking.dyna_runs import DynaRunRecorder
 
 TINY = [
     "experiment=dyna_mountain_car", "agent.n_envs=4", "agent.algo.n_steps=16", "agent.algo.batch_size=32",

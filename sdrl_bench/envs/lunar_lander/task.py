@@ -30,14 +30,14 @@ with where it comes from (prior: the real env's source or Box2D's; fitted: on wh
   (on the legs, engines off, speed under 0.01 m/s and 2 deg/s) give +100 and end the episode.
   On real episodes this rule (engines off dropped, since the real env's legs settle under
   side-engine pulses) matched the real rest 112/112 with timing error 0 in 111
-  (``benchmarks/touchdown_set.py``).
+  (``studies/touchdown_set.py``).
 * ``|x'| >= 1`` ends the episode with -100, as in the real env; a rest overrides a crash.
 * **Terrain** (``LunarLanderSpec.terrain``, off by default): the real env's ground is random per
   episode off the pad (``draw_terrain``: its recipe, a prior). With it on, each surrogate
   episode draws its own terrain from the surrogate's seeded generator, and the leg flags, the
   touchdown and the floor are measured from the ground under the legs. The flat world taught
   agents that land well on the pad but crash where real hills rise off it
-  (``benchmarks/lunar_lander_terrain.py``: real crashes are slow landings on slopes). Heights
+  (``studies/lunar_lander_terrain.py``: real crashes are slow landings on slopes). Heights
   alone did not help (paper pack, 5 seeds: IQM 121 against 149 flat; README), since the
   touchdown event ignores the slope. The agent does not observe the terrain (nor does it in the
   real env). Terrain needs the fused batched step (``make_step_batch``); the composed numpy
@@ -80,18 +80,18 @@ class LanderRules:
     module docstring). *Prior*: from the real env's source or Box2D; *fitted*: on what."""
 
     leg_tilt: float = 0.15
-    """Height offset of a leg per unit sin(angle) (fitted: ``benchmarks/calibrate_lunar_lander.py``)."""
+    """Height offset of a leg per unit sin(angle) (fitted). Provenance: studies/calibrate_lunar_lander.py (`.venv/bin/python studies/calibrate_lunar_lander.py`); data: 28,000 real steps, the heuristic at eps 0/0.2/0.5 (8,000 each, reset seeds 100+) and random actions (4,000, seed 500)."""
     touch_height: float = -0.015
-    """A leg touches when its height drops to this (fitted, as leg_tilt)."""
+    """A leg touches when its height drops to this (fitted). Provenance: studies/calibrate_lunar_lander.py (`.venv/bin/python studies/calibrate_lunar_lander.py`); data: 28,000 real steps, the heuristic at eps 0/0.2/0.5 (8,000 each, reset seeds 100+) and random actions (4,000, seed 500)."""
     release_height: float = 0.075
-    """A lander on its legs lifts off when y rises above this (fitted, as leg_tilt)."""
+    """A lander on its legs lifts off when y rises above this (fitted). Provenance: studies/calibrate_lunar_lander.py (`.venv/bin/python studies/calibrate_lunar_lander.py`); data: 28,000 real steps, the heuristic at eps 0/0.2/0.5 (8,000 each, reset seeds 100+) and random actions (4,000, seed 500)."""
     floor: float = -0.04
-    """The lowest y on the legs (the lowest seen on the pad)."""
+    """The lowest y on the legs (the lowest seen on the pad). Provenance: studies/calibrate_lunar_lander.py (`.venv/bin/python studies/calibrate_lunar_lander.py`); data: 28,000 real steps, the heuristic at eps 0/0.2/0.5 (8,000 each, reset seeds 100+) and random actions (4,000, seed 500)."""
     touchdown_speed: float = 3.05
     """Touchdown event: a downward speed (m/s, pre-impact) above this crashes. Fitted for
     accuracy on the calibration half (even seeds) of the touchdown set
-    (``benchmarks/touchdown_set.py``: 92% on the odd-seed half); the geometric gap and
-    rotation terms tried next to it fitted to zero."""
+    (92% on the odd-seed half); the geometric gap and rotation terms tried next to it fitted
+    to zero. Provenance: studies/touchdown_set.py (`.venv/bin/python studies/touchdown_set.py`); data: lunar_lander-touchdowns-v1, 400 real episodes from reset seed 30000 (102,914 steps; 51 of them played by the PPO expert, 1,000,000 training steps), calibration half = even seeds."""
     tip_angle: float = 1.0
     """|angle| (rad) beyond which the lander lies on its side: a crash (prior)."""
     rest_speed: float = _B2_LINEAR_SLEEP_TOL
@@ -105,12 +105,13 @@ class LanderRules:
     = 0.14; 0.14 x 10 m/s^2 x 0.02 s x 0.2 (prior)."""
     stick: float = 0.07
     """Stiction: an idle step leaves a velocity under this at 0 (angvel: twice this); fitted
-    for rest timing on the touchdown set's calibration half."""
+    for rest timing on the touchdown set's calibration half. Provenance: studies/touchdown_set.py (`.venv/bin/python studies/touchdown_set.py`); data: lunar_lander-touchdowns-v1, 400 real episodes from reset seed 30000 (102,914 steps; 51 of them played by the PPO expert, 1,000,000 training steps), calibration half = even seeds."""
     settle: tuple[float, ...] = (-0.0017801, -0.00065099, -0.0063447, 0.0083615, -0.081367,
                                  -0.12354, 0.027154, -0.18066, -0.0016207, 0.0082128,
                                  -0.0081153, 0.010043, 0.022367, 0.050024)
     """The settle model's coefficients (``SETTLE_TERMS``): a per-equation model fitted on the
-    both-legs rows of survived touchdowns of the touchdown set's calibration half (6238 rows)."""
+    both-legs rows of survived touchdowns of the touchdown set's calibration half (6238 rows).
+    Provenance: studies/touchdown_set.py (`.venv/bin/python studies/touchdown_set.py`); data: lunar_lander-touchdowns-v1, 400 real episodes from reset seed 30000 (102,914 steps; 51 of them played by the PPO expert, 1,000,000 training steps), calibration half = even seeds."""
 
 
 _DISCRETE_COST = np.array([0.0, 0.03, 0.30, 0.03])  # noop, left, main, right: 0.3 main + 0.03 side

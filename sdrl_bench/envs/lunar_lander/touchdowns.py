@@ -11,7 +11,7 @@ has a leg flag, or that ends in a crash inside the screen) is recorded: the pre-
 (s of that row) and action, the outcome (crash within ``CRASH_WINDOW`` steps of first contact,
 else survive), the steps from contact to rest (+100), and the post-contact trajectory (up to
 ``POST`` steps). Deterministic by seed. Named ``lunar_lander-touchdowns-v1`` (400 episodes from
-seed 30000, the expert included: 374 touchdowns; ``benchmarks/touchdown_set.py``).
+seed 30000, the expert included: 374 touchdowns; ``studies/touchdown_set.py``).
 
 Scoring: ``score_events`` (confusion matrix of the touchdown event on the pre-impact states),
 ``score_rest`` (the sleep counter along the post-contact trajectories: rest precision, recall,

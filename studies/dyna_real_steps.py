@@ -16,7 +16,7 @@ Medians over seeds, IQM with a 95% percentile-bootstrap CI for the returns, and 
 median real transitions to solve (Dyna / real arm). A seed that does not solve within its budget
 counts as infinitely expensive.
 
-    .venv/bin/python benchmarks/dyna.py --env lunar_lander --seeds 0-4 --workdir /tmp/dyna
+    .venv/bin/python studies/dyna_real_steps.py --env lunar_lander --seeds 0-4 --workdir /tmp/dyna
 """
 
 from __future__ import annotations

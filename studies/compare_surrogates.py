@@ -7,7 +7,7 @@ pair's NN run, so they sit beside the run's own metrics in the MLflow UI.
 
     cd /tmp/nn_cmp && /work/main/.venv/bin/sdrl-bench -m env=mountain_car,lunar_lander \\
         surrogate=sindy,nn tracking.uri=sqlite:////tmp/nn_cmp/mlflow.db
-    .venv/bin/python benchmarks/compare_surrogates.py --uri sqlite:////tmp/nn_cmp/mlflow.db --log
+    .venv/bin/python studies/compare_surrogates.py --uri sqlite:////tmp/nn_cmp/mlflow.db --log
 """
 
 from __future__ import annotations

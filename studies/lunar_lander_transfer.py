@@ -3,7 +3,7 @@ mean real return (20 final episodes), its return in its own surrogate and the op
 real arm's mean; across seeds the IQM with a 95% bootstrap CI (scipy.stats.bootstrap,
 percentile, 10,000 resamples, seed 0) and how many seeds reach 200.
 
-    .venv/bin/python benchmarks/lunar_lander_transfer.py [--uri sqlite:///mlruns/mlflow.db ...]
+    .venv/bin/python studies/lunar_lander_transfer.py [--uri sqlite:///mlruns/mlflow.db ...]
 
 Several ``--uri``: the arms may come from different stores (e.g. the real arm run once and kept
 in its own store); a seed's arm is taken from the first store that holds it.

@@ -6,7 +6,7 @@ Pendulum: the exact law (th' = th + 0.05 thdot + 0.0375 sin th + 0.0075 u, thdot
 and whether 200 surrogate steps keep (cos, sin) on the unit circle. CartPole: the number of
 terms (nonzero coefficients) of the law, and the one-step normalized MSE on the held-out set.
 
-    .venv/bin/python benchmarks/byo_env_laws.py [--seeds 5] [--overrides n_transitions=100]
+    .venv/bin/python studies/byo_env_laws.py [--seeds 5] [--overrides n_transitions=100]
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """What limits the LunarLander surrogate arm: the same agents, the same 20 final real episodes
-(reset seeds FINAL_EVAL_SEED + 1000 seed + i), once on the real env's random terrain and once on
+(reset seeds of the run's ``final_eval`` stream, ``seeds.reset_seed(seed, "final_eval", i)``), once on the real env's random terrain and once on
 a flat one (the real env, every random draw identical, only the terrain heights replaced by the
 pad's height). The surrogate's world is flat; if the flat real env scores far higher, the terrain
 off the pad (not the dynamics model) is what the agents were never taught.
@@ -10,7 +10,7 @@ the first touchdown and the median |slope| of the ground there, for crashed and 
 touchdowns (a crash below the surrogate's touchdown speed, 3.05 m/s, on a slope is one the
 surrogate cannot teach). Across seeds the IQM with a 95% bootstrap CI.
 
-    .venv/bin/python benchmarks/lunar_lander_terrain.py --uri sqlite:///path/mlruns/mlflow.db
+    .venv/bin/python studies/lunar_lander_terrain.py --uri sqlite:///path/mlruns/mlflow.db
 """
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ import numpy as np
 from gymnasium.envs.box2d.lunar_lander import VIEWPORT_H, LunarLander, SCALE
 from stable_baselines3 import PPO
 
-from sdrl_bench.rl.transfer import FINAL_EVAL_SEED
+from sdrl_bench import seeds
 from sdrl_bench.tracking.read import find_runs
 
 _PAD_HEIGHT = VIEWPORT_H / SCALE / 4  # the real env's helipad_y
@@ -124,7 +124,7 @@ def main() -> None:
             continue
         agent = PPO.load(zips[0], device="cpu")
         for name, env in envs.items():
-            res = [play(agent, env, FINAL_EVAL_SEED + 1000 * seed + i) for i in range(args.episodes)]
+            res = [play(agent, env, seeds.reset_seed(seed, "final_eval", i)) for i in range(args.episodes)]
             rets = np.array([t[0] for t in res])
             crashes = [t[2] for t in res if t[1] == "crash"]
             touch = {"crash": [t[3:] for t in res if t[1] == "crash" and t[2] is not None],

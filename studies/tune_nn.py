@@ -8,7 +8,7 @@ both: the objective is the mean over (env, data seed) of log10 of the one-step M
 the training data's std per state, averaged over states (``mse_norm/mean``, as the fit runs
 report it). The step budget is fixed (``max_steps``) so the default fit stays a few seconds.
 
-    .venv/bin/python benchmarks/tune_nn.py --trials 30          # about 15 min on 2 cores
+    .venv/bin/python studies/tune_nn.py --trials 30          # about 15 min on 2 cores
 """
 
 from __future__ import annotations

@@ -6,7 +6,7 @@ the engine dispersion alone is redrawn. The floor is the mean unbiased variance 
 draws of s' per regime; it is what ``LunarLanderSpec.noise_floor`` returns and what every fit's
 ``floor_ratio_<regime>/<state>`` divides by. Also checks the replay is bit-exact (must print 0).
 
-    .venv/bin/python benchmarks/noise_floor.py [--rows 400] [--k 2]
+    .venv/bin/python studies/noise_floor.py [--rows 400] [--k 2]
 
 Measured (400 rows per episode, k = 2: 2518 rows, 1015 in flight; 132 s on an idle core):
 flight 5.78e-9 3.56e-8 5.37e-5 7.02e-5 1.30e-7 5.21e-5 (x, y, vx, vy, angle, angvel);

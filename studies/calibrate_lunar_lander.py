@@ -7,11 +7,11 @@
    over the flat helipad (|x'| <= 0.2), where the surrogate's flat-ground world is the real
    one; prints the best candidates next to the defaults in ``LanderRules``. (The touchdown
    event and the sleep counter are calibrated and scored on the touchdown test set:
-   ``benchmarks/touchdown_set.py``.)
+   ``studies/touchdown_set.py``.)
 3. Scores the default rules with ``surrogate_fidelity`` on the held-out test set, with the
    model ``sdrl-bench env=lunar_lander`` fits (or ``--model``).
 
-    .venv/bin/python benchmarks/calibrate_lunar_lander.py [--model model.json]
+    .venv/bin/python studies/calibrate_lunar_lander.py [--model model.json]
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ until the goal. Printed per setting: fits whose law was snapped exactly, episode
 bit-identically (every state, reward and flag equal), the largest state difference, and
 episodes whose rewards or termination step differ.
 
-    .venv/bin/python benchmarks/replay_exactness.py [--seeds 20] [--episodes 10]
+    .venv/bin/python studies/replay_exactness.py [--seeds 20] [--episodes 10]
 """
 
 from __future__ import annotations

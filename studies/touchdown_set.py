@@ -10,7 +10,7 @@ it, ``--no-expert`` skips its three configs), saves it (``--out``), then:
 3. scores the sleep counter along the post-contact trajectories (the surrogate's rule, engines
    off; and Box2D's, speeds only): rest precision, recall, timing error.
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/touchdown_set.py [--out mlruns/datasets/lunar_lander-touchdowns-v1.npz]
+    OMP_NUM_THREADS=1 .venv/bin/python studies/touchdown_set.py [--out mlruns/datasets/lunar_lander-touchdowns-v1.npz]
 
 Measured (400 episodes, expert included; 26 s): 374 touchdowns, 201 crash; touchdown_speed
 3.05 m/s fitted on the even half (accuracy 0.932, tied up to 3.15); held-out (odd) accuracy 0.918 (TP 87, FN 9, FP 6, TN 82),

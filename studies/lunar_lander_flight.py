@@ -6,7 +6,7 @@ Prints, per seed, the flight one-step MSE as a ratio to the floor for every regr
 (``floor_ratio_flight/*``, logged with every fit), the fit rows, the active terms, and seed 0's
 equations. Run where the paper pack's expert is cached (``mlruns/experts/``):
 
-    OMP_NUM_THREADS=1 .venv/bin/python benchmarks/lunar_lander_flight.py [--seeds 0,1,2,3,4]
+    OMP_NUM_THREADS=1 .venv/bin/python studies/lunar_lander_flight.py [--seeds 0,1,2,3,4]
 """
 
 from __future__ import annotations

@@ -1,5 +1,5 @@
 """The ``task=dyna`` half of ``sdrl-bench``: one Dyna run (``rl.dyna``) per seed, a parent MLflow
-run with a child run per round (``tracking.dyna``). ``cli.main`` dispatches here."""
+run with a child run per round (``tracking.dyna_runs``). ``cli.main`` dispatches here."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from sdrl_bench import tracking
 from sdrl_bench.cli.build import build_dyna_job, real_arm_key
 from sdrl_bench.cli.train import prepare
 from sdrl_bench.rl.dyna import LOOP_PHASES, DynaOutcome, run_dyna
-from sdrl_bench.tracking.dyna import DynaRunRecorder
+from sdrl_bench.tracking.dyna_runs import DynaRunRecorder
 
 
 def run_dyna_task(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict[str, str] | None = None) -> dict[str, float]:
@@ -20,19 +20,17 @@ def run_dyna_task(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict
             "optimizer": names["optimizer"], "collector": names["collector"], "seed": job.seed,
             "solved_threshold": spec.solved_threshold}
     standard = tracking.standard_tags("sdrl-bench task=dyna")
-    tags = {"sdrl.kind": "dyna", **base, **standard, **(extra_tags or {})}
     run_name = f"dyna-{spec.name}-{job.agent.name}-{names['surrogate']}-s{job.seed}"
-    with tracking.start_run(uri, cfg.tracking.experiment, run_name, tags, parent) as run:
+    with tracking.tracked_run(uri, cfg.tracking.experiment, run_name, "dyna", {**base, **(extra_tags or {})}, parent,
+                              config=OmegaConf.to_container(cfg, resolve=True), system=True) as run:
         exp_id = tracking.ensure_experiment(uri, cfg.tracking.experiment)
         print(f"sdrl-bench: {run_name}: Dyna on {spec.name}, {names['surrogate']} surrogate, {job.agent.name.upper()}, "
               f"at most {job.dyna.max_real_transitions:,} real steps", flush=True)
         print(f"MLflow run {run.run_id} in {tracking.display_uri(uri)}; "
               f"{tracking.browse_hint(uri, exp_id, run.run_id, tracking.display_uri(uri))}", flush=True)
-        tracking.log_config(run, OmegaConf.to_container(cfg, resolve=True), uri, task="dyna")
         recorder = DynaRunRecorder(run, cfg.tracking.experiment, run_name, {**base, **standard})
-        with tracking.system_metrics(run):
-            outcome = run_dyna(job, checked, _Printing(recorder))
-            recorder.finish(outcome, spec, real_arm_key(cfg), f"{spec.name}: Dyna ({names['surrogate']}) vs the real arm, seed {job.seed}")
+        outcome = run_dyna(job, checked, _Printing(recorder))
+        recorder.finish(outcome, spec, real_arm_key(cfg), f"{spec.name}: Dyna ({names['surrogate']}) vs the real arm, seed {job.seed}")
         tracking.set_description(run, _description(outcome, job))
     _print(outcome, uri, run.run_id, exp_id, job.dyna.final_episodes)
     return outcome.summary

@@ -1,0 +1,37 @@
+"""The run lifecycle every tracked job shares: fit, train, Dyna, and the search's trials and refits.
+
+One helper (as lightning-hydra-template's ``task_wrapper`` owns a task's start and end) so that
+every run of the harness is made the same way: the store's experiment, the run with its kind,
+MLflow's standard tags (user, source, commit: the UI's columns) and the job's own tags, its
+resolved config as lean params and ``config.yaml``, a description, system metrics while the body
+runs, and its end: FINISHED, FAILED if the body raises, KILLED on a stop signal (``start_run``).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator, Mapping
+from typing import Any
+
+from sdrl_bench.tracking.client import Run, start_run
+from sdrl_bench.tracking.meta import log_config, set_description, standard_tags, system_metrics
+
+
+@contextlib.contextmanager
+def tracked_run(uri: str, experiment: str, run_name: str, kind: str, tags: Mapping[str, Any] | None = None,
+                parent: str | None = None, *, source: str | None = None, config: Mapping[str, Any] | None = None,
+                task: str | None = None, description: str | None = None, system: bool = False) -> Iterator[Run]:
+    """A run of ``kind`` (``sdrl.kind``) under ``parent``, as the module docstring says.
+
+    ``source``: the command the UI shows (default ``sdrl-bench task=<task or kind>``); ``config``:
+    the resolved config as a plain dict (logged with ``log_config``); ``system``: sample system
+    metrics while the body runs (long jobs: training, Dyna)."""
+    name = source or f"sdrl-bench task={task or kind}"
+    all_tags = {"sdrl.kind": kind, **standard_tags(name), **(tags or {})}
+    with start_run(uri, experiment, run_name, all_tags, parent) as run:
+        if config is not None:
+            log_config(run, config, uri, task=task or kind)
+        if description:
+            set_description(run, description)
+        with system_metrics(run) if system else contextlib.nullcontext():
+            yield run
