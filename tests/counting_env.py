@@ -1,7 +1,8 @@
 """A real env that counts its own steps: gymnasium's continuous MountainCar, registered as
 ``CountingMountainCarContinuous-v0``, with a class-level step counter (every instance adds to
-it). The Dyna test checks the loop's accounting against this counter, which none of the code
-under test reads."""
+it), and a record of the reset seeds it was given. The Dyna test checks the loop's accounting
+against this counter, and the seeds test the runs' reset seeds against their streams; none of
+the code under test reads either."""
 
 from __future__ import annotations
 
@@ -13,10 +14,17 @@ ENV_ID = "CountingMountainCarContinuous-v0"
 
 class CountingMountainCar(Continuous_MountainCarEnv):
     steps = 0
+    reset_seeds: list = []
+    """Every seeded reset's seed, in order (unseeded resets go on from the last seed's generator)."""
 
     def step(self, action):
         CountingMountainCar.steps += 1
         return super().step(action)
+
+    def reset(self, *, seed=None, options=None):
+        if seed is not None:
+            CountingMountainCar.reset_seeds.append(int(seed))
+        return super().reset(seed=seed, options=options)
 
 
 if ENV_ID not in gym.registry:
