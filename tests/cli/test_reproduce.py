@@ -35,8 +35,13 @@ def _jobs(sweep: list[str]) -> list[list[str]]:
     return [list(c) for c in itertools.product(*choices)]
 
 
-def test_every_stage_command_builds_and_every_rl_sweep_has_five_seeds() -> None:
+def test_every_stage_command_builds_and_every_rl_sweep_has_five_seeds(tmp_path, monkeypatch) -> None:
     mod = _script()
+    # the commands run in the workdir, where the experts stage has written the touchdown set by
+    # then; a config that names it checks that the file exists (its contents are read only by a fit)
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mlruns" / "datasets").mkdir(parents=True)
+    (tmp_path / "mlruns" / "datasets" / "lunar_lander-touchdowns-v1.npz").write_bytes(b"")
     stages = dict(mod.stages(mod.parse_seeds("0-4")))
     assert list(stages) == ["experts", "fits", "transfer", "fast", "dyna", "search"]
     built = 0

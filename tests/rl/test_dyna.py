@@ -230,3 +230,22 @@ def test_learned_crashes_end_surrogate_touchdowns_with_the_crash_reward():
     assert outcomes["always"][0] > 0
     assert np.sum(outcomes["always"][1] == -100) >= outcomes["always"][0]
     assert np.sum(outcomes["always"][1] == 100) < np.sum(outcomes["none"][1] == 100)
+
+
+def test_the_event_score_is_the_learned_models_and_differs_with_the_data():
+    """``events/<name>/test_*`` score the run's own event model: two datasets with different
+    touchdowns give different models and different held-out scores; the prior alone scores the
+    same for both (what the old fixed score measured)."""
+    spec = build_fit_job(compose_cfg("env=lunar_lander")).spec
+    event = _touchdown(spec)
+    rng = np.random.default_rng(1)
+    held = _episodes([(x, -0.05, "crash" if abs(x) > 0.35 else "rest", 5 if abs(x) > 0.35 else 40)
+                      for x in rng.uniform(-0.8, 0.8, 30)])
+    scores = []
+    for boundary in (0.35, 0.6):  # a run whose landers crashed off the pad, and one whose survived further out
+        xs = rng.uniform(-0.8, 0.8, 40)
+        data = _episodes([(x, -0.05, "crash" if abs(x) > boundary else "rest", 5 if abs(x) > boundary else 40) for x in xs])
+        model = fit_event_model(event, data)
+        scores.append(score_events(event, model, held))
+    assert scores[0]["prior_accuracy"] == scores[1]["prior_accuracy"]
+    assert scores[0]["log_loss"] != scores[1]["log_loss"] and scores[0]["accuracy"] > scores[1]["accuracy"]
