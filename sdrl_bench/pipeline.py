@@ -106,6 +106,7 @@ def check(job: FitJob) -> tuple[Any, Transitions | None]:
         )
     if not 0.0 <= job.epsilon <= 1.0:
         raise ConfigError(f"collector.epsilon must be in [0, 1], got {job.epsilon}")
+    spec.check_task(job.seed)  # the task's functions on two real reset states, before any real step
     if data is None and hasattr(job.policy, "validate"):
         job.policy.validate(spec)  # e.g. an expert: checked now, trained only when collecting
     elif data is None and job.policy is not None:

@@ -450,6 +450,53 @@ class EnvSpec:
                               f"for n={n}; need finite ({n}, {len(self.state_names)}) states")
         return out
 
+    def check_task(self, run_seed: int = 0) -> None:
+        """Call the task's functions once on two real reset states (resets only: no env step)
+        with random actions, and check what they return: a function that raises, takes the wrong
+        arguments or returns the wrong shape is one line naming its key, before any real step."""
+        task = self.task
+        if task is None:
+            return
+        env = self.make_env()
+        try:
+            obs = [env.reset(seed=seeds.reset_seed(run_seed, "reset_pool", i))[0] for i in range(2)]
+            env.action_space.seed(seeds.int_seed(run_seed, "reset_pool"))
+            acts = np.array([np.atleast_1d(np.asarray(env.action_space.sample(), dtype=float)) for _ in range(2)])
+        finally:
+            env.close()
+        s = np.asarray(self.coordinates(np.asarray(obs, dtype=float)), dtype=float)
+        fns = self._fns
+        n = len(s)
+
+        def call(key: str, fn, shape, *args):
+            try:
+                out = np.asarray(fn(*args))
+            except Exception as exc:  # a user's function may raise anything
+                raise ConfigError(f"{key}: {functional.one_line(exc)} (called on two real reset states)") from None
+            if shape is not None and out.shape != shape:
+                raise ConfigError(f"{key}: returned shape {out.shape} for {n} states; expected {shape}")
+            return out
+
+        names = {"reward": "env.spec.reward_fn", "term": "env.spec.termination_fn", "exo": "env.spec.exogenous_fn"}
+        if fns["reward_fn"] is not None:  # the YAML's functions, each under its own key
+            call(names["reward"], fns["reward_fn"], (n,), s, acts, s)
+            if fns["termination_fn"] is not None:
+                call(names["term"], fns["termination_fn"], (n,), s, acts, s)
+        else:
+            r = call("env task: reward_terminated", task.reward_terminated, None, s, acts, s)
+            if r.shape != (2, n):
+                raise ConfigError(f"env task: reward_terminated returned shape {r.shape}; expected (reward, terminated) of {n}")
+        if task.initial_states is not None:
+            call("env.spec.initial_state_fn", task.initial_states, (n, len(self.state_names)), np.random.default_rng(0), n)
+        if task.exogenous is not None:
+            call(names["exo"], task.exogenous, (n, len(self.exogenous_names)), s, acts, s)
+        for i, e in enumerate(task.events):
+            key = f"env.spec.events[{i}]"
+            call(f"{key}.trigger", e.trigger, (n,), s, acts, s)
+            call(f"{key}.features", e.features, (n, len(e.feature_names)), s)
+            if e.prior is not None:
+                call(f"{key}.prior", e.prior, (n,), s)
+
     @property
     def defines_task(self) -> bool:
         """Whether a surrogate can be built for this env (it has a task)."""

@@ -251,7 +251,8 @@ def start_run(
     tags: Mapping[str, Any] | None = None,
     parent_run_id: str | None = None,
 ) -> Iterator[Run]:
-    """Create a run; it ends FINISHED, or FAILED (KILLED on Ctrl-C) if the body raises."""
+    """Create a run; it ends FINISHED, or FAILED (KILLED on Ctrl-C) if the body raises. A run that
+    fails carries its reason in one line (tag ``sdrl.error``: the exception's type and message)."""
     exp_id = ensure_experiment(uri, experiment)
     all_tags = {RUN_NAME_TAG: run_name, **process_tags(), **(tags or {})}
     if parent_run_id:
@@ -261,9 +262,22 @@ def start_run(
     try:
         yield run
     except BaseException as exc:
-        run.end("KILLED" if isinstance(exc, KeyboardInterrupt) or stop_signal_received() else "FAILED")
+        killed = isinstance(exc, KeyboardInterrupt) or stop_signal_received()
+        if not killed:
+            with contextlib.suppress(Exception):  # the reason is a courtesy; the status is what counts
+                run.set_tags({ERROR_TAG: _one_line(exc)})
+        run.end("KILLED" if killed else "FAILED")
         raise
     run.end("FINISHED")
+
+
+ERROR_TAG = "sdrl.error"
+"""Why a run ended FAILED: one line."""
+
+
+def _one_line(exc: BaseException) -> str:
+    text = " ".join(str(exc).split())
+    return (f"{type(exc).__name__}: {text}" if text else type(exc).__name__)[:500]
 
 
 def create_parent_run(uri: str, experiment: str, run_name: str, tags: Mapping[str, Any]) -> str:

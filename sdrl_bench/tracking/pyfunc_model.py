@@ -9,11 +9,10 @@ applies them: the one-step prediction ``sdrl_bench.fidelity.step`` makes. Needs 
 installed where the model is loaded.
 """
 
-from __future__ import annotations
-
 import json
 
 import mlflow
+import pandas as pd
 from mlflow.pyfunc import PythonModel
 
 
@@ -27,9 +26,8 @@ class SurrogatePyfunc(PythonModel):
         self.model = load_model(Path(context.artifacts["model"]) / "model.json")
         self.spec = find_spec(json.loads(Path(context.artifacts["env"]).read_text())["env"])
 
-    def predict(self, context, model_input, params=None):
+    def predict(self, context, model_input: pd.DataFrame, params=None) -> pd.DataFrame:
         import numpy as np
-        import pandas as pd
 
         from sdrl_bench.fidelity import step
 

@@ -123,6 +123,8 @@ def test_failure_after_the_run_started_marks_it_failed(store, tmp_path):
         run_fit(compose_cfg(f"dataset.path={path}", f"tracking.uri={store}", "library=trig"))
     runs = search(store)
     assert list(runs["status"]) == ["FAILED"]
+    assert runs["tags.sdrl.error"].tolist() == [
+        "ConfigError: dataset: every transition lies on a state bound or outside the fitted regime; nothing to fit"]
 
 
 def test_sigterm_mid_run_ends_the_run_killed(store, tmp_path):
@@ -154,3 +156,12 @@ def test_sigterm_mid_run_ends_the_run_killed(store, tmp_path):
 def test_unknown_agent_fails_at_composition(tmp_path, store):
     res = run_cli("task=train", "agent=a2c_magic", f"tracking.uri={store}", cwd=tmp_path)
     assert res.returncode != 0 and "Could not find 'agent/a2c_magic'" in res.stderr
+
+
+def test_a_default_fit_prints_no_warning(store, tmp_path):
+    """``sdrl-bench`` with no argument: exit 0, the table and equations on stdout, nothing on
+    stderr that says warning (MLflow's type-hint note, a library's deprecation)."""
+    res = run_cli(f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "warn" not in res.stderr.lower(), res.stderr[-2000:]
+    assert "x[k+1] = 1 x +1 v +0.0015 u -0.0025 cos(3 x)" in res.stdout

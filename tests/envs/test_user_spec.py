@@ -165,6 +165,27 @@ def test_task_module_that_fails_to_import_names_file_and_cause(user_dir):
     assert "ImportError: cannot import name 'no_such_thing'" in msg and "bad_task.py:2" in msg
 
 
+@pytest.mark.parametrize("body,line", [
+    ("    raise RuntimeError('reward table missing')", r"env.spec.reward_fn: RuntimeError: reward table missing \(at .*bad_task.py:3\) \(called on two real reset states\)"),
+    ("    return np.zeros((len(states), 3))", r"env.spec.reward_fn: returned shape \(2, 3\) for 2 states; expected \(2,\)"),
+    ("    return states.sum()", r"env.spec.reward_fn: returned shape \(\) for 2 states; expected \(2,\)"),
+])
+def test_a_broken_reward_fails_before_the_first_real_step(user_dir, body, line):
+    """The task's functions run once on two real reset states when the job is checked: a reward
+    that raises or returns the wrong shape is one line naming its key, and no real step is taken."""
+    from sdrl_bench.pipeline import check
+
+    src, conf = user_dir
+    (src / "bad_task.py").write_text(f"import numpy as np\ndef reward(states, actions, next_states):\n{body}\n")
+    job = build_fit_job(user_cfg(conf, "env.spec.reward_fn=bad_task.reward"))
+    import my_envs
+
+    before = my_envs.Oscillator.steps
+    with pytest.raises(ConfigError, match="^" + line):
+        check(job)
+    assert my_envs.Oscillator.steps == before  # resets only: no real step
+
+
 def test_unregistered_gym_id_fails_before_collection(user_dir):
     with pytest.raises(ConfigError, match=r"env.spec.gym_id: 'Nope-v0' is not registered with gymnasium"):
         build_fit_job(user_cfg(user_dir[1], "env.spec.gym_id=Nope-v0"))
