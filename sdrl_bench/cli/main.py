@@ -98,8 +98,21 @@ def _print_summary(result: FitResult, uri: str, run_id: str, experiment_id: str 
     console.print(tracking.browse_hint(uri, experiment_id, run_id, tracking.display_uri(uri)), highlight=False, soft_wrap=True)
 
 
+def main() -> None:
+    """Entry point of ``sdrl-bench``: the command line checked first (``cli.precheck``: one line and
+    exit 2 for a bad override, key, group option or YAML file), then the Hydra app (``app``)."""
+    from sdrl_bench.cli.precheck import check_command_line
+
+    try:
+        check_command_line(sys.argv[1:], "config")
+    except ConfigError as exc:
+        print(f"sdrl-bench: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    app()
+
+
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")
-def main(cfg: DictConfig) -> float:
+def app(cfg: DictConfig) -> float:
     """Entry point of ``sdrl-bench``. ``task=fit`` returns the mean normalized one-step MSE,
     ``task=train`` the surrogate arm's final real return, ``task=dyna`` the final agent's
     audit return (values for sweepers)."""

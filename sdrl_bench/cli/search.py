@@ -226,8 +226,21 @@ class SearchStorageCallback(Callback):
         tracking.ensure_experiment(tracking.resolve_uri(config.tracking.uri), config.tracking.experiment)
 
 
+def main() -> None:
+    """Entry point of ``sdrl-bench-search``: the command line checked first (``cli.precheck``: one line and
+    exit 2 for a bad override, key, group option or YAML file), then the Hydra app (``app``)."""
+    from sdrl_bench.cli.precheck import check_command_line
+
+    try:
+        check_command_line(sys.argv[1:], "search_app")
+    except ConfigError as exc:
+        print(f"sdrl-bench-search: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    app()
+
+
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="search_app")
-def main(cfg: DictConfig) -> float | None:
+def app(cfg: DictConfig) -> float | None:
     """Entry point of ``sdrl-bench-search``: returns the best held-out error (for sweepers)."""
     # SIGTERM and SIGINT unwind: the running trial fails in Optuna, its run and the study's
     # parent run end KILLED (a rerun resumes the study)

@@ -1,0 +1,140 @@
+"""The command line checked before Hydra runs: one line per mistake, exit 2, nothing written.
+
+Hydra reports a bad override, an unknown key or group option, or a YAML syntax error in a config
+file as several lines (and exits 1), after it has made its output folder. The entry points call
+``check_command_line`` first: it parses the overrides with Hydra's own grammar, composes the
+config once with Hydra's compose API (the package's configs, ``--config-dir``, every override;
+a sweep ``a=1,2`` is checked with each of its values), and turns what fails into one line that
+names the key or the file, with the nearest valid name. Hand-written because Hydra exposes no
+hook between composition and its error report; the composition itself is Hydra's.
+"""
+
+from __future__ import annotations
+
+import difflib
+import re
+from collections.abc import Sequence
+from pathlib import Path
+
+from sdrl_bench import ConfigError
+
+_YAML_WHERE = re.compile(r'in "([^"]+)", line (\d+), column (\d+)')
+
+
+def _parse(overrides: Sequence[str]):
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+    from hydra.errors import OverrideParseException
+
+    parser = OverridesParser.create()
+    out = []
+    for text in overrides:
+        try:
+            out.extend(parser.parse_overrides([text]))
+        except OverrideParseException as exc:
+            why = str(exc).splitlines()[0]
+            raise ConfigError(f"{text}: cannot parse this override ({why}); see "
+                              "https://hydra.cc/docs/advanced/override_grammar/basic") from None
+    return out
+
+
+def _variants(parsed) -> list[list[str]]:
+    """Override lists to compose: each sweep's values in turn (the others at their first value)."""
+    base = []
+    sweeps: list[tuple[int, list[str]]] = []
+    for i, o in enumerate(parsed):
+        prefix = {"ADD": "+", "FORCE_ADD": "++", "DEL": "~"}.get(o.type.name, "")
+        if o.is_sweep_override():
+            values = list(o.sweep_string_iterator())
+            base.append(f"{prefix}{o.key_or_group}={values[0]}")
+            sweeps.append((i, [f"{prefix}{o.key_or_group}={v}" for v in values]))
+        else:
+            base.append(o.input_line)
+    variants = [base]
+    for i, alts in sweeps:
+        for alt in alts[1:]:
+            variants.append(base[:i] + [alt] + base[i + 1:])
+    return variants
+
+
+def _keys(node, prefix: str = "") -> list[str]:
+    from omegaconf import DictConfig
+
+    out = []
+    if isinstance(node, DictConfig):
+        for k in node.keys():
+            full = f"{prefix}.{k}" if prefix else str(k)
+            out.append(full)
+            try:
+                child = node._get_node(k)
+            except Exception:  # an unresolvable interpolation: its key still counts
+                continue
+            out += _keys(child, full)
+    return out
+
+
+def _one_line(exc: BaseException, overrides: Sequence[str], compose) -> str:
+    text = str(exc)
+    first = text.splitlines()[0] if text else type(exc).__name__
+    where = _YAML_WHERE.findall(text)
+    if where or type(exc).__module__.startswith("yaml"):
+        file, line, _ = where[-1] if where else ("?", "?", "?")
+        problem = getattr(exc, "problem", None) or first
+        return f"{file}:{line}: YAML syntax error: {problem}"
+    missing = re.match(r"In '[^']*': Could not find '([^']+)/([^']+)'", first) or re.match(r"Could not find '([^']+)/([^']+)'", first)
+    if missing:
+        group, option = missing.groups()
+        options = re.findall(r"^\t(\S+)$", text, flags=re.M)
+        near = difflib.get_close_matches(option, options, n=1)
+        hint = f"; did you mean {group}={near[0]}?" if near else ""
+        return f"{group}={option}: no such option of '{group}' (options: {', '.join(options)}){hint}"
+    unknown = re.search(r"full_key: (\S+)", text) or re.match(r"Could not override '([^']+)'", first)
+    if unknown:
+        key = unknown.group(1)
+        ok = [o for o in overrides if not o.lstrip("+~").startswith(key.split(".")[0] + ".") and
+              not o.lstrip("+~").startswith(key + "=")]
+        try:
+            known = _keys(compose(ok))
+        except Exception:
+            known = []
+        near = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+        hint = f"; did you mean {near[0]}?" if near else ""
+        return f"{key}: unknown config key{hint} (to add a new key: +{key}=...)"
+    return " ".join(text.split())
+
+
+def check_command_line(argv: Sequence[str], config_name: str) -> None:
+    """Raise a one-line ``ConfigError`` for what Hydra would reject in ``argv`` (see the module
+    docstring); return quietly when Hydra only prints help or info."""
+    from hydra import compose, initialize_config_module
+    from hydra._internal.utils import get_args_parser
+    from hydra.core.global_hydra import GlobalHydra
+
+    try:
+        args, _ = get_args_parser().parse_known_args(list(argv))
+    except SystemExit:
+        return  # argparse's own message (a bad flag): Hydra reports it
+    if args.help or args.hydra_help or args.info or args.cfg or args.shell_completion or args.config_path:
+        return
+    name = args.config_name or config_name
+    parsed = _parse(args.overrides)
+    search = [f"file://{Path(args.config_dir).resolve()}"] if args.config_dir else []
+
+    def composed(overrides: Sequence[str]):
+        extra = list(overrides)
+        if search:
+            own = next((i for i, o in enumerate(extra) if o.startswith("hydra.searchpath=")), None)
+            if own is None:
+                extra.append(f"hydra.searchpath=[{search[0]}]")
+        GlobalHydra.instance().clear()
+        with initialize_config_module(config_module="sdrl_bench.conf", version_base="1.3"):
+            return compose(config_name=name, overrides=extra)
+
+    try:
+        for overrides in _variants(parsed):
+            composed(overrides)
+    except ConfigError:
+        raise
+    except Exception as exc:
+        raise ConfigError(_one_line(exc, _variants(parsed)[0], composed)) from None
+    finally:
+        GlobalHydra.instance().clear()
