@@ -166,8 +166,8 @@ def _ci_text(ci: tuple[float, float, float, str], empty: str = NOT_RUN) -> str:
     if math.isnan(point):
         return empty
     if math.isnan(lo):
-        return f"{point:.1f} ({stat}, 1 seed: no CI)"
-    return f"{point:.1f} [{lo:.1f}, {hi:.1f}] ({stat})"
+        return f"{point:.4g} ({stat}, 1 seed: no CI)"
+    return f"{point:.4g} [{lo:.4g}, {hi:.4g}] ({stat})"
 
 
 FIDELITY_DIFFERENCES = (

@@ -67,8 +67,9 @@ Block = Heading | Para | Table | Image | Equations
 # ---------------------------------------------------------------------- numbers
 def fmt(value: object, kind: str = "g", empty: str = NOT_RUN) -> str:
     """A number as the report prints it; None/NaN print as ``empty`` ("not run" or "missing").
-    Kinds: "g" (3 significant digits), "e" (scientific), "int" (thousands separated),
-    "f1", "f2", "f3" (fixed), "pct" (percent)."""
+    Kinds: "g" (4 significant digits), "e" (scientific, 4 significant digits), "int"
+    (thousands separated), "f1", "f2", "f3" (fixed), "pct" (percent). A metric is never shown
+    with fewer than 4 significant digits in "g" and "e" (the tests compare them with the store)."""
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return empty
     if isinstance(value, str):
@@ -77,12 +78,12 @@ def fmt(value: object, kind: str = "g", empty: str = NOT_RUN) -> str:
     if kind == "int":
         return f"{v:,.0f}"
     if kind == "e":
-        return f"{v:.2e}"
+        return f"{v:.3e}"
     if kind in ("f1", "f2", "f3"):
         return f"{v:.{kind[1]}f}"
     if kind == "pct":
         return f"{100 * v:.0f}%"
-    return f"{v:.3g}"
+    return f"{v:.4g}"
 
 
 # ---------------------------------------------------------------------- Markdown

@@ -77,8 +77,16 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
 
 
 def _log_table(run: Run, df, artifact_file: str) -> None:
-    """A DataFrame as an MLflow table (the UI's artifact view shows it; ``mlflow.load_table`` reads it)."""
-    mlflow_client(run.uri).log_table(run.run_id, df, artifact_file)
+    """A DataFrame as an MLflow table (the UI's artifact view shows it; ``mlflow.load_table``
+    reads it), its numbers at full precision: MLflow writes tables with 10 decimals (pandas'
+    default), which prints 3.77e-15 as 0, so the file is then rewritten with round-trip floats
+    in the same "split" layout."""
+    import json
+
+    mlflow_client(run.uri).log_table(run.run_id, df, artifact_file)  # the UI's table tag
+    rows = [[None if isinstance(v, float) and v != v else (v.item() if hasattr(v, "item") else v) for v in row]
+            for row in df.itertuples(index=False, name=None)]
+    run.log_text(json.dumps({"columns": [str(c) for c in df.columns], "data": rows}), artifact_file)
 
 
 def fit_description(result) -> str:

@@ -142,7 +142,7 @@ def test_transfer_table_and_report_from_a_sweep(store: str, tmp_path) -> None:
     html = (res.folder / "report.html").read_text()
     assert res.n_runs == 5 and res.problems == []  # parent, 3 transfers, the RUNNING one
     assert "http://ui:5000/#/experiments/" in md and f"/runs/{ids[0]}" in md
-    assert "94.0 [" in md and "(mean)" in md and "not run" in md
+    assert "94 [" in md and "(mean)" in md and "not run" in md
     assert "figures/curves_mountain_car_sac_sindy.png" in md and (res.folder / "figures/curves_mountain_car_sac_sindy.png").is_file()
     assert "data:image/png;base64," in html and "<img class='math'" in html and "src='figures/" not in html
     logged = search(store, EXP, "tags.`sdrl.kind` = 'report'")
@@ -386,7 +386,7 @@ def test_five_seed_fidelity_tables_report_iqm_cis_rollouts_and_noise_floor_ratio
     md = (res.folder / "report.md").read_text()
     row = {r[1]: r for r in _md_rows(md, "## 1. Fidelity per state")}["angvel"]
     ref = rt.bootstrap_ci([by_id[i]["mse/angvel"] for i in flight])
-    assert row[5].startswith(f"[{ref[0]:.2e} [{ref[1]:.2e}, {ref[2]:.2e}]](")
+    assert row[5].startswith(f"[{ref[0]:.3e} [{ref[1]:.3e}, {ref[2]:.3e}]](")
     assert row[9] == "flight"
     for cell in row[5:9] + row[10:12]:
         assert {i for i in flight + poly + nn if i in unquote(_link(cell))} == set(flight)

@@ -72,3 +72,44 @@ def test_the_sqlite_store_is_put_in_wal_mode_and_stays_readable(store, tmp_path)
     runs = search(store)
     assert runs["metrics.m"].tolist() == [1.5] and runs["status"].tolist() == ["FINISHED"]
     assert tracking.use_wal(db) is True
+
+
+def _sig4(x: float) -> str:
+    return f"{x:.3e}"
+
+
+def test_no_shown_metric_differs_from_the_logged_one_in_its_first_4_significant_digits(store, tmp_path):
+    """The exact MountainCar law's errors are ~1e-17: the per-state table artifact (the UI's
+    table view) and the report's fidelity cells (one seed: the run's own values) show every
+    metric as logged, to at least 4 significant digits (MLflow's own table writer rounds to 10
+    decimals, which shows 3.77e-15 as 0)."""
+    import re
+
+    from sdrl_bench import tracking
+    from sdrl_bench.report import tables as rt
+    from sdrl_bench.report.build import Linker, table_blocks
+    from sdrl_bench.report.render import render_markdown
+
+    run_fit(compose_cfg(f"tracking.uri={store}", "seed=0"))
+    row = search(store).iloc[0]
+    logged = {k[len("metrics."):]: v for k, v in row.items() if k.startswith("metrics.")}
+    assert logged["rollout50_mse/x"] < 1e-12  # the case that used to print as 0
+    import pandas as pd
+
+    client = MlflowClient(store)
+    path = client.download_artifacts(row["run_id"], "fidelity/per_state.json", str(tmp_path))
+    split = json.loads(open(path).read())
+    table = pd.DataFrame(split["data"], columns=split["columns"])
+    tagged = json.loads(client.get_run(row["run_id"]).data.tags["mlflow.loggedArtifacts"])
+    assert {"path": "fidelity/per_state.json", "type": "table"} in tagged  # the UI shows it as a table
+    for _, r in table.iterrows():
+        for k in ("mse", "mse_norm", "corr", "r2", "rollout10_mse", "rollout50_mse"):
+            assert _sig4(r[k]) == _sig4(logged[f"{k}/{r['state']}"]), (k, r["state"])
+    runs = tracking.find_runs(store, "sdrl-bench")
+    fid = rt.fidelity_table(runs).set_index(["env", "state"]).loc["mountain_car"]
+    md = render_markdown(table_blocks(runs, Linker(runs, None)), tmp_path)
+    for state in ("x", "v"):
+        for col, key in (("mse", f"mse/{state}"), ("rollout", f"rollout50_mse/{state}")):
+            assert _sig4(fid.loc[state, col]) == _sig4(logged[key])
+            shown = f"{logged[key]:.3e}"
+            assert re.search(re.escape(shown), md), (shown, key)
