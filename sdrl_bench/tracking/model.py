@@ -11,10 +11,12 @@ import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
+
 from sdrl_bench.tracking.client import Run
 
-MODEL_NAME = "surrogate"
 CODE = Path(__file__).with_name("pyfunc_model.py")
+TERMS_CODE = Path(__file__).with_name("terms_pyfunc.py")
 
 
 @contextlib.contextmanager
@@ -109,43 +111,72 @@ def log_inputs_retrying(run: Run, inputs: list, attempts: int = 5) -> None:
             time.sleep(0.05 * (attempt + 1))
 
 
-def model_io_example(result, n: int = 5):
-    """(input example, one-step predictions) on the first ``n`` held-out transitions."""
-    from sdrl_bench.fidelity import step
+def terms_table(model) -> dict | None:
+    """A model with structured terms (SINDy, per-equation) as the data ``terms_pyfunc`` evaluates:
+    input and output names, terms, coefficients, stages; None for other models."""
+    import numpy as np
 
-    spec = result.job.spec
-    x = _frame(result.test, spec).iloc[:n]
-    cols = [f"s_{s}" for s in spec.state_names] + [f"a_{i}" for i in range(spec.raw_action_width)]
-    example = x[cols].astype(float).reset_index(drop=True)
+    terms, coef = getattr(model, "terms_", None), getattr(model, "coef_", None)
+    if terms is None or coef is None:
+        return None
+    return {"format": "sdrl-bench/terms-v1", "inputs": list(model.state_names_) + list(model.control_names_),
+            "outputs": list(model.state_names_), "terms": [[[int(j), str(op), float(p)] for j, op, p in t] for t in terms],
+            "coef": np.asarray(coef, dtype=float).tolist(), "stages": getattr(model, "stages_", None)}
+
+
+def model_io_example(result, n: int = 5):
+    """(input example, next-state predictions) on the first ``n`` held-out transitions: the
+    model's inputs by name (regressed states, then controls) and its prediction."""
     import pandas as pd
 
-    pred = step(result.model, spec, result.test.states[:n], result.test.actions[:n])
-    return example, pd.DataFrame(pred, columns=[f"ns_{s}" for s in spec.target_names])
+    spec, model = result.job.spec, result.model
+    x, u = spec.model_inputs(result.test.states[:n], result.test.actions[:n])
+    example = pd.DataFrame(np.concatenate([x, u], axis=1), columns=list(spec.input_names))
+    pred = model.predict(x, u)
+    return example, pd.DataFrame(pred, columns=[f"{s}_next" for s in spec.target_names])
 
 
 def log_surrogate_model(run: Run, result) -> str:
-    """Log the fitted surrogate as the run's MLflow model (pyfunc from code, ``model.json`` as
-    its data); returns its model URI (``models:/<model id>``)."""
+    """Log the fitted dynamics model as the run's MLflow model, named ``<env>-<library>-<kind>``
+    and described by its equations; returns its model URI (``models:/<model id>``).
+
+    A model with structured terms (SINDy) is logged self-contained (``terms_pyfunc.py`` and
+    ``terms.json``): it loads with ``mlflow`` and ``numpy`` alone. Any other model (the NN) is
+    logged with the harness's loader (``pyfunc_model.py``, ``model.json`` and its weights). Both
+    predict the next regressed states from the model's inputs by name."""
     import mlflow
     from mlflow.models import Model, infer_signature
 
     from sdrl_bench.tracking.client import mlflow_client
 
-    spec = result.job.spec
+    spec, model = result.job.spec, result.model
     example, output = model_io_example(result)
+    table = terms_table(model)
+    library = result.job.names.get("library", "model") if result.job.surrogate == "sindy" else result.job.surrogate
+    name = f"{spec.name}-{library}-{model.kind}"
     with tempfile.TemporaryDirectory() as tmp:
-        model_dir = Path(tmp) / "model"
-        result.model.save(model_dir / "model.json")
-        env_file = Path(tmp) / "env.json"
-        env_file.write_text(json.dumps({"env": spec.name}))
+        if table is not None:
+            code, requirements = TERMS_CODE, [f"mlflow=={mlflow.__version__}", f"numpy=={np.__version__}"]
+            path = Path(tmp) / "terms.json"
+            path.write_text(json.dumps(table))
+            artifacts = {"terms": str(path)}
+        else:
+            code, requirements = CODE, [f"mlflow=={mlflow.__version__}", "sdrl-bench"]
+            model_dir = Path(tmp) / "model"
+            model.save(model_dir / "model.json")
+            artifacts = {"model": str(model_dir)}
         exp_id = mlflow_client(run.uri).get_run(run.run_id).info.experiment_id
         with _fluent_target(run.uri, exp_id), warnings.catch_warnings():
-            warnings.simplefilter("ignore", UserWarning)  # MLflow's type-hint and integer-column hints
+            warnings.simplefilter("ignore", UserWarning)  # MLflow's integer-column hints
             info = Model.log(
-                artifact_path=None, name=MODEL_NAME, flavor=mlflow.pyfunc, run_id=run.run_id,
-                python_model=str(CODE), artifacts={"model": str(model_dir), "env": str(env_file)},
+                artifact_path=None, name=name, flavor=mlflow.pyfunc, run_id=run.run_id,
+                python_model=str(code), artifacts=artifacts,
                 signature=infer_signature(example, output), input_example=example,
-                pip_requirements=[f"mlflow=={mlflow.__version__}", "sdrl-bench"],
-                tags={"sdrl.env": spec.name, "sdrl.surrogate": result.job.surrogate},
+                pip_requirements=requirements,
+                tags={"sdrl.env": spec.name, "sdrl.surrogate": result.job.surrogate, "sdrl.library": library},
             )
+    with contextlib.suppress(Exception):  # a store without logged-model tags keeps the model undescribed
+        mlflow_client(run.uri).set_logged_model_tags(
+            info.model_id, {"mlflow.note.content": f"Next {', '.join(spec.target_names)} from "
+                            f"{', '.join(spec.input_names)}:\n\n```\n{model.describe().strip()}\n```\n"})
     return info.model_uri

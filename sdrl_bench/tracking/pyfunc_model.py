@@ -1,43 +1,36 @@
-"""The surrogate as an MLflow pyfunc, logged from code (MLflow's models-from-code): MLflow
-copies this file into the logged model and runs it on ``mlflow.pyfunc.load_model``; the
-model itself stays data (``model.json``, and an NN's state dict), loaded by the project's own
-``load_model``, never a pickle.
+"""A dynamics model of any kind as an MLflow pyfunc, logged from code (MLflow's models-from-code):
+MLflow copies this file into the logged model and runs it on ``mlflow.pyfunc.load_model``; the
+model itself stays data (``model.json``, and an NN's state dict), loaded by the harness's own
+``load_model``, never a pickle. Needs sdrl_bench installed where it is loaded (a SINDy model is
+logged self-contained instead: ``terms_pyfunc.py``).
 
-Input: a DataFrame with the dataset CSV's state and action columns (``s_<state>``,
-``a_<i>``); output: the next regressed states (``ns_<state>``), bounds applied as the real env
-applies them: the one-step prediction ``sdrl_bench.fidelity.step`` makes. Needs sdrl_bench
-installed where the model is loaded.
+Input: a DataFrame with one column per model input (the regressed states, then the controls:
+exogenous states and encoded actions, by name); output: the next regressed states
+(``<state>_next``), the dynamics model's own prediction. No env is needed to load it.
 """
 
-import json
+from pathlib import Path
 
 import mlflow
+import numpy as np
 import pandas as pd
 from mlflow.pyfunc import PythonModel
 
 
-class SurrogatePyfunc(PythonModel):
+class DynamicsPyfunc(PythonModel):
     def load_context(self, context) -> None:
-        from pathlib import Path
-
-        from sdrl_bench.envs.base import find_spec
         from sdrl_bench.models.base import load_model
 
         self.model = load_model(Path(context.artifacts["model"]) / "model.json")
-        self.spec = find_spec(json.loads(Path(context.artifacts["env"]).read_text())["env"])
 
     def predict(self, context, model_input: pd.DataFrame, params=None) -> pd.DataFrame:
-        import numpy as np
-
-        from sdrl_bench.fidelity import step
-
-        spec = self.spec
+        m = self.model
         df = pd.DataFrame(model_input)
-        states = df[[f"s_{n}" for n in spec.state_names]].to_numpy(dtype=float)
-        actions = df[[f"a_{i}" for i in range(spec.raw_action_width)]].to_numpy(dtype=float)
+        x = df[list(m.state_names_)].to_numpy(dtype=float)
+        u = df[list(m.control_names_)].to_numpy(dtype=float)
         with np.errstate(all="ignore"):
-            nxt = step(self.model, spec, states, actions)
-        return pd.DataFrame(nxt, columns=[f"ns_{n}" for n in spec.target_names], index=df.index)
+            nxt = np.asarray(m.predict(x, u), dtype=float)
+        return pd.DataFrame(nxt, columns=[f"{s}_next" for s in m.state_names_], index=df.index)
 
 
-mlflow.models.set_model(SurrogatePyfunc())
+mlflow.models.set_model(DynamicsPyfunc())

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import mlflow
 import numpy as np
+import pandas as pd
 import pytest
 from mlflow.tracking import MlflowClient
 
@@ -80,10 +81,11 @@ def test_a_fit_run_on_a_server_has_datasets_a_loadable_model_equations_tags_and_
     assert all(len(d.digest) >= 8 for d in inputs.values()) and inputs["training"].digest != inputs["testing"].digest
     assert '"num_rows": 75' in inputs["training"].profile
 
-    # the logged model: a pyfunc from code that predicts s' from (s, a) as the project's evaluator does
+    # the logged model: a self-contained pyfunc that predicts the next states from the model's inputs
     (out,) = run.outputs.model_outputs
     logged = client.get_logged_model(out.model_id)
-    assert logged.source_run_id == rid and logged.name == "surrogate" and logged.status == "READY"
+    assert logged.source_run_id == rid and logged.name == "mountain_car-poly_trig-sindy" and logged.status == "READY"
+    assert "x[k+1] = 1 x +1 v +0.0015 u -0.0025 cos(3 x)" in logged.tags["mlflow.note.content"]
     assert logged.experiment_id == exp.experiment_id  # listed on the run page and the experiment's Models tab
     mlflow.set_tracking_uri(server)
     try:
@@ -92,11 +94,12 @@ def test_a_fit_run_on_a_server_has_datasets_a_loadable_model_equations_tags_and_
     finally:
         mlflow.set_tracking_uri(None)
     spec, test = result.job.spec, result.test
-    frame = test.to_frame(spec)[[f"s_{n}" for n in spec.state_names] + [f"a_{i}" for i in range(spec.raw_action_width)]]
-    pred = pyfunc.predict(frame.astype(float))
-    assert list(pred.columns) == ["ns_x", "ns_v"] and len(pred) == len(test)
-    assert np.max(np.abs(pred.to_numpy() - result.fidelity.pred_next)) <= 1e-12
-    assert pyfunc.metadata.signature.inputs.input_names() == list(frame.columns)
+    x, u = spec.model_inputs(test.states, test.actions)
+    frame = pd.DataFrame(np.concatenate([x, u], axis=1), columns=list(spec.input_names))
+    pred = pyfunc.predict(frame)
+    assert list(pred.columns) == ["x_next", "v_next"] and len(pred) == len(test)
+    assert np.max(np.abs(pred.to_numpy() - result.model.predict(x, u))) <= 1e-12
+    assert pyfunc.metadata.signature.inputs.input_names() == ["x", "v", "u"]
 
     # description = the equations; standard tags; lean params with the real tracking URI
     tags = run.data.tags
