@@ -212,6 +212,17 @@ def real_arm_key(cfg: DictConfig) -> str:
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
+JOB_TAG = "sdrl.job"
+"""A sweep job's own overrides (what tells it from its siblings)."""
+
+
+def run_label(name: str, tags: dict | None) -> str:
+    """A run's name: inside a sweep its own overrides come first (``seed=3 library=trig ·
+    fit-...``), so that the UI's runs table, which cuts names short, tells siblings apart."""
+    job = (tags or {}).get(JOB_TAG)
+    return f"{job} · {name}" if job else name
+
+
 def config_key(cfg: DictConfig) -> str:
     """What a job computes: its resolved config, less what does not change the result
     (progress bars, the resume switch, Hydra's own settings)."""

@@ -34,6 +34,7 @@ from sdrl_bench import tracking
 
 PARENT_FILE = "mlflow_parent_run_id"
 KEY_FILE = "mlflow_sweep_key"
+VARYING_FILE = "sweep_varying_keys.json"
 SWEEP_KEY_TAG = "sdrl.sweep_key"
 CONFIG_KEY_TAG = "sdrl.config_key"
 WORKER_GRACE_SECONDS = 5.0
@@ -69,6 +70,7 @@ class MlflowSweepCallback(Callback):
         sweep_dir.mkdir(parents=True, exist_ok=True)
         (sweep_dir / PARENT_FILE).write_text(run_id)
         (sweep_dir / KEY_FILE).write_text(key)
+        (sweep_dir / VARYING_FILE).write_text(json.dumps(varying_keys(overrides)))
         self._parent = (uri, run_id, experiment)
         atexit.register(self._abort)
         for sig in (signal.SIGTERM, signal.SIGINT):
@@ -140,6 +142,23 @@ def stop_children(grace: float) -> int:
         except psutil.NoSuchProcess:
             pass
     return len(children)
+
+
+def varying_keys(overrides: list[str]) -> list[str]:
+    """The keys a sweep varies, those with the most values first (a job's run name leads with them)."""
+    from hydra.core.override_parser.overrides_parser import OverridesParser
+
+    parsed = [o for o in OverridesParser.create().parse_overrides(overrides) if o.is_sweep_override()]
+    counts = {o.key_or_group: len(list(o.sweep_string_iterator())) for o in parsed}
+    return sorted(counts, key=lambda k: -counts[k])
+
+
+def job_label(sweep_dir: str | Path, job_overrides: list[str]) -> str:
+    """A sweep job told from its siblings: its values of the swept keys (``library=trig seed=3``)."""
+    path = Path(sweep_dir) / VARYING_FILE
+    keys = json.loads(path.read_text()) if path.is_file() else []
+    values = dict(o.lstrip("+~").split("=", 1) for o in job_overrides if "=" in o)
+    return " ".join(f"{k}={values[k]}" for k in keys if k in values) or " ".join(job_overrides)
 
 
 def sweep_context(sweep_dir: str | Path) -> tuple[str | None, str | None]:

@@ -6,7 +6,7 @@ from __future__ import annotations
 from omegaconf import DictConfig, OmegaConf
 
 from sdrl_bench import tracking
-from sdrl_bench.cli.build import build_dyna_job, real_arm_key
+from sdrl_bench.cli.build import build_dyna_job, real_arm_key, run_label
 from sdrl_bench.cli.train import prepare
 from sdrl_bench.rl.dyna import LOOP_PHASES, DynaOutcome, run_dyna
 from sdrl_bench.tracking.dyna_runs import DynaRunRecorder
@@ -20,7 +20,7 @@ def run_dyna_task(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict
             "optimizer": names["optimizer"], "collector": names["collector"], "seed": job.seed,
             "solved_threshold": spec.solved_threshold}
     standard = tracking.standard_tags("sdrl-bench task=dyna")
-    run_name = f"dyna-{spec.name}-{job.agent.name}-{names['surrogate']}-s{job.seed}"
+    run_name = run_label(f"dyna-{spec.name}-{job.agent.name}-{names['surrogate']}-s{job.seed}", extra_tags)
     with tracking.tracked_run(uri, cfg.tracking.experiment, run_name, "dyna", {**base, **(extra_tags or {})}, parent,
                               config=OmegaConf.to_container(cfg, resolve=True), system=True) as run:
         exp_id = tracking.ensure_experiment(uri, cfg.tracking.experiment)

@@ -19,8 +19,8 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, stop_signal_received, tracking
-from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job, config_key, exit_after_stop_signal
-from sdrl_bench.cli.callbacks import CONFIG_KEY_TAG, SWEEP_KEY_TAG, sweep_context
+from sdrl_bench.cli.build import JOB_TAG, CONFIG_PATH, build_fit_job, config_key, exit_after_stop_signal, run_label
+from sdrl_bench.cli.callbacks import CONFIG_KEY_TAG, SWEEP_KEY_TAG, job_label, sweep_context
 from sdrl_bench.pipeline import FitResult, check, fit_dynamics
 
 
@@ -63,7 +63,7 @@ def run_fit(cfg: DictConfig, parent: str | None = None, extra_tags: dict[str, st
         "collector": names["collector"], "surrogate": names["surrogate"], "seed": job.seed, **(extra_tags or {}),
     }
     model_name = f"{names['library']}-{names['optimizer']}" if names["surrogate"] == "sindy" else names["surrogate"]
-    run_name = f"fit-{names['env']}-{model_name}-s{job.seed}"
+    run_name = run_label(f"fit-{names['env']}-{model_name}-s{job.seed}", tags)
     with tracking.tracked_run(uri, cfg.tracking.experiment, run_name, "fit", tags, parent,
                               config=OmegaConf.to_container(cfg, resolve=True)) as run:
         result = fit_dynamics(job, checked)
@@ -126,7 +126,8 @@ def app(cfg: DictConfig) -> float:
         tags: dict[str, str] = {}
         if parent is not None:  # no progress bars inside multiruns
             OmegaConf.update(cfg, "progress_bar", False)
-            tags = {SWEEP_KEY_TAG: key or "", CONFIG_KEY_TAG: config_key(cfg)}
+            tags = {SWEEP_KEY_TAG: key or "", CONFIG_KEY_TAG: config_key(cfg),
+                    JOB_TAG: job_label(HydraConfig.get().sweep.dir, list(HydraConfig.get().overrides.task))}
         if cfg.task not in ("fit", "train", "dyna"):
             raise ConfigError(f"task: {cfg.task!r} is not one of 'fit', 'train', 'dyna'")
         fit_job = build_fit_job(cfg)  # validates the config before anything else

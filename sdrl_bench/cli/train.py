@@ -11,7 +11,7 @@ import tempfile
 from omegaconf import DictConfig, OmegaConf
 
 from sdrl_bench import tracking
-from sdrl_bench.cli.build import build_transfer_job, real_arm_key
+from sdrl_bench.cli.build import build_transfer_job, real_arm_key, run_label
 from sdrl_bench.rl.transfer import TransferJob, run_transfer
 from sdrl_bench.tracking.transfer import RunRecorder
 
@@ -27,7 +27,7 @@ def run_train(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict[str
         "seed": job.seed, "arms": ",".join(job.arms), "real_arm_key": key,
         "solved_threshold": spec.solved_threshold, **(extra_tags or {}),
     }
-    run_name = f"train-{spec.name}-{job.agent.name}-{names['surrogate']}-s{job.seed}"
+    run_name = run_label(f"train-{spec.name}-{job.agent.name}-{names['surrogate']}-s{job.seed}", extra_tags)
     intro = (f"**{spec.name}**: {job.agent.name.upper()} trained in the {names['surrogate']} surrogate and/or the real "
              f"env (arms: {', '.join(job.arms)}), seed {job.seed}.")
     with tracking.tracked_run(uri, cfg.tracking.experiment, run_name, "transfer", tags, parent, task="train",
