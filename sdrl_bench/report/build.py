@@ -219,6 +219,57 @@ def _collectors(runs: Sequence[Mapping[str, Any]]) -> str:
     return f" The fits' data came from these collectors (their runs' tags): {'; '.join(parts)}." if parts else ""
 
 
+def _int(text: Any) -> int | None:
+    try:
+        return int(float(text))
+    except (TypeError, ValueError):
+        return None
+
+
+def _recipe(group: Sequence[Mapping[str, Any]]) -> str:
+    """What one (env, agent) group of transfer runs did, read from their params: budgets, the stop
+    rule, the evaluations, the model's data, and the machine's load while they ran."""
+    params = [r.get("params", {}) for r in group]
+
+    def one(key: str) -> str | None:
+        values = {p.get(key) for p in params if p.get(key) is not None}
+        return next(iter(values)) if len(values) == 1 else (f"{len(values)} values" if values else None)
+
+    tags = group[0]["tags"]
+    arms = tags.get("arms", "surrogate,real").split(",")
+    budgets = [f"{_int(one(f'rl.{a}_steps')):,} {a}" for a in arms if _int(one(f"rl.{a}_steps")) is not None]
+    stop = one("rl.stop_when_solved") in ("True", "true")
+    every, episodes, final = (_int(one(k)) for k in ("rl.eval_every", "rl.eval_episodes", "rl.final_episodes"))
+    text = f"{tags.get('env')}, {tags.get('agent')} ({len(group)} seeds): " + (
+        f"budgets {' / '.join(budgets)} steps" if budgets else "budgets not recorded")
+    if every and episodes:
+        rule = "stopped at the first one at the threshold" if stop else "the budgets run out (no stop)"
+        text += f", a real evaluation of {episodes} episodes every {every:,} steps, {rule}"
+    if final:
+        text += f", judged on {final} final real episodes"
+    n, collector, eps = one("n_transitions"), one("collector.name"), one("collector.epsilon")
+    if "surrogate" in arms and n:
+        text += f"; the surrogate's model from {n} real transitions ({collector} collector, eps {eps})"
+    loads = [r["metrics"].get("machine/load1_start") for r in group if r["metrics"].get("machine/load1_start") is not None]
+    cpus = next((r["metrics"]["machine/cpus"] for r in group if "machine/cpus" in r["metrics"]), None)
+    if loads and cpus:
+        text += f"; load average when the runs started {min(loads):.1f}-{max(loads):.1f} on {cpus:.0f} cores"
+    return text
+
+
+def _recipes(runs: Sequence[Mapping[str, Any]]) -> str:
+    """One sentence per (env, agent) of the transfer table, from its SINDy runs (else its others)."""
+    groups: dict[tuple, list] = {}
+    for r in rt.finished(runs, "transfer"):
+        t = r["tags"]
+        groups.setdefault((str(t.get("env")), str(t.get("agent"))), []).append(r)
+    parts = []
+    for _, group in sorted(groups.items()):
+        sindy = [r for r in group if r["tags"].get("surrogate", "sindy") == "sindy"]
+        parts.append(_recipe(sindy or group))
+    return (" What the runs did (read from their params): " + "; ".join(parts) + ".") if parts else ""
+
+
 def _total_steps_note(envs: Sequence[str]) -> str:
     parts = [f"{int(t['surrogate']):,} total steps for the surrogate arm against {int(t['real']):,} for the real arm "
              f"on {e}" for e in dict.fromkeys(envs) if {"surrogate", "real"} <= set(t := rt.paper(e, "total_steps"))]
@@ -294,7 +345,7 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                      "data; the real arm: its training steps) and the wall seconds (training, plus collection "
                      "and fit for a surrogate arm; evaluations excluded), mean over the seeds that reached it."))
     envs = list(tr["env"]) if len(tr) else []
-    out.append(_with_notes(TRANSFER_DIFFERENCES + _total_steps_note(envs), envs, "transfer"))
+    out.append(_with_notes(TRANSFER_DIFFERENCES + _total_steps_note(envs) + _recipes(runs), envs, "transfer"))
     out += dyna_blocks(runs, link)
     return out
 

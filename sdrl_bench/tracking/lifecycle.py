@@ -29,9 +29,23 @@ def tracked_run(uri: str, experiment: str, run_name: str, kind: str, tags: Mappi
     name = source or f"sdrl-bench task={task or kind}"
     all_tags = {"sdrl.kind": kind, **standard_tags(name), **(tags or {})}
     with start_run(uri, experiment, run_name, all_tags, parent) as run:
+        run.log_metrics(machine_load("start"))
         if config is not None:
             log_config(run, config, uri, task=task or kind)
         if description:
             set_description(run, description)
         with system_metrics(run) if system else contextlib.nullcontext():
             yield run
+        run.log_metrics(machine_load("end"))
+
+
+def machine_load(when: str) -> dict[str, float]:
+    """The machine's load as the run saw it (``machine/load1_<when>``: the 1-minute load average,
+    beside ``machine/cpus``): how many processes shared the cores, for the report to say."""
+    import os
+
+    try:
+        load1 = os.getloadavg()[0]
+    except OSError:  # no load average on this platform
+        return {}
+    return {f"machine/load1_{when}": float(load1), "machine/cpus": float(os.cpu_count() or 1)}
