@@ -186,6 +186,17 @@ def test_a_broken_reward_fails_before_the_first_real_step(user_dir, body, line):
     assert my_envs.Oscillator.steps == before  # resets only: no real step
 
 
+def test_an_env_without_an_agent_trains_the_fast_ppo_recipe(user_dir):
+    """A user's env that names no agent gets ppo_fast (any action space, many envs); the shipped
+    envs name their tuned ones; agent= on the command line wins."""
+    assert user_cfg(user_dir[1]).agent.name == "ppo_fast"
+    assert {e: compose_cfg(f"env={e}").agent.name for e in ("mountain_car", "lunar_lander", "cartpole")} == {
+        "mountain_car": "sac", "lunar_lander": "ppo", "cartpole": "ppo"}
+    assert compose_cfg("env=lunar_lander", "agent=dqn").agent.name == "dqn"
+    cfg = user_cfg(user_dir[1], "task=train")
+    build_transfer_job(cfg, build_fit_job(cfg)).agent.check(build_fit_job(cfg).spec)
+
+
 def test_unregistered_gym_id_fails_before_collection(user_dir):
     with pytest.raises(ConfigError, match=r"env.spec.gym_id: 'Nope-v0' is not registered with gymnasium"):
         build_fit_job(user_cfg(user_dir[1], "env.spec.gym_id=Nope-v0"))
