@@ -29,7 +29,7 @@ from sdrl_bench.data import Transitions, collect, random_policy
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.models.libraries import build_library
 from sdrl_bench.pipeline import FitJob, build_model, check
-from sdrl_bench.search.space import SearchSpace, describe_space, grid_values, suggest
+from sdrl_bench.search.space import GROUP_PARAMS, SearchSpace, describe_space, grid_values, suggest
 from sdrl_bench.search.storage import open_storage, open_study, redact, resolve_storage, study_parent_run
 from sdrl_bench.search.validation import Fold, aggregate, cross_validate, fit_model, make_folds, resolution_floor
 
@@ -288,13 +288,31 @@ def run_study(
     return result
 
 
+FIT_PARAM_NAMES = {"library": "library.name", "optimizer": "optimizer.name", "threshold": "optimizer.threshold",
+                   "alpha": "optimizer.alpha", "normalize_columns": "optimizer.normalize_columns",
+                   "poly_degree": "env.poly_degree"}
+"""A searched parameter -> the name a fit run logs it under (``tracking.used_params``)."""
+
+
+def fit_params(context: Mapping[str, Any], params: Mapping[str, Any]) -> dict[str, Any]:
+    """A trial's params under the names a fit run uses: the study's fixed values (seed,
+    n_transitions, collector.epsilon, ...) and group choices, then the searched ones."""
+    out: dict[str, Any] = {f"{g}.name": v for g, v in dict(context.get("choices", {})).items() if g != "env"}
+    out.update(dict(context.get("values", {})))
+    out.update({FIT_PARAM_NAMES.get(k, k): v for k, v in params.items()})
+    return out
+
+
 def _objective(s: StudySettings, build_job: BuildJob, sd: StudyData, uri: str, parent: str):
     prune = s.pruner != "none" and len(s.objectives) == 1
 
     def objective(trial: optuna.Trial) -> float | tuple[float, float]:
         params = suggest(trial, s.space)
         trial.set_user_attr("worker", s.worker)
-        tags = {"sdrl.study": s.name, "optuna.trial": trial.number, "sdrl.worker": s.worker, "env": sd.spec.name}
+        choices = {**dict(s.context.get("choices", {})), **{k: v for k, v in params.items() if k in GROUP_PARAMS}}
+        tags = {"sdrl.study": s.name, "optuna.trial": trial.number, "sdrl.worker": s.worker, "env": sd.spec.name,
+                **{k: str(v) for k, v in choices.items() if k in ("collector", "library", "optimizer")},
+                "seed": dict(s.context.get("values", {})).get("seed", "")}
 
         def report(step: int, value: float) -> bool:
             trial.report(value, step)
@@ -303,7 +321,7 @@ def _objective(s: StudySettings, build_job: BuildJob, sd: StudyData, uri: str, p
         with tracking.tracked_run(uri, s.experiment, f"{s.name}-trial-{trial.number}", "trial", tags, parent,
                                   source="sdrl-bench-search") as run:
             trial.set_user_attr("mlflow_run_id", run.run_id)
-            run.log_params({**{k: v for k, v in s.context.items()}, **params})
+            run.log_params(fit_params(s.context, params))
             try:
                 with stop_signals_held(False):
                     out = evaluate_params(params, build_job, sd, report if prune else None)

@@ -18,7 +18,7 @@ import optuna
 
 from sdrl_bench import tracking
 from sdrl_bench.pipeline import fit_dynamics
-from sdrl_bench.search.study import BuildJob, WorkerResult, counted
+from sdrl_bench.search.study import BuildJob, WorkerResult, counted, fit_params
 from sdrl_bench.search.plots import history_figure, importance_figure, pareto_figure
 from sdrl_bench.search.space import describe_space, experiment_pack, to_overrides
 from sdrl_bench.search.storage import open_storage, resolve_storage
@@ -150,17 +150,13 @@ def _final_score(summary: StudySummary, result: WorkerResult, build_job: BuildJo
     s = result.settings
     fit = fit_dynamics(build_job(best.params))
     tags = {"sdrl.study": s.name, "optuna.trial": best.number, "sdrl.role": "best-refit", "env": fit.job.spec.name,
-            "seed": fit.job.seed}
+            "seed": fit.job.seed, **{k: v for k, v in fit.job.names.items() if k in ("collector", "library", "optimizer")}}
     with tracking.tracked_run(result.tracking_uri, s.experiment, f"{s.name}-best-refit", "fit", tags, result.parent_run_id,
                               source="sdrl-bench-search") as run:
-        tracking.log_fit(run, fit, {**_flat(s.context), **best.params})
+        tracking.log_fit(run, fit, fit_params(s.context, best.params))
     summary.test_name = fit.test_name
     summary.test_metrics = {k: float(v) for k, v in fit.fidelity.metrics.items()}
     summary.test_error = summary.test_metrics.get("mse_norm/mean")
-
-
-def _flat(context: Mapping[str, Any]) -> dict[str, Any]:
-    return tracking.flatten({k: v for k, v in context.items()})
 
 
 def _log_figures(run: tracking.Run, study, complete, points, summary: StudySummary) -> None:

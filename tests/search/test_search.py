@@ -126,7 +126,13 @@ def test_every_trial_is_a_child_run_with_params_objective_and_terms(mc_study, ur
     for t in trials:
         r = runs[t.number]
         assert r["status"] == "FINISHED" and r["tags"]["optuna.state"] == t.state.name
-        assert {k: r["params"][k] for k in t.params} == {k: str(v) for k, v in t.params.items()}
+        # under the names a fit run logs them (optimizer.threshold, library.name, ...), tagged as fits are
+        from sdrl_bench.search.study import FIT_PARAM_NAMES
+
+        assert {k: r["params"][FIT_PARAM_NAMES[k]] for k in t.params} == {k: str(v) for k, v in t.params.items()}
+        assert r["params"]["seed"] == "0" and r["tags"]["env"] == "mountain_car" and r["tags"]["seed"] == "0"
+        assert r["tags"]["mlflow.source.name"] == "sdrl-bench-search" and r["tags"]["mlflow.user"]
+        assert r["tags"]["library"] == r["params"]["library.name"]
         if t.state == optuna.trial.TrialState.COMPLETE:
             assert r["metrics"]["error"] == pytest.approx(t.value, rel=1e-12)
             assert r["metrics"]["n_terms"] == t.user_attrs["n_terms"]
