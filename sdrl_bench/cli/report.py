@@ -36,13 +36,16 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--tag", action="append", default=[], metavar="K=V", help="only runs with this tag (repeatable)")
     ap.add_argument("--name", default="report", help="report folder name under --out")
     ap.add_argument("--out", default="reports", type=Path, help="output folder (default: reports/)")
-    ap.add_argument("--ui-url", help="MLflow UI base URL: numbers link to their runs there")
+    ap.add_argument("--ui-url", help="MLflow UI base URL: numbers link to their runs there (default: the tracking "
+                                     "server's own URL when --uri is a server; none for a local store)")
     ap.add_argument("--no-log", action="store_true", help="do not log the report as an MLflow run")
     ap.add_argument("--provenance", type=Path, help="rebuild record (scripts/reproduce.py's rebuild.json): how it was made")
     args = ap.parse_args(argv)
     command = "sdrl-bench-report " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     try:
-        inp = ReportInput(tracking.resolve_uri(args.uri), args.experiment, args.parent_run, _parse_tags(args.tag), args.ui_url)
+        uri = tracking.resolve_uri(args.uri)
+        ui = args.ui_url or (uri if uri.startswith(("http://", "https://")) else None)  # a server serves its own UI
+        inp = ReportInput(uri, args.experiment, args.parent_run, _parse_tags(args.tag), ui)
         res = build_report(inp, args.name, args.out, command.strip(), log_run=not args.no_log,
                            provenance=args.provenance)
     except ConfigError as exc:

@@ -116,7 +116,7 @@ class Linker:
         if not run_ids:
             return Cell(NOT_RUN)
         shown = ", ".join(r[:8] for r in run_ids[:limit]) + (f" +{len(run_ids) - limit}" if len(run_ids) > limit else "")
-        return Cell(shown, self.runs_url(run_ids))
+        return Cell(shown, self.runs_url(run_ids), runs=True)
 
 
 def _df_table(df: pd.DataFrame, spec: Sequence[tuple[str, ...]], link: Linker, caption: str) -> Table:
@@ -328,11 +328,12 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                                          f"{fmt(r['solved_real_steps'], 'int')} ({r['n_solved']}/{r['n_seeds']} seeds)")
         solved_wall = NOT_RUN if not ids else ("not reached" if r["n_solved"] == 0 else fmt(r["solved_wall_seconds"], "f1", e))
         vals = [fmt(r["real_transitions"], "int", e), fmt(r["surrogate_steps"], "int", e), fmt(r["total_steps"], "int", e),
-                fmt(r["paper_total_steps"], "int", "-"),
+                None,  # the paper's number: linked to no run of ours
                 _ci_text((r["return"], r["ci_low"], r["ci_high"], r["statistic"])), fmt(r["success_rate"], "pct", e),
                 fmt(r["train_wall_seconds"], "f1", e), solved, solved_wall]
+        cells = [Cell(fmt(r["paper_total_steps"], "int", "-")) if v is None else link.cell(v, ids) for v in vals]
         rows.append([Cell(r["env"]), Cell(r["surrogate"]), Cell(r["arm"]), Cell(r["agent"]), Cell(str(r["n_seeds"]))]
-                    + [link.cell(v, ids) for v in vals] + [link.ids(ids)])
+                    + cells + [link.ids(ids)])
     out.append(Table(["env", "surrogate", "arm", "agent", "seeds", "real transitions", "surrogate steps", "total steps",
                       "paper total steps", "final real return [95% CI]", "success", "train wall s",
                       "real steps to solved", "wall s to solved", "runs"], rows,
@@ -402,9 +403,16 @@ def overview_blocks(inp: ReportInput, runs: Sequence[Mapping[str, Any]], problem
                         + ". Only FINISHED runs count; RUNNING, FAILED and KILLED runs are listed here but not used. "
                         "Every run read, with its tags, params and metrics: [runs.csv](runs.csv) beside this report "
                         "(the tables name runs by the first 8 characters of their MLflow run id)."
-                        + (f" Numbers link to their runs in the MLflow UI at {inp.ui_url} (serve this store there with "
-                           f"`mlflow ui --backend-store-uri {tracking.display_uri(inp.uri)}`)." if inp.ui_url else "")))
+                        + (_ui_sentence(inp) if inp.ui_url else "")))
     return out
+
+
+def _ui_sentence(inp: ReportInput) -> str:
+    """Where the runs column's links lead, and (for a local store) how to serve it there."""
+    text = f" The runs column links to the runs in the MLflow UI at {inp.ui_url}"
+    if inp.uri.startswith(("http://", "https://")):
+        return text + " (the tracking server's own UI)."
+    return text + f" (serve this store there with `mlflow ui --backend-store-uri {tracking.display_uri(inp.uri)}`)."
 
 
 def provenance_blocks(path: Path) -> list[Block]:

@@ -23,6 +23,9 @@ class Cell:
 
     text: str
     url: str | None = None
+    runs: bool = False
+    """The row's runs column: the one cell whose link the Markdown keeps (numbers stay plain text
+    there, so the file reads in a terminal; the HTML links every number)."""
 
 
 @dataclass
@@ -89,7 +92,7 @@ def fmt(value: object, kind: str = "g", empty: str = NOT_RUN) -> str:
 # ---------------------------------------------------------------------- Markdown
 def _md_cell(c: Cell) -> str:
     text = c.text.replace("|", "\\|")
-    return f"[{text}]({c.url})" if c.url else text
+    return f"[{text}]({c.url})" if c.url and c.runs else text
 
 
 def render_markdown(blocks: Sequence[Block], folder: Path) -> str:

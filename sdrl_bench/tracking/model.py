@@ -64,7 +64,7 @@ def _csv_source(run: Run, artifact: str):
 
 
 def log_datasets(run: Run, result, csv_artifact: str, rows=None) -> None:
-    """The training transitions (source: the run's CSV artifact) and the held-out test set
+    """The training transitions (source: this run's CSV artifact, under a name of this run's) and the held-out test set
     (source: the code that generates it) as the run's dataset inputs, with MLflow's digests.
     ``rows``: the transitions the CSV holds instead of all of ``result.data`` (context
     "training-new-rows": a Dyna round's additions)."""
@@ -78,8 +78,10 @@ def log_datasets(run: Run, result, csv_artifact: str, rows=None) -> None:
     test_source = CodeDatasetSource({"sdrl.test_set": result.test_name, "sdrl.test_set_sha256": result.test_hash,
                                      "generator": "sdrl_bench.data.held_out_test_set"})
     inputs = []
-    train = (result.data, f"{spec.name}-transitions", "training") if rows is None else \
-        (rows, f"{spec.name}-new-transitions", "training-new-rows")
+    # named for this run: MLflow reuses a dataset of the same name and digest, and a dataset of
+    # another run's name would point at that run's file (gone when that run is deleted)
+    train = (result.data, f"{spec.name}-transitions-{run.run_id[:8]}", "training") if rows is None else \
+        (rows, f"{spec.name}-new-transitions-{run.run_id[:8]}", "training-new-rows")
     for data, name, context, src in ((*train, _csv_source(run, csv_artifact)),
                                      (result.test, result.test_name, "testing", test_source)):
         with warnings.catch_warnings():  # MLflow's hints on source ambiguity and integer columns

@@ -199,7 +199,27 @@ def test_single_arm_transfer_runs_are_not_reported_as_missing_the_other_arm():
 
 
 def _md_rows(md: str, section: str) -> list[list[str]]:
-    """The table rows (cells as Markdown) of a numbered report section."""
+    """The table rows of a numbered report section, each cell as Markdown with the link it
+    carries: read from ``report.html`` beside ``report.md`` when ``md`` is that file's text (the
+    HTML links every number; the Markdown keeps plain numbers and links only the runs column)."""
+    import html as html_mod
+    import re
+
+    if md.startswith("<") or "<table" in md:
+        title = section.lstrip("# ").strip()
+        part = md.split(f">{html_mod.escape(title)}", 1)[1].split("<h2", 1)[0]
+        rows = []
+        for tr in re.findall(r"<tr>(.*?)</tr>", part, flags=re.S):
+            cells = re.findall(r"<td>(.*?)</td>", tr, flags=re.S)
+            if not cells:
+                continue
+            out = []
+            for c in cells:
+                m = re.fullmatch(r"<a href='(.*)'>(.*)</a>", c, flags=re.S)
+                out.append(f"[{html_mod.unescape(m.group(2))}]({html_mod.unescape(m.group(1))})" if m
+                           else html_mod.unescape(c))
+            rows.append(out)
+        return rows
     part = md.split(section, 1)[1].split("\n## ", 1)[0]
     return [[c.strip() for c in line.strip("|").split(" | ")] for line in part.splitlines()
             if line.startswith("| ") and not line.startswith("| env |")]
@@ -224,7 +244,7 @@ def test_each_report_cell_links_to_runs_of_its_own_kind_and_seed_set(fits_store:
     nn = ids[("nn", "0")]
     transfers = [_transfer(fits_store, s, 90.0 + s, 80.0) for s in range(2)]
     res = build_report(ReportInput(fits_store, EXP, ui_url="http://ui:5000"), "links", tmp_path, log_run=False)
-    md = (res.folder / "report.md").read_text()
+    md = (res.folder / "report.html").read_text()  # every number's link (the Markdown links the runs column only)
     rows = {(r[0], r[1]): r for r in _md_rows(md, "## 3. SINDy vs NN")}
     row = rows[("mountain_car", "mse/x")]  # env, quantity, SINDy, NN, ratio, SINDy fits, NN fits, runs
     s_url, n_url = unquote(_link(row[2])), unquote(_link(row[3]))
@@ -234,14 +254,15 @@ def test_each_report_cell_links_to_runs_of_its_own_kind_and_seed_set(fits_store:
     assert row[5].startswith("[2](") and sindy <= set(unquote(_link(row[5])).replace('"', " ").split())
     assert _link(row[6]) == n_url
     rl = [r for r in _md_rows(md, "## 4. RL transfer") if r[:3] == ["mountain_car", "sindy", "surrogate"]][0]
-    rl_url = unquote(_link(rl[8]))  # the final real return, a mean over both seeds
+    rl_url = unquote(_link(rl[9]))  # the final real return, a mean over both seeds
     assert all(t in rl_url for t in transfers) and "compare-runs" in rl_url
+    assert rl[8] == "65,075" and _link(rl[8]) is None  # the paper's own figure links to none of our runs
 
 
 def test_a_missing_kind_links_nowhere(store: str, tmp_path) -> None:
     _fit(store, "mountain_car", "poly_trig", "sindy", 0, {"x": 1e-16, "v": 3e-19})
     res = build_report(ReportInput(store, EXP, ui_url="http://ui:5000"), "nonn", tmp_path, log_run=False)
-    row = {(r[0], r[1]): r for r in _md_rows((res.folder / "report.md").read_text(), "## 3. SINDy vs NN")}[("mountain_car", "mse/x")]
+    row = {(r[0], r[1]): r for r in _md_rows((res.folder / "report.html").read_text(), "## 3. SINDy vs NN")}[("mountain_car", "mse/x")]
     assert row[3] == "not run" and row[6] == "0"  # "NN fits 0" used to link to a SINDy run
     assert _link(row[2]).endswith("?workflowType=machine_learning") and "/runs/" in _link(row[2])
 
@@ -291,7 +312,7 @@ def test_dyna_table_equals_the_runs_metrics_and_links_its_runs(store: str, tmp_p
     assert r["median_to_solve"] == np.median([203_000, 253_000]) and r["n_solved"] == 2
 
     res = build_report(ReportInput(store, EXP, ui_url="http://ui:5000"), "dyna", tmp_path, log_run=False)
-    md = (res.folder / "report.md").read_text()
+    md = (res.folder / "report.html").read_text()
     rows = {r[1]: r for r in _md_rows(md, "## 5. Dyna")}
     assert rows["Dyna, sindy"][3].startswith("[2/3](") and rows["Dyna, sindy"][4].startswith("[30,000](")
     assert rows["Dyna, nn"][4].startswith("[not solved](")
@@ -384,13 +405,15 @@ def test_five_seed_fidelity_tables_report_iqm_cis_rollouts_and_noise_floor_ratio
 
     res = build_report(ReportInput(store, EXP, ui_url="http://ui:5000"), "five", tmp_path, log_run=False)
     md = (res.folder / "report.md").read_text()
-    row = {r[1]: r for r in _md_rows(md, "## 1. Fidelity per state")}["angvel"]
+    plain = {r[1]: r for r in _md_rows(md, "## 1. Fidelity per state")}["angvel"]  # Markdown: plain numbers
+    assert not plain[5].startswith("[") and plain[-1].startswith("[")  # only the runs column links
+    row = {r[1]: r for r in _md_rows((res.folder / "report.html").read_text(), "## 1. Fidelity per state")}["angvel"]
     ref = rt.bootstrap_ci([by_id[i]["mse/angvel"] for i in flight])
     assert row[5].startswith(f"[{ref[0]:.3e} [{ref[1]:.3e}, {ref[2]:.3e}]](")
     assert row[9] == "flight"
     for cell in row[5:9] + row[10:12]:
         assert {i for i in flight + poly + nn if i in unquote(_link(cell))} == set(flight)
-    vs_row = {r[1]: r for r in _md_rows(md, "## 3. SINDy vs NN")}["rollout50_mse/vx"]
+    vs_row = {r[1]: r for r in _md_rows((res.folder / "report.html").read_text(), "## 3. SINDy vs NN")}["rollout50_mse/vx"]
     assert {i for i in flight + poly + nn if i in unquote(_link(vs_row[2]))} == set(poly)
     assert {i for i in flight + poly + nn if i in unquote(_link(vs_row[3]))} == set(nn)
     for heading in ("## 1.", "## 2.", "## 3.", "## 4."):  # every table is followed by its differences paragraph

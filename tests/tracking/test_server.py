@@ -77,7 +77,8 @@ def test_a_fit_run_on_a_server_has_datasets_a_loadable_model_equations_tags_and_
     # datasets: the training transitions and the held-out test set, with digests and contexts
     inputs = {i.tags[0].value: i.dataset for i in run.inputs.dataset_inputs}
     assert set(inputs) == {"training", "testing"}
-    assert inputs["testing"].name == "mountain_car-heldout-v1" and inputs["training"].name == "mountain_car-transitions"
+    assert inputs["testing"].name == "mountain_car-heldout-v1" and inputs["training"].name == f"mountain_car-transitions-{rid[:8]}"
+    assert rid in inputs["training"].source  # this run's own file
     assert all(len(d.digest) >= 8 for d in inputs.values()) and inputs["training"].digest != inputs["testing"].digest
     assert '"num_rows": 75' in inputs["training"].profile
 
