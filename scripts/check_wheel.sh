@@ -66,7 +66,7 @@ test -f reports/wheel/report.md
 # A user's own env (README "Add your own environment"): a gymnasium env registered in the user's
 # package (tests/user_env.py writes it), its YAML in a --config-dir, fitted and transferred.
 PYTHONPATH="$ROOT/tests" "$V/python" -c "from pathlib import Path; from user_env import write_user_dir; write_user_dir(Path('byo'))"
-PYTHONPATH="$WORK/user/byo/src" run "$V/sdrl-bench" --config-dir byo/conf env=oscillator collector=random task=train \
+PYTHONPATH="$WORK/user/byo/src" run "$V/sdrl-bench" --config-dir byo/conf env=oscillator collector=random task=train agent=sac \
     rl.surrogate_steps=64 rl.real_steps=64 rl.eval_every=64 rl.eval_episodes=1 rl.final_episodes=1 \
     agent.algo.train_freq=16 agent.algo.gradient_steps=2 agent.algo.batch_size=32 progress_bar=false \
     tracking.uri=sqlite:///byo.db

@@ -96,7 +96,7 @@ def _one_line(exc: BaseException, overrides: Sequence[str], compose) -> str:
             known = _keys(compose(ok))
         except Exception:
             known = []
-        near = difflib.get_close_matches(key, known, n=1, cutoff=0.6)
+        near = difflib.get_close_matches(key, known, n=1)
         hint = f"; did you mean {near[0]}?" if near else ""
         return f"{key}: unknown config key{hint} (to add a new key: +{key}=...)"
     return " ".join(text.split())

@@ -22,7 +22,7 @@ TINY = ("rl.surrogate_steps=64", "rl.real_steps=64", "rl.eval_every=64", "rl.eva
 def test_user_env_fits_and_transfers_from_a_config_dir(tmp_path, store, monkeypatch):
     src, conf = write_user_dir(tmp_path / "user")
     env = {"PYTHONPATH": os.pathsep.join(p for p in (str(src), os.environ.get("PYTHONPATH", "")) if p)}
-    res = run_cli("--config-dir", str(conf), "env=oscillator", "collector=random", "task=train", *TINY,
+    res = run_cli("--config-dir", str(conf), "env=oscillator", "collector=random", "task=train", "agent=sac", *TINY,
                   f"tracking.uri={store}", cwd=tmp_path, env=env)
     assert res.returncode == 0, res.stderr[-3000:]
     runs = search(store)

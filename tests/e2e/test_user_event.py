@@ -34,7 +34,7 @@ def faller(tmp_path, monkeypatch):
 
 def test_a_user_event_is_learned_scored_logged_and_used_in_the_surrogate(tmp_path, store, faller):
     src, conf, env = faller
-    res = run_cli("--config-dir", str(conf), "env=faller", "collector=random", "task=train", *TINY,
+    res = run_cli("--config-dir", str(conf), "env=faller", "collector=random", "task=train", "agent=sac", *TINY,
                   f"tracking.uri={store}", cwd=tmp_path, env=env)
     assert res.returncode == 0, res.stderr[-3000:]
     row = search(store).iloc[0]
