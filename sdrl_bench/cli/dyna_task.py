@@ -82,10 +82,15 @@ def _print(outcome: DynaOutcome, uri: str, run_id: str, exp_id: str, final_episo
           f"(collect {s['real_steps_collect']:,.0f}, screens {s['real_steps_evaluate']:,.0f}, "
           f"confirmations {s['real_steps_final']:,.0f}); surrogate steps {s['surrogate_steps']:,.0f}; "
           f"wall {s['wall_seconds']:.1f} s")
+    if "real_steps/all" in s:
+        print(f"real steps: this run's data {s['real_steps/this_run']:,.0f}; all real steps {s['real_steps/all']:,.0f} "
+              f"(+ priors {s['real_steps/priors']:,.0f}, expert training {s['real_steps/expert']:,.0f}, recipe tuning "
+              f"{s['real_steps/tuning']:,.0f}; judging apart: {s['real_steps/judge']:,.0f})")
     if "final_return_mean" in s:
         print(f"last confirmation: {s['final_return_mean']:.1f} +- {s['final_return_std']:.1f} on {final_episodes} real episodes")
     if "audit_return_mean" in s:
         print(f"audit: {s['audit_return_mean']:.1f} +- {s['audit_return_std']:.1f} on {s['audit_episodes']:.0f} fresh real "
-              f"episodes (success {s['audit_success_rate']:.0%}; not counted in the loop's real steps)")
+              f"episodes (success {s['audit_success_rate']:.0%}; not counted in the loop's real steps): "
+              f"{'solved' if s.get('judged_solved') else 'not solved'} by this independent judge")
     print(f"MLflow run {run_id} in {tracking.display_uri(uri)}")
     print(tracking.browse_hint(uri, exp_id, run_id, tracking.display_uri(uri)))

@@ -83,8 +83,8 @@ def _print(summary: dict[str, float], uri: str, run_id: str, job: TransferJob, m
     from rich.table import Table
 
     keys = ("real_transitions_model", "real_transitions_train", "surrogate_steps", "total_steps",
-            "final_return_mean", "final_return_std", "success_rate", "solved_real_steps", "solved_wall_seconds",
-            "train_wall_seconds")
+            "real_steps/this_run", "real_steps/all", "final_return_mean", "final_return_std", "success_rate",
+            "judged_solved", "solved_real_steps", "solved_wall_seconds", "train_wall_seconds")
     table = Table(title=f"{job.fit.spec.name}: {job.agent.name}, seed {job.seed} (judged in the real env)")
     table.add_column("metric")
     for arm in job.arms:

@@ -35,7 +35,7 @@ import numpy as np
 from sdrl_bench import ConfigError, seeds
 from sdrl_bench.envs import functional
 from sdrl_bench.envs.functional import resolve, spec_from_config
-from sdrl_bench.envs.task import Task, parse_events, parse_uncertainty
+from sdrl_bench.envs.task import Task, parse_events, parse_priors, parse_uncertainty
 
 Policy = Callable[[np.ndarray], Any]
 StepOne = Callable[[list, Any], tuple[np.ndarray, list, float, bool, bool]]
@@ -129,6 +129,10 @@ class EnvSpec:
     ``{penalty, free, limit, scale}``); None: none."""
     crash_reward: float | None = None
     """The reward of a step the pessimism's limit ends (an env's crash value)."""
+    priors: tuple = ()
+    """What the env's surrogate takes from outside the run (``envs.task.parse_priors``): fitted
+    constants with the real steps behind them, simulator measurements, simulator knowledge,
+    knowledge. Every run that uses the env counts the fitted ones' real steps."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "state_names", tuple(self.state_names))
@@ -163,6 +167,8 @@ class EnvSpec:
         object.__setattr__(self, "_fns", fns)
         object.__setattr__(self, "events", tuple(self.events or ()))
         object.__setattr__(self, "_events", parse_events(self.events, self))
+        object.__setattr__(self, "priors", tuple(self.priors or ()))
+        object.__setattr__(self, "declared_priors", parse_priors(self.priors))
         if self.crash_reward is not None and (isinstance(self.crash_reward, bool) or not np.isfinite(self.crash_reward)):
             raise ConfigError(f"env.spec.crash_reward: a finite number, got {self.crash_reward!r}")
         slices = tuple(_parse_slice(sl, i, self.state_names) for i, sl in enumerate(self.policy_map_slices))
@@ -459,7 +465,7 @@ class EnvSpec:
             return
         env = self.make_env()
         try:
-            obs = [env.reset(seed=seeds.reset_seed(run_seed, "reset_pool", i))[0] for i in range(2)]
+            obs = [env.reset(seed=seeds.reset_seed(run_seed, "reset_pool", i))[0] for i in range(CHECK_RESETS)]
             env.action_space.seed(seeds.int_seed(run_seed, "reset_pool"))
             acts = np.array([np.atleast_1d(np.asarray(env.action_space.sample(), dtype=float)) for _ in range(2)])
         finally:
@@ -639,10 +645,14 @@ class TestSetRecipe:
     max_steps: int | None = None
 
 
+CHECK_RESETS = 2
+"""Real resets ``EnvSpec.check_task`` takes (no step)."""
+POOL_RESETS = 200
+"""Real resets behind a surrogate's default reset pool (``observed_initial_states``; no step)."""
 _INITIAL_POOLS: dict[tuple, np.ndarray] = {}
 
 
-def observed_initial_states(spec: EnvSpec, run_seed: int = 0, n: int = 200) -> np.ndarray:
+def observed_initial_states(spec: EnvSpec, run_seed: int = 0, n: int = POOL_RESETS) -> np.ndarray:
     """Observations right after ``n`` resets of the real env (as states), reset seeds of the
     run's ``reset_pool`` stream (``seeds``: no other run or purpose uses them), cached per env,
     run seed and process. Resets only: no env step is taken."""

@@ -320,3 +320,90 @@ def parse_uncertainty(node: Any, scale: Sequence[float] | None) -> Uncertainty |
     if chosen is None:
         raise ConfigError("env.spec.uncertainty.scale: required (one standard deviation per regressed state)")
     return Uncertainty(scale=tuple(chosen), **values)
+
+
+# ---------------------------------------------------------------------- priors
+PRIOR_KINDS = ("fitted", "simulator", "simulator_knowledge", "knowledge")
+"""What a prior is: ``fitted`` on real data (its real steps count in every run that uses it);
+``simulator``: measured with what only a resettable simulator gives (replays from a saved state;
+a user with a physical system could not collect it); ``simulator_knowledge``: constants read off a
+simulator's source that a physical system would not reveal (Box2D's sleep thresholds);
+``knowledge``: what a user of the real system knows without running it (its documented
+interface, units, dt, bounds, the reward's definition)."""
+
+
+@dataclass(frozen=True)
+class Prior:
+    """A declared prior of an env's surrogate: what it sets, where it comes from, what it cost."""
+
+    name: str
+    kind: str
+    sets: tuple[str, ...]
+    """The constants or config keys it sets (``rules.touchdown_speed``, ``uncertainty.scale``, ...)."""
+    source: str
+    """Where it comes from: a study and its command, or a document (the env's source, its docs)."""
+    real_steps: int = 0
+    """Real env steps it was fitted on (``fitted``)."""
+    simulator_steps: int = 0
+    """Steps replayed from saved simulator states (``simulator``)."""
+    expert: str | None = None
+    """The trained agent it needed, as ``<env>-<algo>-n<budget>`` (its training counts once per run)."""
+    file: str | None = None
+    """A data file the prior is, when named: it must exist."""
+
+    @property
+    def expert_steps(self) -> int:
+        return expert_budget(self.expert)
+
+
+def expert_budget(expert: str | None) -> int:
+    """The training steps of an expert named ``<env>-<algo>-n<budget>`` (0 for None)."""
+    if not expert:
+        return 0
+    tail = expert.rsplit("-n", 1)[-1]
+    return int(tail) if tail.isdigit() else 0
+
+
+_PRIOR_KEYS = {"name", "kind", "sets", "source", "real_steps", "simulator_steps", "expert", "file"}
+
+
+def parse_priors(nodes: Any) -> tuple[Prior, ...]:
+    """The ``priors:`` list of an env's spec config (each error one line naming the key)."""
+    from pathlib import Path
+
+    if nodes is None:
+        return ()
+    if not isinstance(nodes, (list, tuple)):
+        raise ConfigError(f"env.spec.priors: a list of priors, got {type(nodes).__name__}")
+    out = []
+    for i, node in enumerate(nodes):
+        key = f"env.spec.priors[{i}]"
+        if isinstance(node, Prior):
+            out.append(node)
+            continue
+        if not isinstance(node, dict):
+            raise ConfigError(f"{key}: a prior is a mapping (name, kind, sets, source, real_steps, ...)")
+        unknown = sorted(set(node) - _PRIOR_KEYS)
+        if unknown:
+            raise ConfigError(f"{key}.{unknown[0]}: unknown key; known: {', '.join(sorted(_PRIOR_KEYS))}")
+        for req in ("name", "kind", "sets", "source"):
+            if not node.get(req):
+                raise ConfigError(f"{key}.{req}: required")
+        if node["kind"] not in PRIOR_KINDS:
+            raise ConfigError(f"{key}.kind: one of {', '.join(PRIOR_KINDS)}, got {node['kind']!r}")
+        for k in ("real_steps", "simulator_steps"):
+            v = node.get(k, 0)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 0:
+                raise ConfigError(f"{key}.{k}: an integer >= 0, got {v!r}")
+        if node["kind"] == "fitted" and not node.get("real_steps"):
+            raise ConfigError(f"{key}.real_steps: a fitted prior names the real steps it was fitted on")
+        if node.get("file") is not None and not Path(node["file"]).is_file():
+            raise ConfigError(f"{key}.file: no such file: {node['file']}")
+        sets = node["sets"] if isinstance(node["sets"], (list, tuple)) else [node["sets"]]
+        out.append(Prior(str(node["name"]), node["kind"], tuple(str(s) for s in sets), str(node["source"]),
+                         int(node.get("real_steps", 0)), int(node.get("simulator_steps", 0)), node.get("expert"),
+                         node.get("file")))
+    names = [p.name for p in out]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"env.spec.priors: duplicate names {names}")
+    return tuple(out)

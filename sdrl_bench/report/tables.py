@@ -312,13 +312,16 @@ def transfer_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                 for m in TRANSFER_METRICS:
                     row[m] = _mean(r["metrics"].get(f"{arm}/{m}") for r in have)
                 row["real_transitions"] = row["real_transitions_model"] + row["real_transitions_train"]
+                row["real_steps_this_run"] = _mean(r["metrics"].get(f"{arm}/real_steps/this_run") for r in have)
+                row["real_steps_all"] = _mean(r["metrics"].get(f"{arm}/real_steps/all") for r in have)
                 row["n_solved"] = sum(f"{arm}/solved_real_steps" in r["metrics"] for r in have)
                 # the paper's step counts belong to its recipe: beside the paper pack's agent only
                 row["paper_total_steps"] = (paper(env, "total_steps").get(arm, math.nan)
                                             if agent in (pack(env, "agent"), "?", "-") else math.nan)
                 row["runs"] = [r["run_id"] for r in have]
                 rows.append(row)
-    cols = ["env", "surrogate", "arm", "agent", "n_seeds", "real_transitions", "surrogate_steps", "total_steps", "paper_total_steps",
+    cols = ["env", "surrogate", "arm", "agent", "n_seeds", "real_transitions", "real_steps_this_run", "real_steps_all",
+            "surrogate_steps", "total_steps", "paper_total_steps",
             "return", "ci_low", "ci_high", "statistic", "success_rate", "train_wall_seconds", "solved_real_steps",
             "solved_wall_seconds", "n_solved", "real_transitions_model", "real_transitions_train", "runs"]
     return pd.DataFrame(rows, columns=cols)
@@ -349,11 +352,15 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                 group = [r for r in dyna if r["tags"].get("env") == env and r["tags"].get("agent") == agent
                          and r["tags"].get("surrogate", "sindy") == kind]
                 m = [r["metrics"] for r in group]
-                costs = [x["real_transitions_total"] if x.get("solved") == 1.0 else math.inf for x in m]
+                # solved as the independent judge says (the audit), where runs record it; else the loop's own stop
+                judged = [x.get("judged_solved", x.get("solved")) == 1.0 for x in m]
+                costs = [x["real_transitions_total"] if ok else math.inf for x, ok in zip(m, judged, strict=True)]
+                costs_all = [x.get("real_steps/all", math.nan) if ok else math.inf for x, ok in zip(m, judged, strict=True)]
                 final = bootstrap_ci([x.get("final_return_mean", math.nan) for x in m], seed=seed)
                 audit = bootstrap_ci([x.get("audit_return_mean", math.nan) for x in m], seed=seed)
                 rows.append({"env": env, "method": f"Dyna, {kind}", "agent": agent, "n_seeds": len(group),
-                             "n_solved": sum(x.get("solved") == 1.0 for x in m), "median_to_solve": _median_cost(costs),
+                             "n_solved": sum(judged), "n_stopped": sum(x.get("solved") == 1.0 for x in m),
+                             "median_to_solve": _median_cost(costs), "median_all": _median_cost(costs_all),
                              "model_data": _mean(x.get("real_transitions_model") for x in m),
                              "phase_a": _mean(x.get("real_steps_collect") for x in m),
                              "phase_b": _mean(x.get("real_steps_evaluate") for x in m),
@@ -370,14 +377,18 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
             m = [r["metrics"] for r in group]
             costs = [x["real/solved_real_steps"] + x.get("real/eval_steps", 0.0) if "real/solved_real_steps" in x
                      else math.inf for x in m]
+            costs_all = [c + x.get("real/real_steps/tuning", 0.0) for c, x in zip(costs, m, strict=True)]
             rows.append({"env": env, "method": "real arm", "agent": agent, "n_seeds": len(group),
-                         "n_solved": sum("real/solved_real_steps" in x for x in m), "median_to_solve": _median_cost(costs),
+                         "n_solved": sum("real/solved_real_steps" in x for x in m),
+                         "n_stopped": sum("real/solved_real_steps" in x for x in m),
+                         "median_to_solve": _median_cost(costs), "median_all": _median_cost(costs_all),
                          "model_data": 0.0, "phase_a": _mean(x.get("real/solved_real_steps") for x in m),
                          "phase_b": _mean(x.get("real/eval_steps") for x in m), "phase_c": math.nan,
                          "surrogate_steps": 0.0, "wall_seconds": _mean(x.get("real/train_wall_seconds") for x in m),
                          "final": bootstrap_ci([x.get("real/final_return_mean", math.nan) for x in m], seed=seed),
                          "audit": (math.nan, math.nan, math.nan, "mean"), "runs": [r["run_id"] for r in group]})
-    return pd.DataFrame(rows, columns=["env", "method", "agent", "n_seeds", "n_solved", "median_to_solve", "model_data",
+    return pd.DataFrame(rows, columns=["env", "method", "agent", "n_seeds", "n_solved", "n_stopped", "median_to_solve",
+                                       "median_all", "model_data",
                                        "phase_a", "phase_b", "phase_c", "surrogate_steps", "wall_seconds", "final",
                                        "audit", "runs"])
 

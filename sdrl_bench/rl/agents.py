@@ -38,6 +38,9 @@ class AgentConfig:
     """Train on rewards scaled by a running std of the discounted return (SB3's ``VecNormalize``
     with ``norm_obs=False``). Observations stay raw, so the trained policy acts in the real env
     as it is; the agent's gamma is the return's discount."""
+    tuning_real_steps: int = 0
+    """Real env steps spent tuning this recipe on the real env (as its pack records them; 0: none
+    recorded). Counted in every arm that uses the recipe, real or surrogate (``rl.accounting``)."""
 
     def check(self, spec: EnvSpec) -> None:
         """Fail at config time when the algorithm cannot act in the env."""
@@ -66,7 +69,8 @@ def check_budget(key: str, steps: int) -> None:
 
 
 class StepCounter(gym.Wrapper):
-    """Counts real-env steps into ``counts[phase]``: the accounting's ground truth."""
+    """Counts real-env steps into ``counts[phase]`` and resets into ``counts["resets/<phase>"]``:
+    the accounting's ground truth (``rl.accounting`` names the purposes)."""
 
     def __init__(self, env: gym.Env, counts: Counter, phase: str):
         super().__init__(env)
@@ -75,6 +79,10 @@ class StepCounter(gym.Wrapper):
     def step(self, action):
         self.counts[self.phase] += 1
         return self.env.step(action)
+
+    def reset(self, **kwargs):
+        self.counts[f"resets/{self.phase}"] += 1
+        return self.env.reset(**kwargs)
 
 
 def real_vec_env(spec: EnvSpec, n_envs: int, seed: int, counts: Counter, phase: str = "train") -> VecEnv:

@@ -37,8 +37,10 @@ from typing import Any, Protocol
 import numpy as np
 
 from sdrl_bench import ConfigError, seeds
+from sdrl_bench.envs.base import CHECK_RESETS
 from sdrl_bench.data import TransitionRecorder, Transitions, collect, concat, held_out_test_set, random_policy, recorded
 from sdrl_bench.pipeline import FitJob, FitResult, check, fit_transitions
+from sdrl_bench.rl.accounting import expert_of, headline
 from sdrl_bench.rl.agents import AgentConfig, EvalResult, StepCounter, evaluate_real, make_agent
 
 LOOP_PHASES = ("collect", "evaluate", "final")
@@ -269,6 +271,8 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
     loop.next_episode = int(loop.data.episode.max()) + 1
     first = loop.refit(clock)
     venv = SurrogateVecEnv(first.model, spec, job.agent.n_envs, seed=seed, events=first.events)
+    loop.counts["resets/check"] += CHECK_RESETS  # the task's functions on real reset states (pipeline.check)
+    loop.counts["resets/reset_pool"] += venv.surrogate.real_resets
     agent = make_agent(job.agent, venv, seeds.int_seed(seed, "agent"), recorder.sb3_logger() if recorder is not None else None,
                        env_seed=seed)
     rounds = [RoundResult(0, first, first.data, dict(loop.counts), 0, clock.seconds)]
@@ -316,7 +320,7 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
     audit = None
     if cfg.audit_episodes:
         audit = evaluate_real(agent, spec, cfg.audit_episodes, seeds.reset_seed(seed, "dyna_audit"), loop.counts, "audit")
-    return DynaOutcome(rounds, agent, summarize(rounds, audit, spec.solved_threshold, cfg), audit, curve)
+    return DynaOutcome(rounds, agent, summarize(rounds, audit, spec.solved_threshold, cfg, job), audit, curve)
 
 
 def _collect(loop: _Loop, agent: Any, n: int) -> Transitions:
@@ -331,9 +335,12 @@ def _collect(loop: _Loop, agent: Any, n: int) -> Transitions:
     return got
 
 
-def summarize(rounds: list[RoundResult], audit: EvalResult | None, threshold: float, cfg: DynaConfig) -> dict[str, float]:
-    """The run's headline metrics: solved or not, what it cost in real steps (by phase),
-    surrogate steps and seconds, the last confirmation and the audit."""
+def summarize(rounds: list[RoundResult], audit: EvalResult | None, threshold: float, cfg: DynaConfig,
+              job: DynaJob | None = None) -> dict[str, float]:
+    """The run's headline metrics: solved or not (the loop's own stop, and ``judged_solved``: the
+    audit, on a seed stream nothing trained or stopped on), what it cost in real steps (by phase,
+    and by purpose: this run's data and every real step the result rests on), surrogate steps
+    and seconds, the last confirmation and the audit."""
     last = rounds[-1]
     seconds: Counter = Counter()
     for r in rounds:
@@ -359,5 +366,15 @@ def summarize(rounds: list[RoundResult], audit: EvalResult | None, threshold: fl
     if audit is not None:
         m.update(audit_return_mean=audit.mean, audit_return_std=audit.std, audit_success_rate=audit.success_rate,
                  audit_episodes=len(audit.returns), audit_steps=audit.steps,
-                 audit_solved=float(audit.mean >= threshold))
+                 audit_solved=float(audit.mean >= threshold), judged_solved=float(audit.mean >= threshold))
+    if job is not None:
+        c = last.counts
+        reused = sum(len(r.new_data) for r in rounds) - c.get("collect", 0) if cfg.data_from_evaluations else 0
+        purposes = {"model_data": c.get("collect", 0), "selection": c.get("evaluate", 0) + c.get("final", 0),
+                    "judge": (audit.steps if audit is not None else 0) + len(last.fit.test),  # + the held-out set
+                    "reused_as_model_data": max(reused, 0),
+                    **{k: v for k, v in c.items() if k.startswith("resets/")}}
+        spec = job.fit.spec
+        m.update(headline(purposes, spec.declared_priors, [expert_of(job.fit.policy, spec.name)],
+                          job.agent.tuning_real_steps))
     return {k: float(v) for k, v in m.items()}

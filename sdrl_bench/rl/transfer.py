@@ -19,10 +19,11 @@ from collections.abc import Callable
 import numpy as np
 
 from sdrl_bench import ConfigError, seeds
-from sdrl_bench.envs.base import EnvSpec
+from sdrl_bench.envs.base import CHECK_RESETS, EnvSpec
 from sdrl_bench.pipeline import FitJob, FitResult, check, fit_dynamics
 from sdrl_bench.plots import learning_curves
 from sdrl_bench.rl.policy_maps import PolicyMap, agreement, compute_maps, figure
+from sdrl_bench.rl.accounting import expert_of, headline
 from sdrl_bench.rl.agents import AgentConfig, Curve, RealEvalCallback, StepCounter, check_budget, evaluate_real, real_vec_env, train
 
 ARMS = ("surrogate", "real")
@@ -94,8 +95,10 @@ class ArmResult:
     fit: FitResult | None = None
     surrogate_stats: dict[str, float] = field(default_factory=dict)
 
-    def metrics(self, spec: EnvSpec, train_steps: int) -> dict[str, float]:
-        """The accounting, as the paper counts it (real transitions + surrogate steps)."""
+    def metrics(self, spec: EnvSpec, train_steps: int, stop_when_solved: bool = False, expert: str | None = None,
+                tuning: int = 0) -> dict[str, float]:
+        """The accounting, as the paper counts it (real transitions + surrogate steps), and by
+        purpose (``rl.accounting``: this run's data, every real step the result rests on)."""
         rets = np.asarray(self.final_returns)
         real_model = self.counts.get("collect", 0)
         real_train = self.counts.get("train", 0)
@@ -111,8 +114,15 @@ class ArmResult:
             "final_return_mean": float(rets.mean()),
             "final_return_std": float(rets.std()),
             "success_rate": float(np.mean(self.final_successes)),
+            "judged_solved": float(spec.solved_threshold is not None and rets.mean() >= spec.solved_threshold),
             **{f"{k}_seconds": v for k, v in self.seconds.items()},
         }
+        purposes = {"model_data": real_model, "train": real_train,
+                    ("selection" if stop_when_solved else "monitor"): self.counts.get("evaluate", 0),
+                    "judge": self.counts.get("final", 0) + (len(self.fit.test) if self.fit is not None else 0),
+                    **{f"resets/{k[7:]}": v for k, v in self.counts.items() if k.startswith("resets/")}}
+        surrogate = self.arm == "surrogate"
+        m.update(headline(purposes, spec.declared_priors if surrogate else (), [expert] if surrogate else (), tuning))
         c = self.curve
         if c.first_solved_step is not None:
             # real-env interactions spent when the threshold was first met during training
@@ -176,6 +186,8 @@ def run_arm(
         seconds.update({k: v for k, v in fit_result.seconds.items() if not k.startswith("evaluate")})
         venv = (make_surrogate or surrogate_vec_env)(fit_result.model, spec, job.agent.n_envs, job.seed,
                                                      events=fit_result.events)
+        counts["resets/check"] += CHECK_RESETS  # the task's functions on real reset states (pipeline.check)
+        counts["resets/reset_pool"] += getattr(getattr(venv, "surrogate", None), "real_resets", 0)
         steps, env_seed = job.surrogate_steps, job.seed
     else:
         env_seed = seeds.reset_seed(job.seed, "real_train")
@@ -270,7 +282,8 @@ def run_transfer(job: TransferJob, checked: tuple[Any, Any] | None, recorder: Tr
         result = run_arm(job, arm, checked if arm == "surrogate" else None, logger_factory=recorder.sb3_logger,
                          on_point=recorder.curve_point, on_fit=recorder.fit_done)
         # the steps the agent took (SB3 rounds a budget up to whole rollouts / train_freq)
-        metrics = result.metrics(spec, int(result.model.num_timesteps))
+        metrics = result.metrics(spec, int(result.model.num_timesteps), job.stop_when_solved,
+                                 expert_of(job.fit.policy, spec.name), job.agent.tuning_real_steps)
         recorder.arm_done(result, metrics)
         if result.fit is not None:
             model_text = result.fit.model.describe()

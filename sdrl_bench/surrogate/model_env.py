@@ -140,8 +140,11 @@ class ModelEnv:
                 raise ConfigError(f"initial_states: need a finite (K, {len(spec.state_names)}) array, got shape {init.shape}")
             self._initial = init
         self._pool = self._initial
+        self.real_resets = 0
+        """Real resets behind the reset pool (the real env's first observations; no step)."""
         if self._pool is None and self.task.initial_states is None:
             self._pool = observed_initial_states(spec, 0 if seed is None else seed)
+            self.real_resets = len(self._pool)
         self._flags = (bool(fused), bool(noise), bool(penalty))
         index = np.concatenate([spec.target_index, spec.exogenous_index])
         self._n_state_inputs = len(index)

@@ -12,9 +12,16 @@ from sdrl_bench.tracking.client import Run, mlflow_client
 
 
 def fit_metrics(result) -> dict[str, float]:
-    """The metrics a fit run records (``result`` is a ``pipeline.FitResult``)."""
+    """The metrics a fit run records (``result`` is a ``pipeline.FitResult``), with its real
+    steps by purpose (``rl.accounting``: the model's data, the held-out set that judges it, the
+    env's priors and a trained collector behind it)."""
+    from sdrl_bench.rl.accounting import expert_of, headline
+
     model, data = result.model, result.data
-    return {
+    spec = result.job.spec
+    counts = {"model_data": len(data), "judge": len(result.test)}
+    accounting = headline(counts, spec.declared_priors, [expert_of(result.job.policy, spec.name)])
+    return {**accounting,
         **result.fidelity.metrics,
         "n_transitions": len(data),
         "n_fit_rows": result.n_fit_rows,
@@ -38,7 +45,7 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
     from sdrl_bench.data import save_csv
     from sdrl_bench.plots import predicted_vs_true
     from sdrl_bench.tracking.meta import describe_experiment, experiment_id_of, log_config, set_description
-    from sdrl_bench.tracking.model import log_datasets, log_surrogate_model
+    from sdrl_bench.tracking.model import log_datasets, log_priors, log_surrogate_model
 
     spec, model_ = result.job.spec, result.model
     if config is not None:
@@ -59,6 +66,7 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
             run.log_artifact(path, "model")
     run.log_text(model_.describe(), f"model/{model_.summary_file}")
     log_datasets(run, result, f"data/{spec.name}_transitions.csv", rows)
+    log_priors(run, spec.declared_priors)
     if model:
         log_surrogate_model(run, result)
     _log_table(run, per_state_table(result), "fidelity/per_state.json")

@@ -91,6 +91,29 @@ def log_datasets(run: Run, result, csv_artifact: str, rows=None) -> None:
     log_inputs_retrying(run, inputs)
 
 
+def log_priors(run: Run, priors) -> None:
+    """The env's declared priors (``envs.task.Prior``) as the run's dataset inputs (context
+    "prior"): name, kind, what each sets, its source and the real steps behind it, with a digest
+    of the declaration, so a run names every prior its surrogate rests on."""
+    import hashlib
+    from dataclasses import asdict
+
+    from mlflow.data.code_dataset_source import CodeDatasetSource
+    from mlflow.data.meta_dataset import MetaDataset
+    from mlflow.entities import DatasetInput, InputTag
+    from mlflow.utils.mlflow_tags import MLFLOW_DATASET_CONTEXT
+
+    inputs = []
+    for p in priors:
+        record = {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(p).items()}
+        digest = hashlib.sha256(json.dumps(record, sort_keys=True).encode()).hexdigest()[:16]
+        source = CodeDatasetSource({k: str(v) for k, v in record.items() if v not in (None, 0, "")})
+        ds = MetaDataset(source, name=p.name, digest=digest)
+        inputs.append(DatasetInput(ds._to_mlflow_entity(), tags=[InputTag(MLFLOW_DATASET_CONTEXT, f"prior:{p.kind}")]))
+    if inputs:
+        log_inputs_retrying(run, inputs)
+
+
 def log_inputs_retrying(run: Run, inputs: list, attempts: int = 5) -> None:
     """``log_inputs``, retried when it loses a race. MLflow's SQL store looks for an existing
     dataset (same name and digest), then inserts one: two processes logging the same dataset at
