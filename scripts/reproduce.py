@@ -21,7 +21,8 @@ with ``--jobs`` processes at a time, one thread each. The stages, in order:
                LunarLander, PPO (zoo, 16 envs), the paper's fixed budgets (800k / 1M), no stop.
   fast         the fast PPO recipe (experiment=fast_<env>) on the same data, both surrogates
                and the real arm, stopped at the first real evaluation at the threshold.
-  dyna         Dyna-style refits (experiment=dyna_<env>), SINDy and NN, beside the fast real arm.
+  dyna         Dyna-style refits (experiment=dyna_<env>), SINDy and NN, beside the fast real arm;
+               LunarLander's SINDy loop and its fast real arm again on as many more seeds (5-9).
   search       one Optuna TPE study per env (sdrl-bench-search, seed 0) over the SINDy hyperparameters.
   report       sdrl-bench-report on the store, with this run's provenance (command, seeds,
                budgets, per-stage wall and CPU seconds, commit) as its first section.
@@ -60,6 +61,7 @@ def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
     """(stage name, its commands in order); a command is ``sdrl-bench`` arguments, or starts
     with ``parallel:`` (several single runs at once) or ``python:`` (a script in the repo)."""
     s = "seed=" + ",".join(map(str, seeds))
+    more = "seed=" + ",".join(str(max(seeds) + 1 + i) for i in range(len(seeds)))  # as many seeds again
     touchdowns = "mlruns/datasets/lunar_lander-touchdowns-v1.npz"
     return [
         ("experts", [
@@ -86,7 +88,10 @@ def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
             for env in ("mountain_car", "lunar_lander") for kind in ("sindy", "nn")
         ]),
         ("dyna", [
-            ["-m", f"experiment=dyna_{env}", "surrogate=sindy,nn", s] for env in ("mountain_car", "lunar_lander")
+            *(["-m", f"experiment=dyna_{env}", "surrogate=sindy,nn", s] for env in ("mountain_car", "lunar_lander")),
+            # LunarLander's Dyna headline on twice the seeds, beside the fast real arm on the same ones
+            ["-m", "experiment=dyna_lunar_lander", "surrogate=sindy", more],
+            ["-m", "experiment=fast_lunar_lander", "rl.arms=[real]", more],
         ]),
         ("search", [  # one Optuna study per env (seed 0): TPE over library, degree, optimizer, threshold, alpha
             ["search:", "env=mountain_car", "collector=expert", f"tracking.experiment={STORE_EXPERIMENT}"],

@@ -128,6 +128,10 @@ def app(cfg: DictConfig) -> float:
             OmegaConf.update(cfg, "progress_bar", False)
             tags = {SWEEP_KEY_TAG: key or "", CONFIG_KEY_TAG: config_key(cfg),
                     JOB_TAG: job_label(HydraConfig.get().sweep.dir, list(HydraConfig.get().overrides.task))}
+        if HydraConfig.initialized():  # the experiment pack the run came from (rows of the report keep packs apart)
+            pack = HydraConfig.get().runtime.choices.get("experiment")
+            if pack and pack != "null":
+                tags["sdrl.experiment"] = str(pack)
         if cfg.task not in ("fit", "train", "dyna"):
             raise ConfigError(f"task: {cfg.task!r} is not one of 'fit', 'train', 'dyna'")
         fit_job = build_fit_job(cfg)  # validates the config before anything else

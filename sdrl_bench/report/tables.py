@@ -348,9 +348,15 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
     rows = []
     for env in envs_of({"env": r["tags"].get("env")} for r in dyna):
         for agent in sorted({r["tags"].get("agent", "?") for r in dyna if r["tags"].get("env") == env}):
-            for kind in ("sindy", "nn"):
+            # the env's own Dyna pack first, then other packs (a variant: other priors, other budgets)
+            packs = sorted({r["tags"].get("sdrl.experiment") for r in dyna if r["tags"].get("env") == env
+                            and r["tags"].get("agent") == agent}, key=lambda p: (p not in (None, f"dyna_{env}"), str(p)))
+            for pack, kind in ((p, k) for p in packs for k in ("sindy", "nn")):
                 group = [r for r in dyna if r["tags"].get("env") == env and r["tags"].get("agent") == agent
-                         and r["tags"].get("surrogate", "sindy") == kind]
+                         and r["tags"].get("surrogate", "sindy") == kind and r["tags"].get("sdrl.experiment") == pack]
+                if not group and pack not in (None, f"dyna_{env}"):
+                    continue
+                label = f"Dyna, {kind}" + ("" if pack in (None, f"dyna_{env}") else f", {pack}")
                 m = [r["metrics"] for r in group]
                 # solved as the independent judge says (the audit), where runs record it; else the loop's own stop
                 judged = [x.get("judged_solved", x.get("solved")) == 1.0 for x in m]
@@ -358,7 +364,7 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                 costs_all = [x.get("real_steps/all", math.nan) if ok else math.inf for x, ok in zip(m, judged, strict=True)]
                 final = bootstrap_ci([x.get("final_return_mean", math.nan) for x in m], seed=seed)
                 audit = bootstrap_ci([x.get("audit_return_mean", math.nan) for x in m], seed=seed)
-                rows.append({"env": env, "method": f"Dyna, {kind}", "agent": agent, "n_seeds": len(group),
+                rows.append({"env": env, "method": label, "agent": agent, "n_seeds": len(group),
                              "n_solved": sum(judged), "n_stopped": sum(x.get("solved") == 1.0 for x in m),
                              "median_to_solve": _median_cost(costs), "median_all": _median_cost(costs_all),
                              "model_data": _mean(x.get("real_transitions_model") for x in m),
