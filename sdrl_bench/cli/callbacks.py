@@ -25,6 +25,7 @@ import os
 import signal
 import sys
 from pathlib import Path
+from collections.abc import Sequence
 from typing import Any
 
 from hydra.experimental.callback import Callback
@@ -153,12 +154,15 @@ def varying_keys(overrides: list[str]) -> list[str]:
     return sorted(counts, key=lambda k: -counts[k])
 
 
-def job_label(sweep_dir: str | Path, job_overrides: list[str]) -> str:
-    """A sweep job told from its siblings: its values of the swept keys (``library=trig seed=3``)."""
+def job_label(sweep_dir: str | Path, job_overrides: list[str], groups: Sequence[str] = ()) -> str:
+    """A sweep job told from its siblings in a few characters (the UI's runs table shows about
+    18): its values of the swept keys, the most varied first; a config group's option as it is
+    (``poly_trig``), another key as ``name=value`` by its last part (``seed=3``)."""
     path = Path(sweep_dir) / VARYING_FILE
     keys = json.loads(path.read_text()) if path.is_file() else []
     values = dict(o.lstrip("+~").split("=", 1) for o in job_overrides if "=" in o)
-    return " ".join(f"{k}={values[k]}" for k in keys if k in values) or " ".join(job_overrides)
+    parts = [values[k] if k in groups else f"{k.rsplit('.', 1)[-1]}={values[k]}" for k in keys if k in values]
+    return " ".join(parts) or " ".join(job_overrides)
 
 
 def sweep_context(sweep_dir: str | Path) -> tuple[str | None, str | None]:

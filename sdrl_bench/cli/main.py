@@ -127,7 +127,8 @@ def app(cfg: DictConfig) -> float:
         if parent is not None:  # no progress bars inside multiruns
             OmegaConf.update(cfg, "progress_bar", False)
             tags = {SWEEP_KEY_TAG: key or "", CONFIG_KEY_TAG: config_key(cfg),
-                    JOB_TAG: job_label(HydraConfig.get().sweep.dir, list(HydraConfig.get().overrides.task))}
+                    JOB_TAG: job_label(HydraConfig.get().sweep.dir, list(HydraConfig.get().overrides.task),
+                                       list(HydraConfig.get().runtime.choices))}
         if HydraConfig.initialized():  # the experiment pack the run came from (rows of the report keep packs apart)
             pack = HydraConfig.get().runtime.choices.get("experiment")
             if pack and pack != "null":

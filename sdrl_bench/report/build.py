@@ -202,6 +202,14 @@ TRANSFER_DIFFERENCES = (
     "(reported in the runs as `eval_steps`). Wall seconds are training only.")
 
 
+def _present(df: pd.DataFrame, *counts: str) -> list[str]:
+    """The envs of a table that have runs (a paper env the store lacks has "not run" rows only)."""
+    if not len(df):
+        return []
+    have = sum((df[c].fillna(0) > 0) for c in counts)
+    return list(dict.fromkeys(df.loc[have > 0, "env"]))
+
+
 def _with_notes(text: str, envs: Sequence[str], section: str) -> Para:
     """A section's paragraph: its generic text, then what each env present explains (``reference/<env>.yaml``)."""
     notes = [n.strip() for n in (rt.note(e, section) for e in dict.fromkeys(envs)) if n]
@@ -293,7 +301,7 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                          "scored on the named held-out test set. Statistic over seeds: the IQM with a 95% percentile "
                          "bootstrap CI (scipy.stats.bootstrap, 2000 resamples), the mean below 5 seeds. The noise "
                          "floor exists where the env is stochastic."))
-    out.append(_with_notes(FIDELITY_DIFFERENCES + _collectors(runs), list(fid["env"]) if len(fid) else [], "fidelity"))
+    out.append(_with_notes(FIDELITY_DIFFERENCES + _collectors(runs), _present(fid, "n_fits"), "fidelity"))
     out.append(Heading(2, "2. Library ablation (paper Table 1, bottom)"))
     abl = rt.ablation_table(runs)
     out.append(_df_table(abl, [("env", "env", "text"), ("library", "library", "text"),
@@ -306,7 +314,7 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                                                    ("paper_mse", "paper MSE", "paper:e")], link,
                          "SINDy fit runs per library, one per seed; IQM over seeds with a 95% bootstrap CI (the mean "
                          "below 5 seeds)."))
-    out.append(_with_notes(ABLATION_DIFFERENCES, list(abl["env"]) if len(abl) else [], "ablation"))
+    out.append(_with_notes(ABLATION_DIFFERENCES, _present(abl, "n_fits"), "ablation"))
     out.append(Heading(2, "3. SINDy vs NN surrogate"))
     nn = rt.sindy_vs_nn_table(runs)
     out.append(_df_table(nn, [("env", "env", "text"), ("quantity", "quantity", "text"),
@@ -317,7 +325,7 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                                                       ("n_nn", "NN fits", "int", "runs_nn")], link,
                          "Fit runs on the same data per seed; IQM over seeds with a 95% bootstrap CI (the mean "
                          "below 5 seeds)."))
-    out.append(_with_notes(NN_DIFFERENCES, list(nn["env"]) if len(nn) else [], "nn"))
+    out.append(_with_notes(NN_DIFFERENCES, _present(nn, "n_sindy", "n_nn"), "nn"))
     out.append(Heading(2, "4. RL transfer (real-environment evaluation)"))
     tr = rt.transfer_table(runs)
     rows = []
@@ -351,7 +359,7 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                      "training and the evaluations that stop it; all real steps = that plus the real steps behind "
                      "the env's fitted priors, a trained collector's training and the recipe's tuning. Judging "
                      "(the final evaluation, the held-out set) is reported apart, in the runs."))
-    envs = list(tr["env"]) if len(tr) else []
+    envs = _present(tr, "n_seeds")
     out.append(_with_notes(TRANSFER_DIFFERENCES + _total_steps_note(envs) + _recipes(runs), envs, "transfer"))
     out += dyna_blocks(runs, link)
     return out
