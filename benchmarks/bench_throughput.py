@@ -22,7 +22,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Callable
+from collections.abc import Callable
 
 import gymnasium as gym
 import numpy as np

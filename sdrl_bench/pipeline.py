@@ -81,6 +81,15 @@ class FitResult:
     seconds: dict[str, float]
     events: dict = field(default_factory=dict)
     """{event name: its learned ``surrogate.events.EventModel`` or None}, from the same data."""
+    spec: Any = None
+    """The spec the fit's surrogate is built on: the job's, with the constants learned from the
+    same data when ``own_data`` (``surrogate.own_data``); None: the job's."""
+    learned: dict = field(default_factory=dict)
+    """{prior key: value} of the constants learned from the fit's data (empty without ``own_data``)."""
+
+    def __post_init__(self) -> None:
+        if self.spec is None:
+            self.spec = self.job.spec
 
 
 def check(job: FitJob) -> tuple[Any, Transitions | None]:
@@ -157,8 +166,10 @@ def fit_transitions(job: FitJob, library: Any, data: Transitions, test: tuple[st
     seconds["fit_wall"] = model.fit_wall_seconds_
     seconds["fit_cpu"] = model.fit_cpu_seconds_
     from sdrl_bench.surrogate.events import event_metrics, fit_events  # noqa: PLC0415
+    from sdrl_bench.surrogate.own_data import learn_from_run  # noqa: PLC0415
 
     t0, c0 = time.perf_counter(), time.process_time()
+    spec, learned = learn_from_run(spec, data, model, keep)  # the job's spec unless own_data
     events = fit_events(spec.task, data, job.min_events, seed=job.seed) if job.learn_events else {}
     seconds["events_wall"], seconds["events_cpu"] = time.perf_counter() - t0, time.process_time() - c0
 
@@ -171,6 +182,7 @@ def fit_transitions(job: FitJob, library: Any, data: Transitions, test: tuple[st
 
         report.metrics.update(surrogate_fidelity(model, spec, test))
         report.metrics.update(event_metrics(spec.task, events, test))
+    report.metrics.update({f"learned/{k}": v for k, v in learned.items() if np.isfinite(v)})
     ep_true, ep_pred = open_loop_episode(model, spec, test, int(test.episode[0]))
     seconds["evaluate_wall"] = time.perf_counter() - t0
     seconds["evaluate_cpu"] = time.process_time() - c0
@@ -178,6 +190,7 @@ def fit_transitions(job: FitJob, library: Any, data: Transitions, test: tuple[st
         job=job, data=data, dataset_hash=data.content_hash(), n_fit_rows=int(keep.sum()),
         test_name=test_name, test=test, test_hash=test.content_hash(), model=model,
         fidelity=report, episode_true=ep_true, episode_pred=ep_pred, seconds=seconds, events=events,
+        spec=spec, learned=learned,
     )
 
 

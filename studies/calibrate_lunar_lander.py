@@ -5,7 +5,8 @@
    from the held-out test set's seeds 20000+).
 2. Grid-searches the leg-contact rule (tilt, touch and release heights) for accuracy on the rows
    over the flat helipad (|x'| <= 0.2), where the surrogate's flat-ground world is the real
-   one; prints the best candidates next to the defaults in ``LanderRules``. (The touchdown
+   one (``envs/lunar_lander/own_data.search_legs``, the search an own-data run makes on its own
+   transitions); prints the best candidates next to the defaults in ``LanderRules``. (The touchdown
    event and the sleep counter are calibrated and scored on the touchdown test set:
    ``studies/touchdown_set.py``.)
 3. Scores the default rules with ``surrogate_fidelity`` on the held-out test set, with the
@@ -17,14 +18,14 @@
 from __future__ import annotations
 
 import argparse
-import itertools
 from pathlib import Path
 
 import numpy as np
 
 from sdrl_bench.data import Transitions, collect, heuristic_policy, held_out_test_set, random_policy
 from sdrl_bench.envs.lunar_lander import LunarLanderSpec
-from sdrl_bench.envs.lunar_lander.task import LanderRules, leg_contacts
+from sdrl_bench.envs.lunar_lander.own_data import search_legs
+from sdrl_bench.envs.lunar_lander.task import LanderRules
 from sdrl_bench.surrogate.env import load_model
 from sdrl_bench.surrogate.fidelity import surrogate_fidelity
 
@@ -35,19 +36,6 @@ def calibration_data(spec: LunarLanderSpec) -> Transitions:
     parts = [collect(spec, heuristic_policy, 8000, eps, seed=100 + 50 * i) for i, eps in enumerate((0.0, 0.2, 0.5))]
     parts.append(collect(spec, random_policy, 4000, 1.0, seed=500))
     return Transitions(**{k: np.concatenate([getattr(p, k) for p in parts]) for k in FIELDS})
-
-
-def search_legs(d: Transitions, pad: np.ndarray) -> list[tuple]:
-    true = d.next_states[:, 6:8] > 0.5
-    out = []
-    for k, touch, release in itertools.product(
-        (0.0, 0.05, 0.1, 0.15, 0.2, 0.3), np.arange(-0.03, 0.0301, 0.005), np.arange(0.0, 0.101, 0.025)
-    ):
-        if release >= touch:
-            rules = LanderRules(leg_tilt=k, touch_height=round(touch, 4), release_height=round(release, 4))
-            acc = np.mean(leg_contacts(rules, d.states, d.next_states)[pad] == true[pad])
-            out.append((acc, rules.leg_tilt, rules.touch_height, rules.release_height))
-    return sorted(out, reverse=True)
 
 
 def fit_default_model():
@@ -67,7 +55,7 @@ def main() -> None:
     pad = np.abs(d.next_states[:, 0]) <= 0.2
     print(f"calibration: {len(d)} transitions, {pad.sum()} over the pad")
     print("legs (pad accuracy, tilt, touch, release), best 5:")
-    for row in search_legs(d, pad)[:5]:
+    for row in search_legs(d.states, d.next_states, np.flatnonzero(pad))[:5]:
         print("   ", np.round(row, 4).tolist())
     print(f"defaults: {defaults}")
 

@@ -80,7 +80,7 @@ def main() -> None:
         for seed in range(args.seeds):
             model = fit(seed, [*args.overrides, *extra])
             exact += model.coefficients_by_name() == TRUE
-            for (kind, e), (s_real, r_real, f_real, acts) in episodes.items():
+            for (_kind, e), (s_real, r_real, f_real, acts) in episodes.items():
                 s_sur, r_sur, f_sur = replay(model, 50_000 + e, acts)
                 same_len = len(s_sur) == len(s_real)
                 gap = float(np.abs(s_sur - s_real).max()) if same_len else float("inf")

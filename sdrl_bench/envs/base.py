@@ -133,6 +133,11 @@ class EnvSpec:
     """What the env's surrogate takes from outside the run (``envs.task.parse_priors``): fitted
     constants with the real steps behind them, simulator measurements, simulator knowledge,
     knowledge. Every run that uses the env counts the fitted ones' real steps."""
+    own_data: bool = False
+    """Learn from each fit's own transitions the constants the env can learn
+    (``learned_constants``) and the pessimism's scale and free band (``surrogate.own_data``),
+    in place of the priors that set them: a prior all of whose constants were learned no
+    longer counts. False: the declared priors as they are."""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "state_names", tuple(self.state_names))
@@ -566,6 +571,13 @@ class EnvSpec:
         (variance) of one-step prediction on the named test set}, or None when unknown
         (``fidelity.replay_noise_floor`` measures it)."""
         return None
+
+    def learned_constants(self, data: Any) -> tuple[dict[str, Any], dict[str, float]]:
+        """(field replacements, {prior key: learned value}) from a run's own transitions
+        (``data``), for ``own_data``: the env's constants its data identify (LunarLander: the
+        contact rules). A prior key is what a declared prior ``sets`` (``rules.floor``); a
+        constant the data do not identify is left out (its prior keeps counting). Default: none."""
+        return {}, {}
 
     def task_fidelity(self, test: Any) -> dict[str, float]:
         """Extra task-fidelity metrics of the surrogate's rules on real episodes (``test``: a

@@ -270,7 +270,7 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
                           wrap_env=loop.counted("collect"))
     loop.next_episode = int(loop.data.episode.max()) + 1
     first = loop.refit(clock)
-    venv = SurrogateVecEnv(first.model, spec, job.agent.n_envs, seed=seed, events=first.events)
+    venv = SurrogateVecEnv(first.model, first.spec, job.agent.n_envs, seed=seed, events=first.events)
     loop.counts["resets/check"] += CHECK_RESETS  # the task's functions on real reset states (pipeline.check)
     loop.counts["resets/reset_pool"] += venv.surrogate.real_resets
     agent = make_agent(job.agent, venv, seeds.int_seed(seed, "agent"), recorder.sb3_logger() if recorder is not None else None,
@@ -308,7 +308,8 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
             loop.data = concat([loop.data, new_rows])
         fit = rounds[-1].fit if last else loop.refit(clock)
         if not last:
-            venv.swap_model(fit.model, fit.events, seed=int(seeds.generator(seed, "surrogate", 100 + k).integers(2**31)))
+            venv.swap_model(fit.model, fit.events, seed=int(seeds.generator(seed, "surrogate", 100 + k).integers(2**31)),
+                            spec=fit.spec)
         drawn = {e: {o: n - drawn0.get(e, {}).get(o, 0) for o, n in outs.items()} for e, outs in venv.event_counts.items()}
         result = RoundResult(k, fit, new_rows, dict(loop.counts), int(agent.num_timesteps), clock.seconds,
                              screen, final, solved, drawn, screened_at, not last)
@@ -374,7 +375,7 @@ def summarize(rounds: list[RoundResult], audit: EvalResult | None, threshold: fl
                     "judge": (audit.steps if audit is not None else 0) + len(last.fit.test),  # + the held-out set
                     "reused_as_model_data": max(reused, 0),
                     **{k: v for k, v in c.items() if k.startswith("resets/")}}
-        spec = job.fit.spec
+        spec = last.fit.spec  # the last refit's: with own_data, the priors its learned constants replaced are gone
         m.update(headline(purposes, spec.declared_priors, [expert_of(job.fit.policy, spec.name)],
                           job.agent.tuning_real_steps))
     return {k: float(v) for k, v in m.items()}

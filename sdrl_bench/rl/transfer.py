@@ -122,7 +122,8 @@ class ArmResult:
                     "judge": self.counts.get("final", 0) + (len(self.fit.test) if self.fit is not None else 0),
                     **{f"resets/{k[7:]}": v for k, v in self.counts.items() if k.startswith("resets/")}}
         surrogate = self.arm == "surrogate"
-        m.update(headline(purposes, spec.declared_priors if surrogate else (), [expert] if surrogate else (), tuning))
+        priors = (self.fit.spec if self.fit is not None else spec).declared_priors if surrogate else ()
+        m.update(headline(purposes, priors, [expert] if surrogate else (), tuning))
         c = self.curve
         if c.first_solved_step is not None:
             # real-env interactions spent when the threshold was first met during training
@@ -184,7 +185,7 @@ def run_arm(
         if on_fit is not None:
             on_fit(fit_result)
         seconds.update({k: v for k, v in fit_result.seconds.items() if not k.startswith("evaluate")})
-        venv = (make_surrogate or surrogate_vec_env)(fit_result.model, spec, job.agent.n_envs, job.seed,
+        venv = (make_surrogate or surrogate_vec_env)(fit_result.model, fit_result.spec, job.agent.n_envs, job.seed,
                                                      events=fit_result.events)
         counts["resets/check"] += CHECK_RESETS  # the task's functions on real reset states (pipeline.check)
         counts["resets/reset_pool"] += getattr(getattr(venv, "surrogate", None), "real_resets", 0)

@@ -92,6 +92,16 @@ def check_model(model: Any, spec: EnvSpec, source: str = "model") -> Any:
     return model
 
 
+def member_predictors(model: Any) -> list:
+    """One batched predictor (``models.fast.batch_predictor``) per ensemble member of ``model``
+    (``members_``: coefficient matrices over its ``terms_``); [] without members."""
+    members = getattr(model, "members_", None) or []
+    shim = [type("Member", (), {"terms_": model.terms_, "coef_": np.asarray(c), "state_names_": model.state_names_,
+                                "control_names_": model.control_names_,
+                                "stages_": getattr(model, "stages_", None)})() for c in members]
+    return [batch_predictor(mb) for mb in shim]
+
+
 class ModelEnv:
     """A fitted dynamics model bound to an env's task (see the module docstring).
 
@@ -204,10 +214,15 @@ class ModelEnv:
     def noise_rng(self) -> np.random.Generator:
         return self._rngs["noise"]
 
-    def swap(self, model: Any, events: dict | None = None, seed: int | None = None) -> None:
+    def swap(self, model: Any, events: dict | None = None, seed: int | None = None, spec: EnvSpec | None = None) -> None:
         """Step on with ``model`` (and learned event models): the flags, pool and counters stay;
         the compiled evaluators and kernels are rebuilt (episode memory such as a sleep counter
-        starts again); ``seed`` reseeds the streams. Dyna swaps its refits in here."""
+        starts again); ``seed`` reseeds the streams; ``spec``: the same env with constants
+        learned from the refit's data (``surrogate.own_data``). Dyna swaps its refits in here."""
+        if spec is not None and spec is not self.spec:
+            if spec.name != self.spec.name or spec.state_names != self.spec.state_names:
+                raise ConfigError(f"swap: spec '{spec.name}' is not the surrogate's env '{self.spec.name}'")
+            self.spec, self.task = spec, spec.task
         spec, task = self.spec, self.task
         self.model = model = check_model(model, spec)
         fused, noise, penalty = self._flags
@@ -255,10 +270,7 @@ class ModelEnv:
         members = getattr(model, "members_", None) or []
         if penalty and unc is not None and unc.active and len(members) > 1:
             self._scale = np.asarray(unc.scale, dtype=float)[:, None]
-            shim = [type("Member", (), {"terms_": model.terms_, "coef_": np.asarray(c), "state_names_": model.state_names_,
-                                        "control_names_": model.control_names_,
-                                        "stages_": getattr(model, "stages_", None)})() for c in members]
-            self._members = [batch_predictor(mb) for mb in shim]
+            self._members = member_predictors(model)
 
     def __reduce__(self):  # compiled functions are rebuilt, not pickled
         # (``step_one``: the task's kernel, or ``_step_one`` around it; set by ``swap``)

@@ -128,11 +128,13 @@ class SurrogateVecEnv(VecEnv):
         self._actions: np.ndarray | None = None
         self.closed = False
 
-    def swap_model(self, model: Any, events: dict | None = None, seed: int | None = None) -> None:
-        """Step on with a refitted ``model`` (and learned event models): Dyna swaps the surrogate
-        under an agent that keeps training. Episodes under way go on from their current states;
-        the surrogate's flags stay; ``seed`` reseeds its streams (``ModelEnv.swap``)."""
-        self.surrogate.swap(model, events, seed)
+    def swap_model(self, model: Any, events: dict | None = None, seed: int | None = None,
+                   spec: EnvSpec | None = None) -> None:
+        """Step on with a refitted ``model`` (and learned event models, and the spec with the
+        constants learned from the same data): Dyna swaps the surrogate under an agent that keeps
+        training. Episodes under way go on from their current states; the surrogate's flags
+        stay; ``seed`` reseeds its streams (``ModelEnv.swap``)."""
+        self.surrogate.swap(model, events, seed, spec)
         self._states = np.asarray(self._states, order=self.surrogate.state_order)
 
     @property

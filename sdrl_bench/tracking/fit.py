@@ -8,6 +8,8 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from sdrl_bench.tracking.client import Run, mlflow_client
 
 
@@ -18,7 +20,7 @@ def fit_metrics(result) -> dict[str, float]:
     from sdrl_bench.rl.accounting import expert_of, headline
 
     model, data = result.model, result.data
-    spec = result.job.spec
+    spec = result.spec  # with own_data, the priors its learned constants replaced are gone
     counts = {"model_data": len(data), "judge": len(result.test)}
     accounting = headline(counts, spec.declared_priors, [expert_of(result.job.policy, spec.name)])
     return {**accounting,
@@ -66,7 +68,9 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
             run.log_artifact(path, "model")
     run.log_text(model_.describe(), f"model/{model_.summary_file}")
     log_datasets(run, result, f"data/{spec.name}_transitions.csv", rows)
-    log_priors(run, spec.declared_priors)
+    log_priors(run, result.spec.declared_priors)
+    if result.learned:  # the constants learned from this fit's data (own_data), infinite ones included
+        run.log_dict({k: (v if np.isfinite(v) else str(v)) for k, v in result.learned.items()}, "own_data/learned.json")
     if model:
         log_surrogate_model(run, result)
     _log_table(run, per_state_table(result), "fidelity/per_state.json")

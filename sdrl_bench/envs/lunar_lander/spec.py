@@ -91,6 +91,15 @@ class LunarLanderSpec(EnvSpec):
             uncertainty=parse_uncertainty(self.uncertainty, np.sqrt(np.array(FLIGHT_NOISE_FLOOR)).tolist()),
             events=self._events)
 
+    def learned_constants(self, data) -> tuple[dict, dict[str, float]]:
+        """The contact rules the run's own transitions identify (``own_data.learn_rules``): the
+        leg rule and floor, the settle model, the stiction; no touchdown speed (the touchdown
+        event's model, learned from the same data, decides)."""
+        from sdrl_bench.envs.lunar_lander.own_data import learn_rules  # noqa: PLC0415
+
+        rules, learned = learn_rules(self.rules, data, bool(self.n_discrete_actions))
+        return {"rules": rules}, learned
+
     def heuristic_policy(self, env) -> Policy:
         """gymnasium's built-in heuristic lander controller."""
 
