@@ -23,6 +23,9 @@ with ``--jobs`` processes at a time, one thread each. The stages, in order:
                and the real arm, stopped at the first real evaluation at the threshold.
   dyna         Dyna-style refits (experiment=dyna_<env>), SINDy and NN, beside the fast real arm;
                LunarLander's SINDy loop and its fast real arm again on as many more seeds (5-9).
+  own          LunarLander's Dyna loop from each run's own data (experiment=dyna_lunar_lander_own:
+               contact rules, pessimism and touchdown outcome learned from its own transitions),
+               on the same seeds as the dyna stage's LunarLander headline (0-9).
   search       one Optuna TPE study per env (sdrl-bench-search, seed 0) over the SINDy hyperparameters.
   report       sdrl-bench-report on the store, with this run's provenance (command, seeds,
                budgets, per-stage wall and CPU seconds, commit) as its first section.
@@ -61,7 +64,9 @@ def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
     """(stage name, its commands in order); a command is ``sdrl-bench`` arguments, or starts
     with ``parallel:`` (several single runs at once) or ``python:`` (a script in the repo)."""
     s = "seed=" + ",".join(map(str, seeds))
-    more = "seed=" + ",".join(str(max(seeds) + 1 + i) for i in range(len(seeds)))  # as many seeds again
+    extra = [max(seeds) + 1 + i for i in range(len(seeds))]
+    more = "seed=" + ",".join(map(str, extra))  # as many seeds again
+    both = "seed=" + ",".join(map(str, [*seeds, *extra]))
     touchdowns = "mlruns/datasets/lunar_lander-touchdowns-v1.npz"
     return [
         ("experts", [
@@ -92,6 +97,9 @@ def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
             # LunarLander's Dyna headline on twice the seeds, beside the fast real arm on the same ones
             ["-m", "experiment=dyna_lunar_lander", "surrogate=sindy", more],
             ["-m", "experiment=fast_lunar_lander", "rl.arms=[real]", more],
+        ]),
+        ("own", [  # LunarLander's Dyna loop from the run's own data alone (no constant fitted on other real data)
+            ["-m", "experiment=dyna_lunar_lander_own", both],
         ]),
         ("search", [  # one Optuna study per env (seed 0): TPE over library, degree, optimizer, threshold, alpha
             ["search:", "env=mountain_car", "collector=expert", f"tracking.experiment={STORE_EXPERIMENT}"],

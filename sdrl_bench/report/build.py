@@ -160,14 +160,16 @@ def _with_ci(value: Any, lo: Any, hi: Any, kind: str, empty: str) -> str:
     return f"{text} [{fmt(lo, kind)}, {fmt(hi, kind)}]"
 
 
-def _ci_text(ci: tuple[float, float, float, str], empty: str = NOT_RUN) -> str:
-    """(point, low, high, statistic) as "point [low, high] (statistic)"; ``empty`` without a point."""
+def _ci_text(ci: tuple[float, float, float, str], empty: str = NOT_RUN, number: str = "g4") -> str:
+    """(point, low, high, statistic) as "point [low, high] (statistic)"; ``empty`` without a point;
+    ``number``: "g4" (4 significant digits) or "int" (whole numbers with thousands separators)."""
     point, lo, hi, stat = ci
     if math.isnan(point):
         return empty
+    f = (lambda v: f"{v:,.0f}") if number == "int" else (lambda v: f"{v:.4g}")
     if math.isnan(lo):
-        return f"{point:.4g} ({stat}, 1 seed: no CI)"
-    return f"{point:.4g} [{lo:.4g}, {hi:.4g}] ({stat})"
+        return f"{f(point)} ({stat}, 1 seed: no CI)"
+    return f"{f(point)} [{f(lo)}, {f(hi)}] ({stat})"
 
 
 FIDELITY_DIFFERENCES = (
@@ -382,12 +384,13 @@ def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
                   f"collect {fmt(r['phase_a'], 'int', e)}, screens {fmt(r['phase_b'], 'int', e)}, "
                   f"confirmations {fmt(r['phase_c'], 'int', e)}")
         cost_all = NOT_RUN if not ids else ("not solved" if math.isinf(r["median_all"]) else fmt(r["median_all"], "int", "-"))
-        vals = [f"{r['n_solved']}/{r['n_seeds']}", cost, phases, fmt(r["model_data"], "int", e),
+        vals = [f"{r['n_solved']}/{r['n_seeds']}", cost, _ci_text(r["censored"], "-", number="int"), phases, fmt(r["model_data"], "int", e),
                 fmt(r["surrogate_steps"], "int", e), fmt(r["wall_seconds"], "f1", e), _ci_text(r["final"], "-"),
                 "-" if real else _ci_text(r["audit"], "-"), cost_all, f"{r['n_stopped']}/{r['n_seeds']}"]
         rows.append([Cell(r["env"]), Cell(r["method"]), Cell(r["agent"])] + [link.cell(v, ids) for v in vals]
                     + [link.ids(ids)])
-    out.append(Table(["env", "method", "agent", "solved", "median real transitions to solve", "real steps by phase (mean)",
+    out.append(Table(["env", "method", "agent", "solved", "median real transitions to solve",
+                      "real transitions, unsolved = spent [95% CI]", "real steps by phase (mean)",
                       "model data (mean)", "surrogate steps (mean)", "wall s (mean)", "last 20-episode return [95% CI]",
                       "audit return [95% CI]", "median all real steps to solve", "stopped as solved by the loop", "runs"],
                      rows,
@@ -400,7 +403,9 @@ def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
                      "confirmations); the median all real steps add the env's fitted priors and the recipe's tuning "
                      "(docs/accounting.md). The real arm: the same agent in real envs, stopped at its first "
                      "evaluation at the threshold; its cost is its training steps plus those evaluations. An unsolved "
-                     "seed counts as infinitely many transitions in the medians."))
+                     "seed counts as infinitely many transitions in the medians; in the IQM column it counts what it "
+                     "spent (censored at its budget), so read it beside the fraction solved. A variant pack (e.g. "
+                     "dyna_lunar_lander_own: every constant from the run's own data) has a row of its own."))
     out.append(Para("Differences explained: the paper fits once and counts only the model "
                     "data and the surrogate steps; it reports no real steps spent on evaluation, which here decide "
                     "when Dyna stops and are counted."))

@@ -337,7 +337,8 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
     arm of the same agent (finished transfer runs that trained it, not those that reused it): seeds solved; the median real transitions to solve (an
     unsolved seed counts as infinitely many); per phase, the mean real steps (Dyna: collect,
     screens, confirmations; real arm: training to the first solved evaluation, and the
-    evaluations); the last 20-episode return and the Dyna audit, each as IQM (or mean) with a 95%
+    evaluations); this run's real steps as IQM with a CI, an unsolved seed counted as what it
+    spent (censored at its budget); the last 20-episode return and the Dyna audit, each as IQM (or mean) with a 95%
     bootstrap CI over seeds."""
     runs = list(runs)
     dyna = finished(runs, "dyna")
@@ -364,9 +365,11 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                 costs_all = [x.get("real_steps/all", math.nan) if ok else math.inf for x, ok in zip(m, judged, strict=True)]
                 final = bootstrap_ci([x.get("final_return_mean", math.nan) for x in m], seed=seed)
                 audit = bootstrap_ci([x.get("audit_return_mean", math.nan) for x in m], seed=seed)
+                # censored: an unsolved seed counts what it spent (its budget, or a round past it)
+                spent = bootstrap_ci([x.get("real_transitions_total", math.nan) for x in m], seed=seed)
                 rows.append({"env": env, "method": label, "agent": agent, "n_seeds": len(group),
                              "n_solved": sum(judged), "n_stopped": sum(x.get("solved") == 1.0 for x in m),
-                             "median_to_solve": _median_cost(costs), "median_all": _median_cost(costs_all),
+                             "median_to_solve": _median_cost(costs), "median_all": _median_cost(costs_all), "censored": spent,
                              "model_data": _mean(x.get("real_transitions_model") for x in m),
                              "phase_a": _mean(x.get("real_steps_collect") for x in m),
                              "phase_b": _mean(x.get("real_steps_evaluate") for x in m),
@@ -384,17 +387,19 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
             costs = [x["real/solved_real_steps"] + x.get("real/eval_steps", 0.0) if "real/solved_real_steps" in x
                      else math.inf for x in m]
             costs_all = [c + x.get("real/real_steps/tuning", 0.0) for c, x in zip(costs, m, strict=True)]
+            spent = bootstrap_ci([c if math.isfinite(c) else x.get("real/real_steps/this_run", math.nan)
+                                  for c, x in zip(costs, m, strict=True)], seed=seed)
             rows.append({"env": env, "method": "real arm", "agent": agent, "n_seeds": len(group),
                          "n_solved": sum("real/solved_real_steps" in x for x in m),
                          "n_stopped": sum("real/solved_real_steps" in x for x in m),
-                         "median_to_solve": _median_cost(costs), "median_all": _median_cost(costs_all),
+                         "median_to_solve": _median_cost(costs), "median_all": _median_cost(costs_all), "censored": spent,
                          "model_data": 0.0, "phase_a": _mean(x.get("real/solved_real_steps") for x in m),
                          "phase_b": _mean(x.get("real/eval_steps") for x in m), "phase_c": math.nan,
                          "surrogate_steps": 0.0, "wall_seconds": _mean(x.get("real/train_wall_seconds") for x in m),
                          "final": bootstrap_ci([x.get("real/final_return_mean", math.nan) for x in m], seed=seed),
                          "audit": (math.nan, math.nan, math.nan, "mean"), "runs": [r["run_id"] for r in group]})
     return pd.DataFrame(rows, columns=["env", "method", "agent", "n_seeds", "n_solved", "n_stopped", "median_to_solve",
-                                       "median_all", "model_data",
+                                       "median_all", "censored", "model_data",
                                        "phase_a", "phase_b", "phase_c", "surrogate_steps", "wall_seconds", "final",
                                        "audit", "runs"])
 

@@ -290,7 +290,7 @@ def _real_arm(uri: str, seed: int, solved_at: float | None) -> str:
 
 def test_dyna_table_equals_the_runs_metrics_and_links_its_runs(store: str, tmp_path) -> None:
     """Section 5: solved counts, the median real transitions to solve (an unsolved seed counts
-    as infinite), phase means and the audit IQM come from the Dyna runs' metrics; the real arm's
+    as infinite) and their IQM or mean censored at what an unsolved seed spent, phase means and the audit IQM come from the Dyna runs' metrics; the real arm's
     cost is its training steps to the first solve plus its evaluations; every number links to
     exactly the runs of its row."""
     from urllib.parse import unquote
@@ -304,6 +304,9 @@ def test_dyna_table_equals_the_runs_metrics_and_links_its_runs(store: str, tmp_p
     row = dy.loc[("lunar_lander", "Dyna, sindy")]
     assert (row["n_seeds"], row["n_solved"]) == (3, 2)
     assert row["median_to_solve"] == 30_000  # median of 20k, 30k and infinity
+    # censored: the unsolved seed counts what it spent (3 seeds: the mean, with its bootstrap CI)
+    assert row["censored"][:3] == pytest.approx(rt.bootstrap_ci([20_000, 30_000, 50_500])[:3])
+    assert row["censored"][0] == pytest.approx(np.mean([20_000, 30_000, 50_500]))
     metrics = _client_metrics(store, "tags.`sdrl.kind` = 'dyna' and tags.surrogate = 'sindy'")
     assert row["phase_a"] == pytest.approx(np.mean([m["real_steps_collect"] for m in metrics]))
     assert row["audit"][:3] == pytest.approx(rt.bootstrap_ci([m["audit_return_mean"] for m in metrics])[:3])
@@ -317,6 +320,7 @@ def test_dyna_table_equals_the_runs_metrics_and_links_its_runs(store: str, tmp_p
     assert rows["Dyna, sindy"][3].startswith("[2/3](") and rows["Dyna, sindy"][4].startswith("[30,000](")
     assert rows["Dyna, nn"][4].startswith("[not solved](")
     assert rows["real arm"][4].startswith("[228,000](")
+    assert rows["Dyna, sindy"][5].startswith("[33,500 [")  # the censored mean, whole numbers
     for method, ids in (("Dyna, sindy", sindy), ("Dyna, nn", nn), ("real arm", real)):
         url = unquote(_link(rows[method][4]))
         assert {i for i in sindy + nn + real if i in url} == set(ids)
