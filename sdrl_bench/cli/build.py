@@ -209,6 +209,7 @@ def real_arm_key(cfg: DictConfig) -> str:
     }
     if cfg.rl.get("stop_when_solved", False):  # only when set: keys of earlier runs stay as they were
         parts["rl"]["stop_when_solved"] = True
+    parts["env"].pop("own_data", None)  # shapes only the surrogate: a Dyna variant shares its base's real arm
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

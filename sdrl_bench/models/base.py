@@ -97,3 +97,17 @@ def load_model(path: str | Path) -> DynamicsModel:
     if not isinstance(kind, str) or kind not in _LOADERS:
         raise ConfigError(f"{path}: model kind {kind!r} is not supported ({', '.join(_LOADERS)})")
     return _loader(kind).from_saved(data, Path(path))
+
+
+def residual_noise(resid: np.ndarray, controls: np.ndarray, control_names: Sequence[str],
+                   noise_by: Sequence[str]) -> dict[str, list]:
+    """A model's step noise as its fit measured it: {control name: covariance of the residuals
+    (N, n_states) on the rows where that one-hot control is 1} for each name of ``noise_by``
+    (e.g. LunarLander's engines: their impulses carry random dispersion). Too few rows: left out."""
+    resid, controls = np.asarray(resid, dtype=float), np.asarray(controls, dtype=float)
+    out: dict[str, list] = {}
+    for c in noise_by:
+        rows = controls[:, list(control_names).index(c)] == 1.0
+        if rows.sum() > resid.shape[1] + 1:
+            out[c] = np.cov(resid[rows].T).tolist()
+    return out

@@ -29,7 +29,7 @@ import torch
 
 from sdrl_bench import ConfigError
 from sdrl_bench.models import nn_io
-from sdrl_bench.models.base import read_model_json
+from sdrl_bench.models.base import read_model_json, residual_noise
 from sdrl_bench.models.mlp import ACTIVATIONS, EnsembleMLP
 
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
@@ -58,6 +58,9 @@ class MLPDynamics:
     dtype : "float32" or "float64", the network's arithmetic.
     num_threads : torch threads during ``fit`` (restored afterwards); None leaves torch's setting.
     seed : seeds the split, the initialization and the mini-batch order.
+    noise_by : one-hot controls whose steps carry random dispersion: the fit measures the step
+        noise (``noise_``: residual covariance per control) as SINDy's per-equation model does,
+        so both surrogates step with the same kind of noise.
     """
 
     kind = "nn"
@@ -67,7 +70,7 @@ class MLPDynamics:
                  learning_rate: float = 1e-3, weight_decay: float = 0.0, max_epochs: int = 2000,
                  max_steps: int | None = 4000, batch_size: int = 64, val_fraction: float = 0.2,
                  patience: int = 200, ensemble_size: int = 1, dtype: str = "float32",
-                 num_threads: int | None = 1, seed: int = 0):
+                 num_threads: int | None = 1, seed: int = 0, noise_by: Sequence[str] = ()):
         for key, value in (("width", width), ("depth", depth), ("max_epochs", max_epochs),
                            ("batch_size", batch_size), ("patience", patience),
                            ("ensemble_size", ensemble_size)):
@@ -91,6 +94,8 @@ class MLPDynamics:
         self.max_epochs, self.max_steps, self.batch_size = max_epochs, max_steps, batch_size
         self.val_fraction, self.patience, self.ensemble_size = float(val_fraction), patience, ensemble_size
         self.dtype, self.num_threads, self.seed = dtype, num_threads, seed
+        self.noise_by = tuple(str(c) for c in (noise_by or ()))
+        self.noise_: dict[str, list] = {}
 
     # ------------------------------------------------------------------ structure
     def hyperparameters(self) -> dict[str, Any]:
@@ -98,7 +103,7 @@ class MLPDynamics:
         keys = ("width", "depth", "activation", "learning_rate", "weight_decay", "max_epochs",
                 "max_steps", "batch_size", "val_fraction", "patience", "ensemble_size", "dtype",
                 "num_threads", "seed")
-        return {k: getattr(self, k) for k in keys}
+        return {**{k: getattr(self, k) for k in keys}, "noise_by": list(self.noise_by)}
 
     def layer_sizes(self, n_in: int, n_out: int) -> list[int]:
         return [n_in] + [self.width] * self.depth + [n_out]
@@ -125,6 +130,8 @@ class MLPDynamics:
             raise ConfigError(f"{KEY}: the NN needs at least 2 rows (train + validation), got {len(x)}")
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(u)) and np.all(np.isfinite(x_next))):
             raise ValueError("non-finite values in the training rows")
+        unknown = [c for c in self.noise_by if c not in control_names]
+        _check(not unknown, "noise_by", f"names controls that are not inputs ({', '.join(control_names)})", unknown)
         _warm_up()
         prev_threads = torch.get_num_threads()
         t0, c0 = time.perf_counter(), time.process_time()
@@ -134,6 +141,8 @@ class MLPDynamics:
             self._fit(np.concatenate([x, u], axis=1), x_next - x, list(state_names), list(control_names))
         finally:
             torch.set_num_threads(prev_threads)
+        # the step noise as SINDy's per-equation model measures it: residual covariances per control
+        self.noise_ = residual_noise(x_next - self.predict(x, u), u, self.control_names_, self.noise_by)
         self.fit_wall_seconds_ = time.perf_counter() - t0
         self.fit_cpu_seconds_ = time.process_time() - c0
         self.n_fit_samples_ = len(x)

@@ -43,6 +43,7 @@ def to_dict(model: Any, weights_file: str, sha256: str) -> dict[str, Any]:
             "best_val_loss": model.best_val_loss_.tolist(),
             "best_epoch": model.best_epoch_.tolist(),
         },
+        "noise": model.noise_,
         "n_parameters": model.n_parameters,
         "weights_file": weights_file,
         "weights_sha256": sha256,
@@ -82,6 +83,7 @@ def load(cls: type, d: dict, path: Path) -> Any:
             setattr(model, f"{k}_", t[k])
         model.best_val_loss_ = np.asarray(t["best_val_loss"], dtype=float)
         model.best_epoch_ = np.asarray(t["best_epoch"], dtype=int)
+        model.noise_ = {str(k): np.asarray(v, dtype=float).tolist() for k, v in d.get("noise", {}).items()}
         weights_file, sha = str(d["weights_file"]), str(d["weights_sha256"])
         if Path(weights_file).name != weights_file:
             raise ValueError(f"weights_file must be a file name beside the metadata, got {weights_file!r}")

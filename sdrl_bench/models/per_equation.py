@@ -55,7 +55,7 @@ import pysindy as ps
 from pysindy.feature_library.base import BaseFeatureLibrary, x_sequence_or_item
 
 from sdrl_bench import ConfigError
-from sdrl_bench.models.base import read_model_json, write_model_json
+from sdrl_bench.models.base import read_model_json, residual_noise, write_model_json
 from sdrl_bench.models.blas import matmul_rows
 from sdrl_bench.models.snap import snap_equation
 from sdrl_bench.models.terms import TABLE, Term, evaluate_terms
@@ -306,11 +306,7 @@ class PerEquationModel:
         self.members_ = [self._flat_coef(c) for c in member_coefs]
         resid = x_next - self.predict(x, u)
         self.fit_mse_ = {s: float(np.mean(resid[:, i] ** 2)) for i, s in enumerate(self.state_names_)}
-        self.noise_ = {}
-        for c in self.library.noise_by:
-            rows = z[:, len(self.state_names_) + self.control_names_.index(c)] == 1.0
-            if rows.sum() > len(self.state_names_) + 1:
-                self.noise_[c] = np.cov(resid[rows].T).tolist()
+        self.noise_ = residual_noise(resid, z[:, len(self.state_names_):], self.control_names_, self.library.noise_by)
         self.fit_wall_seconds_ = time.perf_counter() - t0
         self.fit_cpu_seconds_ = time.process_time() - c0
         return self

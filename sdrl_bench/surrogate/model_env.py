@@ -93,13 +93,40 @@ def check_model(model: Any, spec: EnvSpec, source: str = "model") -> Any:
 
 
 def member_predictors(model: Any) -> list:
-    """One batched predictor (``models.fast.batch_predictor``) per ensemble member of ``model``
-    (``members_``: coefficient matrices over its ``terms_``); [] without members."""
+    """One batched predictor (``models.fast.batch_predictor``) per ensemble member of a
+    structured model (``members_``: coefficient matrices over its ``terms_``); [] without."""
     members = getattr(model, "members_", None) or []
     shim = [type("Member", (), {"terms_": model.terms_, "coef_": np.asarray(c), "state_names_": model.state_names_,
                                 "control_names_": model.control_names_,
                                 "stages_": getattr(model, "stages_", None)})() for c in members]
     return [batch_predictor(mb) for mb in shim]
+
+
+def member_spread(model: Any):
+    """``spread(z) -> (K, n_outputs, N)``: every ensemble member's prediction at model inputs z
+    (n_inputs, N), for any model kind with members: a structured model's ``members_`` (SINDy's
+    bootstrap refits) or ``predict_members`` (an NN ensemble); None for a single model (no spread
+    estimate: no pessimism)."""
+    if len(getattr(model, "members_", None) or []) > 1:
+        preds = member_predictors(model)
+        return lambda z: np.stack([p(z) for p in preds])
+    if callable(getattr(model, "predict_members", None)) and getattr(model, "ensemble_size", 1) > 1:
+        n = len(model.state_names_)
+        return lambda z: np.asarray(model.predict_members(z[:n].T, z[n:].T)).transpose(0, 2, 1)
+    return None
+
+
+def surrogate_settings(model: Any, spec: EnvSpec) -> dict[str, str]:
+    """How a surrogate of ``model`` on ``spec`` steps, in words (stated in every fit run): its
+    step noise and its pessimism, or why it has none."""
+    noise = getattr(model, "noise_", None) or {}
+    unc = spec.task.uncertainty if spec.task is not None else None
+    spread = member_spread(model)
+    k = len(getattr(model, "members_", None) or []) or getattr(model, "ensemble_size", 1)
+    return {"surrogate.noise": ("residual covariance per " + ", ".join(sorted(noise))) if noise else "none",
+            "surrogate.pessimism": ("off (the env declares none)" if unc is None or not unc.active else
+                                    f"ensemble disagreement ({k} members)" if spread is not None else
+                                    "none: the model has no members")}
 
 
 class ModelEnv:
@@ -239,7 +266,7 @@ class ModelEnv:
         kernel = task.step_one(self.predictor, self.obs_low, self.obs_high) if task.step_one is not None else None
         self._step_one_kernel = kernel
         # the kernel itself when nothing wraps it: a single env's step is then one call
-        self.step_one = kernel if kernel is not None and not (self._members or self._learned) else self._step_one
+        self.step_one = kernel if kernel is not None and not (self._members is not None or self._learned) else self._step_one
         self._step_batch = (task.step_batch(self.limit, self.obs_low, self.obs_high, rng=lambda: self.init_rng)
                             if fused and task.step_batch is not None else None)
         self.state_order = "F" if self._step_batch is None else "C"
@@ -263,14 +290,17 @@ class ModelEnv:
             self._chol = chol if np.any(chol) else None
 
     def _setup_members(self, penalty: bool) -> None:
-        """The ensemble's members (``model.members_``, coefficient matrices over ``terms_``) when
-        the task's pessimism is active."""
+        """The ensemble's members (``member_spread``: any model kind) when the task's pessimism
+        is active; ``self.pessimism`` says which (a model without members gets none)."""
         model, unc = self.model, self.task.uncertainty
-        self._members: list = []
-        members = getattr(model, "members_", None) or []
-        if penalty and unc is not None and unc.active and len(members) > 1:
+        self._members = None
+        spread = member_spread(model) if penalty and unc is not None and unc.active else None
+        if spread is not None:
             self._scale = np.asarray(unc.scale, dtype=float)[:, None]
-            self._members = member_predictors(model)
+            self._members = spread
+        self.pessimism = ("off" if not (penalty and unc is not None and unc.active) else
+                          "ensemble disagreement" if spread is not None else "none: the model has no members")
+        """How the reward is made pessimistic: by the members' disagreement, or not (and why)."""
 
     def __reduce__(self):  # compiled functions are rebuilt, not pickled
         # (``step_one``: the task's kernel, or ``_step_one`` around it; set by ``swap``)
@@ -345,8 +375,7 @@ class ModelEnv:
     def disagreement(self, z: np.ndarray) -> np.ndarray:
         """(N,) the ensemble's disagreement at model inputs z (n_inputs, N): the largest over
         regressed states of the members' standard deviation, in units of the task's scale."""
-        preds = np.stack([p(z) for p in self._members])
-        return (preds.std(axis=0) / self._scale).max(axis=0)
+        return (self._members(z).std(axis=0) / self._scale).max(axis=0)
 
     def _add_noise(self, rows: np.ndarray, actions: np.ndarray) -> np.ndarray:
         a = np.asarray(actions).reshape(len(actions), -1)[:, 0].astype(np.intp)
@@ -404,7 +433,7 @@ class ModelEnv:
 
     def _post(self, states, actions, z, nxt, rewards, terminated, diverged):
         """Steps 6 and 7 (pessimism, learned events), shared by both paths."""
-        if self._members:
+        if self._members is not None:
             rewards, terminated = self._pessimism(states, z, rewards, terminated, diverged)
         if self._learned:
             rewards, terminated = self._draw_events(states, actions, nxt, rewards, terminated, diverged)
@@ -458,10 +487,10 @@ class ModelEnv:
             nxt, r, term, div = self.step(s, self.raw_actions(action, 1))
             return self.observation(nxt[:1])[0], nxt[0].tolist(), float(r[0]), bool(term[0]), bool(div[0])
         obs, nxt, r, term, div = kernel(state, action)
-        if div or term or not (self._members or self._learned):
+        if div or term or not (self._members is not None or self._learned):
             return obs, nxt, r, term, div
         s, a = np.asarray([state], dtype=float), self.raw_actions(action, 1)
-        z = self.model_inputs(s, a) if self._members else None
+        z = self.model_inputs(s, a) if self._members is not None else None
         _, rew, ter, _ = self._post(s, a, z, np.asarray([nxt], dtype=float), np.array([r]), np.array([False]),
                                     np.array([False]))
         return obs, nxt, float(rew[0]), bool(ter[0]), div

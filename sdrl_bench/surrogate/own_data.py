@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from sdrl_bench.envs.base import EnvSpec
-from sdrl_bench.surrogate.model_env import member_predictors
+from sdrl_bench.surrogate.model_env import member_spread
 
 FREE_QUANTILE = 99.0
 
@@ -40,10 +40,9 @@ def uncertainty_from_data(spec: EnvSpec, model: Any, data: Any, rows: np.ndarray
     node["scale"] = scale.tolist()
     learned = {f"uncertainty.scale/{n}": float(v) for n, v in zip(spec.target_names, scale, strict=True)}
     learned["uncertainty.scale"] = float(len(scale))
-    members = member_predictors(model) if len(getattr(model, "members_", None) or []) > 1 else []
-    if members:
-        z = np.vstack([x.T, u.T])
-        spread = np.stack([p(z) for p in members]).std(axis=0) / scale[:, None]
+    members = member_spread(model)
+    if members is not None:
+        spread = members(np.vstack([x.T, u.T])).std(axis=0) / scale[:, None]
         node["free"] = float(np.percentile(spread.max(axis=0), FREE_QUANTILE))
         learned["uncertainty.free"] = node["free"]
     return node, learned

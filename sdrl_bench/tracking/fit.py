@@ -57,6 +57,10 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
     run.log_metrics({f"{prefix}{k}": v for k, v in fit_metrics(result).items()})
     run.set_tags({"dataset_sha256": result.dataset_hash, "test_set": result.test_name, "test_set_sha256": result.test_hash,
                   "fit_regime": spec.fit_regime or "all"})
+    if result.spec.task is not None:  # the surrogate's step noise and pessimism, or why it has none
+        from sdrl_bench.surrogate.model_env import surrogate_settings
+
+        run.set_tags(surrogate_settings(model_, result.spec))
     set_description(run, fit_description(result))
     with tempfile.TemporaryDirectory() as tmp:
         csv = save_csv(result.data if rows is None else rows, spec, Path(tmp) / f"{spec.name}_transitions.csv")

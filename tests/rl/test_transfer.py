@@ -157,7 +157,7 @@ def test_surrogate_steps_count_what_sac_took_and_the_fit_shares_names_with_fit_r
             assert transfer[f"metrics.{k}"] == fitrun[f"metrics.{k}"] == pytest.approx(v, rel=1e-12, abs=0), k
     client = MlflowClient(store)
     run = client.get_run(transfer["run_id"])
-    assert {i.tags[0].value for i in run.inputs.dataset_inputs} == {"training", "testing"}
+    assert {i.tags[0].value for i in run.inputs.dataset_inputs} == {"training", "testing", "prior:knowledge"}
     assert len(run.outputs.model_outputs) == 1 and "cos(3 x)" in run.data.tags["mlflow.note.content"]
     assert len(run.data.params) <= 40 and run.data.params["agent.algo.train_freq"] == "32"
     assert run.data.params["tracking.uri"] == store
@@ -201,7 +201,7 @@ def test_sigterm_during_training_leaves_a_killed_run_that_keeps_its_fit(store, t
     assert "MLflow run " in out.splitlines()[1]  # the run id came first, before any training
     run = client.get_run(run.info.run_id)
     assert run.info.status == "KILLED"
-    assert {i.tags[0].value for i in run.inputs.dataset_inputs} == {"training", "testing"}
+    assert {i.tags[0].value for i in run.inputs.dataset_inputs} == {"training", "testing", "prior:knowledge"}
     assert len(run.outputs.model_outputs) == 1
     assert "cos(3 x)" in run.data.tags["mlflow.note.content"] and run.data.metrics["mse/v"] < 2e-18
     assert "surrogate/final_return_mean" not in run.data.metrics  # training never finished

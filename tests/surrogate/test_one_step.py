@@ -125,7 +125,9 @@ def test_a_swap_keeps_noise_pessimism_and_kernels(fits):
     quiet = SurrogateVecEnv(ModelEnv(fit0.model, spec, noise=False, penalty=False, fused=False), n_envs=16, seed=1)
     quiet.swap_model(fit1.model, events, seed=2)
     core = quiet.surrogate
-    assert core._chol is None and not core._members and core._step_batch is None and core.events == events
+    assert core._chol is None and core._members is None and core._step_batch is None and core.events == events
     loud = SurrogateVecEnv(fit0.model, spec, 16, seed=1)
     loud.swap_model(fit1.model, None, seed=2)
-    assert loud.surrogate._chol is not None and len(loud.surrogate._members) == 5 and loud.surrogate._step_batch is not None
+    sur = loud.surrogate
+    z = sur.model_inputs(sur.initial_states(3), np.zeros(3, dtype=int))
+    assert sur._chol is not None and sur._members(z).shape[0] == 5 and sur._step_batch is not None

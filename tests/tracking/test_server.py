@@ -76,10 +76,11 @@ def test_a_fit_run_on_a_server_has_datasets_a_loadable_model_equations_tags_and_
 
     # datasets: the training transitions and the held-out test set, with digests and contexts
     inputs = {i.tags[0].value: i.dataset for i in run.inputs.dataset_inputs}
-    assert set(inputs) == {"training", "testing"}
+    assert set(inputs) == {"training", "testing", "prior:knowledge"}  # + MountainCar's declared knowledge prior
+    assert inputs["prior:knowledge"].name == "mountain_car-interface"
     assert inputs["testing"].name == "mountain_car-heldout-v1" and inputs["training"].name == f"mountain_car-transitions-{rid[:8]}"
     assert rid in inputs["training"].source  # this run's own file
-    assert all(len(d.digest) >= 8 for d in inputs.values()) and inputs["training"].digest != inputs["testing"].digest
+    assert all(len(inputs[k].digest) >= 8 for k in ("training", "testing")) and inputs["training"].digest != inputs["testing"].digest
     assert '"num_rows": 75' in inputs["training"].profile
 
     # the logged model: a self-contained pyfunc that predicts the next states from the model's inputs
