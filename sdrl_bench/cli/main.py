@@ -101,14 +101,9 @@ def _print_summary(result: FitResult, uri: str, run_id: str, experiment_id: str 
 def main() -> None:
     """Entry point of ``sdrl-bench``: the command line checked first (``cli.precheck``: one line and
     exit 2 for a bad override, key, group option or YAML file), then the Hydra app (``app``)."""
-    from sdrl_bench.cli.precheck import check_command_line
+    from sdrl_bench.cli.precheck import run_checked
 
-    try:
-        check_command_line(sys.argv[1:], "config")
-    except ConfigError as exc:
-        print(f"sdrl-bench: error: {exc}", file=sys.stderr)
-        sys.exit(2)
-    app()
+    run_checked(app, "config", "sdrl-bench")
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")

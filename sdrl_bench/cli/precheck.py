@@ -138,3 +138,16 @@ def check_command_line(argv: Sequence[str], config_name: str) -> None:
         raise ConfigError(_one_line(exc, _variants(parsed)[0], composed)) from None
     finally:
         GlobalHydra.instance().clear()
+
+
+def run_checked(app, config_name: str, prog: str) -> None:
+    """An entry point: the command line checked first (``check_command_line``: one line on
+    stderr and exit 2 for a bad override, key, group option or YAML file), then the Hydra ``app``."""
+    import sys
+
+    try:
+        check_command_line(sys.argv[1:], config_name)
+    except ConfigError as exc:
+        print(f"{prog}: error: {exc}", file=sys.stderr)
+        sys.exit(2)
+    app()

@@ -229,14 +229,9 @@ class SearchStorageCallback(Callback):
 def main() -> None:
     """Entry point of ``sdrl-bench-search``: the command line checked first (``cli.precheck``: one line and
     exit 2 for a bad override, key, group option or YAML file), then the Hydra app (``app``)."""
-    from sdrl_bench.cli.precheck import check_command_line
+    from sdrl_bench.cli.precheck import run_checked
 
-    try:
-        check_command_line(sys.argv[1:], "search_app")
-    except ConfigError as exc:
-        print(f"sdrl-bench-search: error: {exc}", file=sys.stderr)
-        sys.exit(2)
-    app()
+    run_checked(app, "search_app", "sdrl-bench-search")
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="search_app")

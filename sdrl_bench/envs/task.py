@@ -269,15 +269,22 @@ def parse_events(nodes: Any, spec: Any) -> tuple[Event, ...]:
                  for i, node in enumerate(nodes))
 
 
-def _event(node: Any, spec: Any, key: str) -> Event:
+def _check_mapping(node: Any, key: str, what: str, known: set[str], required: Sequence[str]) -> None:
+    """One line naming ``key`` for a node that is not a mapping, has an unknown key or lacks a
+    required one (None or empty)."""
     if not isinstance(node, dict):
-        raise ConfigError(f"{key}: an event is a mapping (name, trigger, features, outcomes)")
-    unknown = sorted(set(node) - _EVENT_KEYS)
+        raise ConfigError(f"{key}: {what} is a mapping ({', '.join(required)}, ...)")
+    unknown = sorted(set(node) - known)
     if unknown:
-        raise ConfigError(f"{key}.{unknown[0]}: unknown key; known: {', '.join(sorted(_EVENT_KEYS))}")
-    for req in ("name", "trigger", "features", "outcomes"):
-        if node.get(req) is None:
+        raise ConfigError(f"{key}.{unknown[0]}: unknown key; known: {', '.join(sorted(known))}")
+    for req in required:
+        value = node.get(req)
+        if value is None or (hasattr(value, "__len__") and len(value) == 0):
             raise ConfigError(f"{key}.{req}: required")
+
+
+def _event(node: Any, spec: Any, key: str) -> Event:
+    _check_mapping(node, key, "an event", _EVENT_KEYS, ("name", "trigger", "features", "outcomes"))
     features, names = _feature_fn(node["features"], spec.state_names, f"{key}.features")
     names = names or tuple(str(n) for n in node.get("feature_names") or ())
     if not names:
@@ -381,14 +388,7 @@ def parse_priors(nodes: Any) -> tuple[Prior, ...]:
         if isinstance(node, Prior):
             out.append(node)
             continue
-        if not isinstance(node, dict):
-            raise ConfigError(f"{key}: a prior is a mapping (name, kind, sets, source, real_steps, ...)")
-        unknown = sorted(set(node) - _PRIOR_KEYS)
-        if unknown:
-            raise ConfigError(f"{key}.{unknown[0]}: unknown key; known: {', '.join(sorted(_PRIOR_KEYS))}")
-        for req in ("name", "kind", "sets", "source"):
-            if not node.get(req):
-                raise ConfigError(f"{key}.{req}: required")
+        _check_mapping(node, key, "a prior", _PRIOR_KEYS, ("name", "kind", "sets", "source"))
         if node["kind"] not in PRIOR_KINDS:
             raise ConfigError(f"{key}.kind: one of {', '.join(PRIOR_KINDS)}, got {node['kind']!r}")
         for k in ("real_steps", "simulator_steps"):
