@@ -73,6 +73,7 @@ def write_model_json(path: str | Path, data: dict) -> Path:
 _LOADERS: dict[str, Any] = {
     "sindy": "sdrl_bench.models.sindy:SindyModel",
     "nn": "sdrl_bench.models.nn:MLPDynamics",
+    "pe": "sdrl_bench.models.pe:GaussianEnsembleDynamics",
 }
 
 

@@ -177,7 +177,7 @@ class MLPDynamics:
             perm = torch.argsort(torch.rand(k, len(train), generator=gen), dim=1)
             for start in range(0, len(train) - batch + 1, batch):  # drop a ragged tail batch
                 idx = perm[:, start:start + batch]
-                loss = ((net(z_tr[idx]) - y_tr[idx]) ** 2).mean(dim=(1, 2)).sum()
+                loss = self._train_loss(net(z_tr[idx]), y_tr[idx]).sum()
                 opt.zero_grad(set_to_none=True)
                 loss.backward()
                 opt.step()
@@ -186,7 +186,7 @@ class MLPDynamics:
                     break
             epoch += 1
             with torch.no_grad():
-                val_loss = ((net(z_va) - y_va) ** 2).mean(dim=(1, 2)).to(torch.float64)
+                val_loss = self._val_loss(net(z_va), y_va).to(torch.float64)
                 better = val_loss < best
                 best = torch.where(better, val_loss, best)
                 best_epoch = torch.where(better, epoch, best_epoch)
@@ -196,7 +196,10 @@ class MLPDynamics:
                         saved.copy_(p)
                 elif bool(better.any()):
                     for saved, p in zip(best_params, params, strict=True):
-                        saved[better] = p[better]
+                        if p.dim() and p.shape[0] == k:  # per member
+                            saved[better] = p[better]
+                        else:  # shared by the members (a Gaussian head's log-variance bounds)
+                            saved.copy_(p)
             if bool(torch.all(since >= self.patience)):
                 break
         net.requires_grad_(False)
@@ -207,8 +210,25 @@ class MLPDynamics:
         self.best_val_loss_ = best.numpy().copy()
         self.best_epoch_ = best_epoch.numpy().copy()
         with torch.inference_mode():
-            spread = net(z_va).std(dim=0, unbiased=False).mean() if k > 1 else torch.zeros(())
+            spread = self._means(net(z_va)).std(dim=0, unbiased=False).mean() if k > 1 else torch.zeros(())
         self.val_member_std_ = float(spread)
+        self._after_fit()
+
+    # hooks of the training loop (a probabilistic ensemble overrides them: ``models.pe``)
+    def _train_loss(self, out: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Per-member training loss (K,): the normalized-delta MSE."""
+        return ((out - y) ** 2).mean(dim=(1, 2))
+
+    def _val_loss(self, out: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """Per-member validation loss (K,) for early stopping: the normalized-delta MSE."""
+        return ((self._means(out) - y) ** 2).mean(dim=(1, 2))
+
+    def _means(self, out: torch.Tensor) -> torch.Tensor:
+        """The members' predicted normalized deltas from the network's output."""
+        return out
+
+    def _after_fit(self) -> None:
+        """Called once the best weights are restored."""
 
     # ------------------------------------------------------------------ use
     def predict_members(self, x: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -234,7 +254,7 @@ class MLPDynamics:
         z = np.concatenate([x, np.atleast_2d(u)], axis=1)
         zn = (z - self.input_mean_) / self.input_std_
         with torch.inference_mode():
-            return self.net_(torch.from_numpy(zn.astype(self._np_dtype, copy=False))).numpy()
+            return self._means(self.net_(torch.from_numpy(zn.astype(self._np_dtype, copy=False)))).numpy()
 
     @property
     def _np_dtype(self) -> type:

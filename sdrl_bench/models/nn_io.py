@@ -44,6 +44,7 @@ def to_dict(model: Any, weights_file: str, sha256: str) -> dict[str, Any]:
             "best_epoch": model.best_epoch_.tolist(),
         },
         "noise": model.noise_,
+        **({"elites": [int(i) for i in model.elites_]} if hasattr(model, "elites_") else {}),
         "n_parameters": model.n_parameters,
         "weights_file": weights_file,
         "weights_sha256": sha256,
@@ -84,6 +85,10 @@ def load(cls: type, d: dict, path: Path) -> Any:
         model.best_val_loss_ = np.asarray(t["best_val_loss"], dtype=float)
         model.best_epoch_ = np.asarray(t["best_epoch"], dtype=int)
         model.noise_ = {str(k): np.asarray(v, dtype=float).tolist() for k, v in d.get("noise", {}).items()}
+        if "elites" in d:  # a probabilistic ensemble's (models.pe)
+            model.elites_ = np.asarray(d["elites"], dtype=int)
+            if not np.all((model.elites_ >= 0) & (model.elites_ < model.ensemble_size)):
+                raise ValueError(f"'elites' must index the {model.ensemble_size} members, got {d['elites']}")
         weights_file, sha = str(d["weights_file"]), str(d["weights_sha256"])
         if Path(weights_file).name != weights_file:
             raise ValueError(f"weights_file must be a file name beside the metadata, got {weights_file!r}")

@@ -122,8 +122,11 @@ def surrogate_settings(model: Any, spec: EnvSpec) -> dict[str, str]:
     noise = getattr(model, "noise_", None) or {}
     unc = spec.task.uncertainty if spec.task is not None else None
     spread = member_spread(model)
-    k = len(getattr(model, "members_", None) or []) or getattr(model, "ensemble_size", 1)
-    return {"surrogate.noise": ("residual covariance per " + ", ".join(sorted(noise))) if noise else "none",
+    k = (len(getattr(model, "members_", None) or []) or len(getattr(model, "elites_", ()))
+         or getattr(model, "ensemble_size", 1))
+    learned = callable(getattr(model, "sample", None))
+    return {"surrogate.noise": ("learned variance: a random elite's Gaussian each step" if learned else
+                                "residual covariance per " + ", ".join(sorted(noise)) if noise else "none"),
             "surrogate.pessimism": ("off (the env declares none)" if unc is None or not unc.active else
                                     f"ensemble disagreement ({k} members)" if spread is not None else
                                     "none: the model has no members")}
@@ -263,7 +266,14 @@ class ModelEnv:
         self._setup_noise(noise)
         self._setup_members(penalty)
         self._predict_rows = batch_predictor(model)
-        kernel = task.step_one(self.predictor, self.obs_low, self.obs_high) if task.step_one is not None else None
+        sampler = getattr(model, "sample", None) if noise else None
+        self._sample = None
+        if callable(sampler):  # a model that draws its own steps (a probabilistic ensemble): its noise
+            n_s = len(model.state_names_)
+            self._sample = lambda z: np.asarray(sampler(z[:n_s].T, z[n_s:].T, self.noise_rng)).T
+        # the one-state kernel evaluates a deterministic predictor: a sampling model steps by the batched path
+        kernel = (task.step_one(self.predictor, self.obs_low, self.obs_high)
+                  if task.step_one is not None and self._sample is None else None)
         self._step_one_kernel = kernel
         # the kernel itself when nothing wraps it: a single env's step is then one call
         self.step_one = kernel if kernel is not None and not (self._members is not None or self._learned) else self._step_one
@@ -392,9 +402,12 @@ class ModelEnv:
         task, states = self.task, np.asarray(states, dtype=float)
         with np.errstate(all="ignore"):
             z = self.model_inputs(states, actions)
-            rows = self._predict_rows(z)
-            if self._chol is not None:  # the step noise (e.g. engine dispersion), seeded
-                rows = self._add_noise(rows, actions)
+            if self._sample is not None:  # the model's own draw (its learned variance), seeded
+                rows = self._sample(z)
+            else:
+                rows = self._predict_rows(z)
+                if self._chol is not None:  # the step noise (e.g. engine dispersion), seeded
+                    rows = self._add_noise(rows, actions)
             if task.regime_dynamics is not None:
                 rows = task.regime_dynamics(states, actions, rows)
             if self._step_batch is not None:  # the task's kernel does steps 3-5

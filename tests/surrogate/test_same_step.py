@@ -1,6 +1,7 @@
-"""SINDy and NN surrogates of one env step through the same model-env code: the same reset
-pool, the same step noise (each model's own measured dispersion), the same pessimism from
-whatever spread the model has (non-zero for both ensembles), the same learned events."""
+"""SINDy, NN and probabilistic-ensemble surrogates of one env step through the same model-env
+code: the same reset pool, step noise (each model's own: measured dispersion, or the PE's learned
+variance), the same pessimism from whatever spread the model has (non-zero for every ensemble),
+the same learned events."""
 
 from __future__ import annotations
 
@@ -28,8 +29,10 @@ def fits():
     sindy = fit_dynamics(build_fit_job(compose_cfg(*BASE)))
     nn = fit_dynamics(build_fit_job(compose_cfg(*BASE, "surrogate=nn", "surrogate.model.ensemble_size=3",
                                                 "surrogate.model.max_steps=300")))
-    assert sindy.dataset_hash == nn.dataset_hash
-    return {"sindy": sindy, "nn": nn}
+    pe = fit_dynamics(build_fit_job(compose_cfg(*BASE, "surrogate=pe", "surrogate.model.width=32",
+                                                "surrogate.model.max_steps=300")))
+    assert sindy.dataset_hash == nn.dataset_hash == pe.dataset_hash
+    return {"sindy": sindy, "nn": nn, "pe": pe}
 
 
 def _always_crash(spec) -> EventModel:
@@ -40,15 +43,18 @@ def _always_crash(spec) -> EventModel:
     return EventModel("touchdown", event.outcome_names, event.feature_names, clf, 2, {"survive": 0, "crash": 2}, 1.0, 0.0)
 
 
-@pytest.mark.parametrize("kind", ["sindy", "nn"])
-def test_noise_and_pessimism_come_from_the_model_env_for_either_model(fits, kind):
+@pytest.mark.parametrize("kind", ["sindy", "nn", "pe"])
+def test_noise_and_pessimism_come_from_the_model_env_for_every_model(fits, kind):
     fit = fits[kind]
     model, spec = fit.model, fit.spec
-    assert surrogate_settings(model, spec) == {
-        "surrogate.noise": "residual covariance per a_left, a_main, a_right",
-        "surrogate.pessimism": f"ensemble disagreement ({5 if kind == 'sindy' else 3} members)"}
+    members = {"sindy": 5, "nn": 3, "pe": 5}[kind]
+    noise = ("learned variance: a random elite's Gaussian each step" if kind == "pe"
+             else "residual covariance per a_left, a_main, a_right")
+    assert surrogate_settings(model, spec) == {"surrogate.noise": noise,
+                                               "surrogate.pessimism": f"ensemble disagreement ({members} members)"}
     env = ModelEnv(model, spec, seed=0)
-    assert env.pessimism == "ensemble disagreement" and env._chol is not None
+    assert env.pessimism == "ensemble disagreement"
+    assert (env._sample is not None) if kind == "pe" else (env._chol is not None)
     states = env.initial_states(64)
     main = np.full(64, 2)  # the main engine: dispersed
     # noise: the same states and action, two noise draws differ; without noise, one deterministic step
