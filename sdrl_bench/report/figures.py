@@ -124,7 +124,7 @@ def _fit_blocks(uri: str, runs: Sequence[Mapping[str, Any]], folder: Path, url: 
     records = rt.fit_records(runs)
     any_fit = False
     for env in rt.envs_of(records):
-        for kind in ("sindy", "nn"):
+        for kind in rt.surrogate_kinds({"tags": {"surrogate": r.get("surrogate", "sindy")}} for r in records):
             fits = rt.main_fits(records, env, kind)
             if not fits:
                 continue
@@ -132,7 +132,7 @@ def _fit_blocks(uri: str, runs: Sequence[Mapping[str, Any]], folder: Path, url: 
             rid = fits[0]["run_id"]
             got = _fetch(uri, rid, "figures/predicted_vs_true.png", figs / f"pred_{env}_{kind}.png")
             if got:
-                out.append(Image(got, f"{env} ({kind}, {fits[0]['library'] if kind == 'sindy' else 'nn'}): predicted vs true "
+                out.append(Image(got, f"{env} ({kind}, {fits[0]['library'] if kind == 'sindy' else kind}): predicted vs true "
                                       f"on {fits[0]['test_set']} (run {rid[:8]})"))
             if kind == "sindy":
                 eq = tracking.download_artifact(uri, rid, "model/equations.txt", folder / ".dl" / rid)

@@ -287,6 +287,17 @@ TRANSFER_METRICS = ("real_transitions_model", "real_transitions_train", "surroga
                     "success_rate", "train_wall_seconds", "solved_real_steps", "solved_wall_seconds")
 
 
+KINDS = ("sindy", "nn")
+"""The surrogate kinds every RL table shows (a row "not run" when absent); other kinds (``pe``,
+a user's) get rows where they have runs."""
+
+
+def surrogate_kinds(runs: Iterable[Run]) -> list[str]:
+    """``KINDS`` then every other surrogate kind the runs carry, in name order."""
+    seen = {r["tags"].get("surrogate", "sindy") for r in runs}
+    return [*KINDS, *sorted(seen - set(KINDS))]
+
+
 def transfer_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
     """RL transfer per env, surrogate kind, agent and arm (seeds pooled): real transitions used
     (model + training), surrogate steps, total steps as the paper counts them, final real
@@ -299,7 +310,8 @@ def transfer_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
         # the paper pack's agent first, then the others (a fast recipe)
         agents = sorted({r["tags"].get("agent", "?") for r in done if r["tags"].get("env") == env},
                         key=lambda a: (a != pack(env, "agent"), a)) or ["-"]
-        for kind, agent in ((k, a) for k in ("sindy", "nn") for a in agents):
+        kinds = surrogate_kinds(r for r in done if r["tags"].get("env") == env)
+        for kind, agent in ((k, a) for k in kinds for a in agents):
             # one row group per agent: a store with the zoo recipe and a fast one keeps them apart
             group = [r for r in done if r["tags"].get("env") == env and r["tags"].get("surrogate", "sindy") == kind
                      and r["tags"].get("agent", "?") == agent]
@@ -352,10 +364,11 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
             # the env's own Dyna pack first, then other packs (a variant: other priors, other budgets)
             packs = sorted({r["tags"].get("sdrl.experiment") for r in dyna if r["tags"].get("env") == env
                             and r["tags"].get("agent") == agent}, key=lambda p: (p not in (None, f"dyna_{env}"), str(p)))
-            for pack, kind in ((p, k) for p in packs for k in ("sindy", "nn")):
+            kinds = surrogate_kinds(r for r in dyna if r["tags"].get("env") == env)
+            for pack, kind in ((p, k) for p in packs for k in kinds):
                 group = [r for r in dyna if r["tags"].get("env") == env and r["tags"].get("agent") == agent
                          and r["tags"].get("surrogate", "sindy") == kind and r["tags"].get("sdrl.experiment") == pack]
-                if not group and pack not in (None, f"dyna_{env}"):
+                if not group and (pack not in (None, f"dyna_{env}") or kind not in KINDS):
                     continue
                 label = f"Dyna, {kind}" + ("" if pack in (None, f"dyna_{env}") else f", {pack}")
                 m = [r["metrics"] for r in group]

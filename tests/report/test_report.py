@@ -326,6 +326,18 @@ def test_dyna_table_equals_the_runs_metrics_and_links_its_runs(store: str, tmp_p
         assert {i for i in sindy + nn + real if i in url} == set(ids)
 
 
+def test_another_surrogate_kind_gets_rows_of_its_own_and_absent_ones_none(store: str) -> None:
+    """A probabilistic-ensemble Dyna run (surrogate=pe) is a row beside SINDy's; the NN, not run,
+    keeps its "not run" row; a kind nobody ran gets none."""
+    _dyna(store, 0, "sindy", True, 20_000, 230.0)
+    pe = _dyna(store, 0, "pe", True, 25_000, 240.0)
+    dy = rt.dyna_table(tracking.find_runs(store, EXP)).set_index(["env", "method"])
+    assert list(dy.loc["lunar_lander"].index) == ["Dyna, sindy", "Dyna, nn", "Dyna, pe", "real arm"]
+    row = dy.loc[("lunar_lander", "Dyna, pe")]
+    assert row["runs"] == [pe] and row["median_to_solve"] == 25_000 and row["n_solved"] == 1
+    assert dy.loc[("lunar_lander", "Dyna, nn"), "n_seeds"] == 0
+
+
 def test_report_exports_every_run_it_read_and_names_its_commit(fits_store: str, tmp_path) -> None:
     """runs.csv beside the report: one row per run read, its tags, params and metrics as the
     store holds them; the report names the commit it was made at."""
