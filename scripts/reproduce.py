@@ -26,6 +26,8 @@ with ``--jobs`` processes at a time, one thread each. The stages, in order:
   own          LunarLander's Dyna loop from each run's own data (experiment=dyna_lunar_lander_own:
                contact rules, pessimism and touchdown outcome learned from its own transitions),
                on the same seeds as the dyna stage's LunarLander headline (0-9).
+  pe           the probabilistic-ensemble NN surrogate (surrogate=pe): LunarLander's paper pack and
+               both Dyna packs, seeds 0-4, beside SINDy and the MLP.
   search       one Optuna TPE study per env (sdrl-bench-search, seed 0) over the SINDy hyperparameters.
   report       sdrl-bench-report on the store, with this run's provenance (command, seeds,
                budgets, per-stage wall and CPU seconds, commit) as its first section.
@@ -100,6 +102,10 @@ def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
         ]),
         ("own", [  # LunarLander's Dyna loop from the run's own data alone (no constant fitted on other real data)
             ["-m", "experiment=dyna_lunar_lander_own", both],
+        ]),
+        ("pe", [  # the probabilistic-ensemble NN surrogate beside SINDy and the MLP (same data, seeds, real arms)
+            ["-m", "experiment=paper_lunar_lander", "surrogate=pe", s],
+            *(["-m", f"experiment=dyna_{env}", "surrogate=pe", s] for env in ("mountain_car", "lunar_lander")),
         ]),
         ("search", [  # one Optuna study per env (seed 0): TPE over library, degree, optimizer, threshold, alpha
             ["search:", "env=mountain_car", "collector=expert", f"tracking.experiment={STORE_EXPERIMENT}"],
