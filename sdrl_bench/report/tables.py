@@ -344,6 +344,25 @@ def _median_cost(costs: Sequence[float]) -> float:
     return float(np.median(costs)) if len(costs) else math.nan
 
 
+def _real_arms(dyna: Sequence[Run], real: Sequence[Run]) -> list[Run]:
+    """The real arms the Dyna runs compare with (same env, agent, budgets and seed), each once:
+    the run a Dyna run was plotted beside (tag ``dyna.real_arm_run``), else the one with its
+    ``dyna.real_arm_key`` (a real arm run after it), else, for runs older than those tags, the
+    real arms of the same seed; with no Dyna run tagged at all, every real arm given."""
+    by_id = {r["run_id"]: r for r in real}
+    by_key = {r["tags"]["real_arm_key"]: r for r in real if r["tags"].get("real_arm_key")}
+    tagged = [r for r in dyna if r["tags"].get("dyna.real_arm_run") or r["tags"].get("dyna.real_arm_key")]
+    if not tagged:
+        return list(real)
+    out: dict[str, Run] = {}
+    for r in dyna:
+        tags = r["tags"]
+        hit = by_id.get(tags.get("dyna.real_arm_run", "")) or by_key.get(tags.get("dyna.real_arm_key", ""))
+        found = [hit] if hit is not None else [a for a in real if a["tags"].get("seed") == tags.get("seed")]
+        out.update({a["run_id"]: a for a in found})
+    return sorted(out.values(), key=lambda a: (str(a["tags"].get("seed")), a["run_id"]))
+
+
 def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
     """Dyna runs (``task=dyna``) per env, surrogate kind and agent, and beside them the real
     arm of the same agent (finished transfer runs that trained it, not those that reused it): seeds solved; the median real transitions to solve (an
@@ -390,12 +409,8 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                              "surrogate_steps": _mean(x.get("surrogate_steps") for x in m),
                              "wall_seconds": _mean(x.get("wall_seconds") for x in m),
                              "final": final, "audit": audit, "runs": [r["run_id"] for r in group]})
-            # the real arm each Dyna run was plotted beside (tag ``dyna.real_arm_run``: same agent, env,
-            # budgets and seed); without such tags, every real arm of the same env and agent
-            linked = {r["tags"].get("dyna.real_arm_run") for r in dyna
-                      if r["tags"].get("env") == env and r["tags"].get("agent") == agent} - {None}
-            group = ([r for r in real if r["run_id"] in linked] if linked else
-                     [r for r in real if r["tags"].get("env") == env and r["tags"].get("agent") == agent])
+            group = _real_arms([r for r in dyna if r["tags"].get("env") == env and r["tags"].get("agent") == agent],
+                               [r for r in real if r["tags"].get("env") == env and r["tags"].get("agent") == agent])
             m = [r["metrics"] for r in group]
             costs = [x["real/solved_real_steps"] + x.get("real/eval_steps", 0.0) if "real/solved_real_steps" in x
                      else math.inf for x in m]

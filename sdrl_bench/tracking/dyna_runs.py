@@ -82,6 +82,8 @@ class DynaRunRecorder:
         from sdrl_bench.plots import learning_curves
 
         self.parent.log_metrics(outcome.summary)
+        if real_key:  # the real arm it is compared with, found later by this key if not run yet
+            self.parent.set_tags({"dyna.real_arm_key": real_key})
         steps = [c[0] for c in outcome.curve]
         self.parent.log_text(pd.DataFrame({"real_transitions": steps, "return_mean": [c[1] for c in outcome.curve],
                                            "return_std": [c[2] for c in outcome.curve]}).to_csv(index=False),

@@ -326,6 +326,20 @@ def test_dyna_table_equals_the_runs_metrics_and_links_its_runs(store: str, tmp_p
         assert {i for i in sindy + nn + real if i in url} == set(ids)
 
 
+def test_the_real_arm_row_holds_each_dyna_seeds_own_real_arm(store: str) -> None:
+    """Seed 0's Dyna run was plotted beside its real arm (``dyna.real_arm_run``); seed 1's real
+    arm ran after it (found by ``dyna.real_arm_key``); seed 2's Dyna run predates both tags (its
+    seed's real arm); seed 3's real arm belongs to no Dyna run and is not in the row."""
+    arms = {s: _real_arm(store, s, 200_000.0 + s) for s in range(4)}
+    tags = {0: {"dyna.real_arm_run": arms[0]}, 1: {"dyna.real_arm_key": "key-1"}, 2: {}}
+    tracking.Run(store, arms[1]).set_tags({"real_arm_key": "key-1"})
+    for seed, extra in tags.items():
+        tracking.Run(store, _dyna(store, seed, "sindy", True, 20_000, 230.0)).set_tags(extra)
+    dy = rt.dyna_table(tracking.find_runs(store, EXP)).set_index(["env", "method"])
+    row = dy.loc[("lunar_lander", "real arm")]
+    assert sorted(row["runs"]) == sorted(arms[s] for s in (0, 1, 2)) and row["n_seeds"] == 3
+
+
 def test_another_surrogate_kind_gets_rows_of_its_own_and_absent_ones_none(store: str) -> None:
     """A probabilistic-ensemble Dyna run (surrogate=pe) is a row beside SINDy's; the NN, not run,
     keeps its "not run" row; a kind nobody ran gets none."""
