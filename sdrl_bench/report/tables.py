@@ -100,6 +100,18 @@ def one_per_seed(fits: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
     return list(newest.values())
 
 
+def newest_per_seed(runs: Iterable[Run]) -> list[Run]:
+    """The newest run of each seed (runs without a seed tag all kept), in seed order: a job run
+    twice (a sweep rerun that could not adopt it) counts once."""
+    newest: dict[Any, Run] = {}
+    for r in runs:
+        seed = r["tags"].get("seed")
+        key = seed if seed is not None else r["run_id"]
+        if key not in newest or (r.get("start_time") or 0) >= (newest[key].get("start_time") or 0):
+            newest[key] = r
+    return sorted(newest.values(), key=lambda r: (str(r["tags"].get("seed")), r["run_id"]))
+
+
 def states_of(records: Sequence[Mapping[str, Any]], env: str) -> list[str]:
     """State names of an env: the paper's order, then any others the records' metrics name."""
     found = {k[4:] for r in records if r["env"] == env for k in r["metrics"] if k.startswith("mse/") and k != "mse/mean"}
@@ -313,8 +325,8 @@ def transfer_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
         kinds = surrogate_kinds(r for r in done if r["tags"].get("env") == env)
         for kind, agent in ((k, a) for k in kinds for a in agents):
             # one row group per agent: a store with the zoo recipe and a fast one keeps them apart
-            group = [r for r in done if r["tags"].get("env") == env and r["tags"].get("surrogate", "sindy") == kind
-                     and r["tags"].get("agent", "?") == agent]
+            group = newest_per_seed(r for r in done if r["tags"].get("env") == env
+                                    and r["tags"].get("surrogate", "sindy") == kind and r["tags"].get("agent", "?") == agent)
             for arm in ARMS:
                 have = [r for r in group if f"{arm}/final_return_mean" in r["metrics"]]
                 returns = [r["metrics"][f"{arm}/final_return_mean"] for r in have]
@@ -360,7 +372,7 @@ def _real_arms(dyna: Sequence[Run], real: Sequence[Run]) -> list[Run]:
         hit = by_id.get(tags.get("dyna.real_arm_run", "")) or by_key.get(tags.get("dyna.real_arm_key", ""))
         found = [hit] if hit is not None else [a for a in real if a["tags"].get("seed") == tags.get("seed")]
         out.update({a["run_id"]: a for a in found})
-    return sorted(out.values(), key=lambda a: (str(a["tags"].get("seed")), a["run_id"]))
+    return newest_per_seed(out.values())
 
 
 def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
@@ -385,8 +397,9 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                             and r["tags"].get("agent") == agent}, key=lambda p: (p not in (None, f"dyna_{env}"), str(p)))
             kinds = surrogate_kinds(r for r in dyna if r["tags"].get("env") == env)
             for pack, kind in ((p, k) for p in packs for k in kinds):
-                group = [r for r in dyna if r["tags"].get("env") == env and r["tags"].get("agent") == agent
-                         and r["tags"].get("surrogate", "sindy") == kind and r["tags"].get("sdrl.experiment") == pack]
+                group = newest_per_seed(r for r in dyna if r["tags"].get("env") == env and r["tags"].get("agent") == agent
+                                        and r["tags"].get("surrogate", "sindy") == kind
+                                        and r["tags"].get("sdrl.experiment") == pack)
                 if not group and (pack not in (None, f"dyna_{env}") or kind not in KINDS):
                     continue
                 label = f"Dyna, {kind}" + ("" if pack in (None, f"dyna_{env}") else f", {pack}")

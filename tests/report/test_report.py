@@ -340,6 +340,14 @@ def test_the_real_arm_row_holds_each_dyna_seeds_own_real_arm(store: str) -> None
     assert sorted(row["runs"]) == sorted(arms[s] for s in (0, 1, 2)) and row["n_seeds"] == 3
 
 
+def test_a_seed_run_twice_counts_once_the_newest(store: str) -> None:
+    _dyna(store, 0, "sindy", False, 51_000, 180.0)
+    newer = _dyna(store, 0, "sindy", True, 20_000, 230.0)
+    other = _dyna(store, 1, "sindy", True, 30_000, 220.0)
+    row = rt.dyna_table(tracking.find_runs(store, EXP)).set_index(["env", "method"]).loc[("lunar_lander", "Dyna, sindy")]
+    assert row["n_seeds"] == 2 and row["n_solved"] == 2 and sorted(row["runs"]) == sorted([newer, other])
+
+
 def test_another_surrogate_kind_gets_rows_of_its_own_and_absent_ones_none(store: str) -> None:
     """A probabilistic-ensemble Dyna run (surrogate=pe) is a row beside SINDy's; the NN, not run,
     keeps its "not run" row; a kind nobody ran gets none."""
