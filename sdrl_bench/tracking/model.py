@@ -17,6 +17,8 @@ from sdrl_bench.tracking.client import Run
 
 CODE = Path(__file__).with_name("pyfunc_model.py")
 TERMS_CODE = Path(__file__).with_name("terms_pyfunc.py")
+NN_CODE = Path(__file__).with_name("nn_pyfunc.py")
+NN_FORMAT = "sdrl-bench/nn-model-v1"
 
 
 @contextlib.contextmanager
@@ -166,8 +168,9 @@ def log_surrogate_model(run: Run, result) -> str:
     and described by its equations; returns its model URI (``models:/<model id>``).
 
     A model with structured terms (SINDy) is logged self-contained (``terms_pyfunc.py`` and
-    ``terms.json``): it loads with ``mlflow`` and ``numpy`` alone. Any other model (the NN) is
-    logged with the harness's loader (``pyfunc_model.py``, ``model.json`` and its weights). Both
+    ``terms.json``): it loads with ``mlflow`` and ``numpy`` alone. An NN (MLP or probabilistic
+    ensemble) is too (``nn_pyfunc.py``, its ``model.json`` and weights): ``mlflow``, ``numpy`` and
+    ``torch``. Any other model is logged with the harness's loader (``pyfunc_model.py``). All
     predict the next regressed states from the model's inputs by name."""
     import mlflow
     from mlflow.models import Model, infer_signature
@@ -186,10 +189,16 @@ def log_surrogate_model(run: Run, result) -> str:
             path.write_text(json.dumps(table))
             artifacts = {"terms": str(path)}
         else:
-            code, requirements = CODE, [f"mlflow=={mlflow.__version__}", "sdrl-bench"]
             model_dir = Path(tmp) / "model"
             model.save(model_dir / "model.json")
             artifacts = {"model": str(model_dir)}
+            if json.loads((model_dir / "model.json").read_text()).get("format") == NN_FORMAT:
+                import torch
+
+                code, requirements = NN_CODE, [f"mlflow=={mlflow.__version__}", f"numpy=={np.__version__}",
+                                               f"torch=={torch.__version__.split('+')[0]}"]
+            else:
+                code, requirements = CODE, [f"mlflow=={mlflow.__version__}", "sdrl-bench"]
         exp_id = mlflow_client(run.uri).get_run(run.run_id).info.experiment_id
         with _fluent_target(run.uri, exp_id), warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)  # MLflow's integer-column hints

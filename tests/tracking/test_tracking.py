@@ -113,3 +113,44 @@ def test_no_shown_metric_differs_from_the_logged_one_in_its_first_4_significant_
             assert _sig4(fid.loc[state, col]) == _sig4(logged[key])
             shown = f"{logged[key]:.3e}"
             assert re.search(re.escape(shown), md), (shown, key)
+
+
+BLOCK_HARNESS = """
+import importlib.abc, json, sys
+class Block(importlib.abc.MetaPathFinder):
+    def find_spec(self, name, path=None, target=None):
+        if name == "sdrl_bench" or name.startswith("sdrl_bench."):
+            raise ImportError(f"{name} is blocked: the logged model must load without the harness")
+sys.meta_path.insert(0, Block())
+import mlflow, pandas as pd
+case = json.loads(sys.argv[1])
+mlflow.set_tracking_uri(case["uri"])
+model = mlflow.pyfunc.load_model(case["model"])
+print(json.dumps({"pred": model.predict(pd.DataFrame(case["z"], columns=case["inputs"])).to_numpy().tolist(),
+                  "harness_loaded": any(m.startswith("sdrl_bench") for m in sys.modules)}))
+"""
+
+
+@pytest.mark.parametrize("surrogate", ["nn", "pe"])
+def test_a_logged_nn_model_loads_and_predicts_without_the_harness(store, surrogate):
+    """An MLP and a probabilistic ensemble, logged by a fit, load by their models:/ URI in a fresh
+    process where sdrl_bench cannot be imported, and predict the harness's next states (1e-12)."""
+    import subprocess
+    import sys
+
+    result = run_fit(compose_cfg(f"tracking.uri={store}", f"surrogate={surrogate}", "surrogate.model.max_steps=200"))
+    spec = result.job.spec
+    (out,) = MlflowClient(store).get_run(search(store).iloc[0]["run_id"]).outputs.model_outputs
+    logged = MlflowClient(store).get_logged_model(out.model_id)
+    assert logged.name == f"mountain_car-{surrogate}-{surrogate}"
+    x, u = spec.model_inputs(result.test.states[:50], result.test.actions[:50])
+    case = {"uri": store, "model": f"models:/{out.model_id}", "inputs": list(spec.input_names),
+            "z": np.concatenate([x, u], axis=1).tolist()}
+    proc = subprocess.run([sys.executable, "-c", BLOCK_HARNESS, json.dumps(case)], capture_output=True, text=True,
+                          timeout=300, check=False)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert not got["harness_loaded"]
+    expected = result.model.predict(x, u)
+    assert np.max(np.abs(np.asarray(got["pred"]) - expected)) <= 1e-12
+    assert np.max(np.abs(expected - x)) > 0  # the model predicts a change: the comparison is not of inputs
