@@ -33,7 +33,7 @@ from sdrl_bench.pipeline import FitJob
 from sdrl_bench.search.refine import run_refinement
 from sdrl_bench.search.study import BuildJob, StudySettings, run_study
 from sdrl_bench.search.summary import comparison_table, load_summaries, summarize
-from sdrl_bench.search.space import GROUP_PARAMS, PARAM_KEYS, parse_space
+from sdrl_bench.search.space import GROUP_PARAMS, PARAM_KEYS, check_model_kind, parse_space
 from sdrl_bench.search.storage import open_storage, resolve_storage
 
 GROUPS = ("env", "collector", "library", "optimizer", "surrogate")
@@ -103,6 +103,7 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
     """Typed settings from the composed config; the space and its choices validated."""
     sc, st = cfg.search, cfg.study
     space = parse_space(OmegaConf.to_container(sc.space, resolve=True))
+    check_model_kind(space, str(cfg.surrogate.get("kind", "sindy")))
     for p in space:
         if p.name in GROUP_PARAMS:
             for choice in p.choices or ():

@@ -30,10 +30,18 @@ PARAM_KEYS: dict[str, str] = {
     "poly_degree": "env.poly_degree",
     "library": "library",
     "optimizer": "optimizer",
+    "width": "surrogate.model.width",
+    "depth": "surrogate.model.depth",
+    "activation": "surrogate.model.activation",
+    "learning_rate": "surrogate.model.learning_rate",
+    "weight_decay": "surrogate.model.weight_decay",
+    "batch_size": "surrogate.model.batch_size",
 }
 """Known parameter -> the ``sdrl-bench`` config key it sets (``library`` and ``optimizer`` are
-config-group choices, the rest are values)."""
+config-group choices, the rest are values). The ``surrogate.model.*`` ones are an NN's
+(``surrogate=nn`` or ``pe``), the others SINDy's."""
 GROUP_PARAMS = ("library", "optimizer")
+NN_PARAMS = tuple(k for k, v in PARAM_KEYS.items() if v.startswith("surrogate.model."))
 KINDS = ("float", "int", "categorical")
 
 
@@ -71,6 +79,16 @@ def parse_space(raw: Mapping[str, Any] | None, key: str = "search.space") -> Sea
     if not raw:
         raise ConfigError(f"{key}: the search space is empty")
     return tuple(_parse_param(str(name), spec, f"{key}.{name}") for name, spec in raw.items())
+
+
+def check_model_kind(space: SearchSpace, kind: str, key: str = "search.space") -> None:
+    """A space searches the hyperparameters of the model it fits: an NN's with ``surrogate=nn``
+    or ``pe``, SINDy's with ``surrogate=sindy`` (a parameter of the other kind would be ignored)."""
+    for p in space:
+        if (p.name in NN_PARAMS) != (kind != "sindy"):
+            what = "an NN hyperparameter" if p.name in NN_PARAMS else "a SINDy hyperparameter"
+            raise ConfigError(f"{key}.{p.name}: {what}, but the search fits surrogate={kind}; "
+                              f"use {'surrogate=nn or surrogate=pe' if p.name in NN_PARAMS else 'surrogate=sindy'}")
 
 
 def _parse_param(name: str, spec: Any, key: str) -> ParamSpec:

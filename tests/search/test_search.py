@@ -175,6 +175,39 @@ def test_exported_best_config_is_what_a_plain_fit_run_uses(mc_study):
         assert fit.model.describe() == summary.best_equations
 
 
+def test_an_nn_search_chooses_its_hyperparameters_on_the_studys_own_data(tmp_path, uri):
+    """search=nn: TPE over the MLP's width, depth, activation, learning rate and weight decay,
+    k-fold on the study's own data; trials log them under a fit's names, and the exported best
+    config is a plain NN fit with those hyperparameters and the same test error."""
+    from sdrl_bench.search.study import FIT_PARAM_NAMES
+
+    cfg = search_cfg(tmp_path, uri, "surrogate=nn", "search=nn", "search.n_trials=3", "study.name=nn",
+                     "surrogate.model.max_steps=150", "search.pruner=none")
+    result, summary = run_search(cfg, quiet=True)
+    trials = result.study.trials
+    assert len(trials) == 3 and {t.state for t in trials} == {optuna.trial.TrialState.COMPLETE}
+    assert len({t.value for t in trials}) == 3  # different hyperparameters, different held-out errors
+    runs = [r for r in children(uri, result.parent_run_id) if r["tags"].get("sdrl.kind") == "trial"]
+    for r in runs:
+        t = trials[int(r["tags"]["optuna.trial"])]
+        assert {FIT_PARAM_NAMES[k] for k in t.params} == {f"surrogate.model.{k}" for k in
+                                                          ("width", "depth", "activation", "learning_rate", "weight_decay")}
+        assert {k: r["params"][FIT_PARAM_NAMES[k]] for k in t.params} == {k: str(v) for k, v in t.params.items()}
+        assert r["metrics"]["n_fits"] == 4 and r["metrics"]["error"] == pytest.approx(t.value, rel=1e-12)
+    assert "surrogate=nn" in summary.overrides
+    fit = fit_dynamics(build_fit_job(compose(summary.overrides)))
+    assert fit.model.width == summary.best_params["width"] and fit.model.activation == summary.best_params["activation"]
+    assert fit.fidelity.metrics["mse_norm/mean"] == pytest.approx(summary.test_error, rel=1e-9)
+
+
+def test_a_space_for_the_other_model_kind_is_refused_before_any_trial(tmp_path, uri):
+    with pytest.raises(ConfigError, match=r"search.space.width: an NN hyperparameter, but the search fits surrogate=sindy"):
+        run_search(search_cfg(tmp_path, uri, "search=nn", "study.name=x"), quiet=True)
+    with pytest.raises(ConfigError, match=r"search.space.library: a SINDy hyperparameter, but the search fits surrogate=nn"):
+        run_search(search_cfg(tmp_path, uri, "surrogate=nn", "study.name=y"), quiet=True)
+    assert not (tmp_path / "optuna.db").exists()
+
+
 def test_journal_storage_resumes_too(tmp_path, uri):
     journal = f"study.storage='journal:{tmp_path}/optuna.journal'"
     first, _ = run_search(search_cfg(tmp_path, uri, journal, "study.name=j", "search.n_trials=3",
