@@ -63,6 +63,9 @@ class FitJob:
     (``surrogate.events``); False: the task's rules alone decide events."""
     min_events: int | None = None
     """Real events needed before an event model is fitted (None: each event's own ``min_events``)."""
+    tuning_real_steps: int = 0
+    """Real steps spent choosing the model's hyperparameters on real data other than the run's
+    (``surrogate.tuning_real_steps``): counted as ``tuning`` by every run the model serves."""
 
 
 @dataclass

@@ -158,6 +158,7 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
         exclude_bound_transitions=bool(cfg.dataset.exclude_bound_transitions),
         surrogate=str(cfg.surrogate.kind),
         model_factory=model_factory,
+        tuning_real_steps=int_key(cfg, "surrogate.tuning_real_steps", minimum=0) if "tuning_real_steps" in cfg.surrogate else 0,
         names={
             "env": spec.name,
             "collector": cfg.collector.name,

@@ -377,5 +377,5 @@ def summarize(rounds: list[RoundResult], audit: EvalResult | None, threshold: fl
                     **{k: v for k, v in c.items() if k.startswith("resets/")}}
         spec = last.fit.spec  # the last refit's: with own_data, the priors its learned constants replaced are gone
         m.update(headline(purposes, spec.declared_priors, [expert_of(job.fit.policy, spec.name)],
-                          job.agent.tuning_real_steps))
+                          job.agent.tuning_real_steps + job.fit.tuning_real_steps))
     return {k: float(v) for k, v in m.items()}

@@ -284,7 +284,8 @@ def run_transfer(job: TransferJob, checked: tuple[Any, Any] | None, recorder: Tr
                          on_point=recorder.curve_point, on_fit=recorder.fit_done)
         # the steps the agent took (SB3 rounds a budget up to whole rollouts / train_freq)
         metrics = result.metrics(spec, int(result.model.num_timesteps), job.stop_when_solved,
-                                 expert_of(job.fit.policy, spec.name), job.agent.tuning_real_steps)
+                                 expert_of(job.fit.policy, spec.name),
+                                 job.agent.tuning_real_steps + (job.fit.tuning_real_steps if arm == "surrogate" else 0))
         recorder.arm_done(result, metrics)
         if result.fit is not None:
             model_text = result.fit.model.describe()

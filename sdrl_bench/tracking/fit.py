@@ -22,7 +22,8 @@ def fit_metrics(result) -> dict[str, float]:
     model, data = result.model, result.data
     spec = result.spec  # with own_data, the priors its learned constants replaced are gone
     counts = {"model_data": len(data), "judge": len(result.test)}
-    accounting = headline(counts, spec.declared_priors, [expert_of(result.job.policy, spec.name)])
+    accounting = headline(counts, spec.declared_priors, [expert_of(result.job.policy, spec.name)],
+                          tuning=result.job.tuning_real_steps)
     return {**accounting,
         **result.fidelity.metrics,
         "n_transitions": len(data),

@@ -111,3 +111,24 @@ def test_two_dyna_runs_of_one_seed_count_the_same_real_steps(store):
     assert steps[0] == steps[1] and steps[0]["real_steps/this_run"] == steps[0]["real_transitions_total"]
     assert steps[0]["real_steps/tuning"] == 711_000  # the fast recipe's declared tuning
     assert outs[0]["judged_solved"] in (0.0, 1.0)
+
+
+def test_an_nn_surrogates_tuned_defaults_count_as_tuning_in_the_surrogate_arm_only(store):
+    """The MLP's defaults were chosen on other real data (conf/surrogate/nn.yaml): a fit with them
+    counts those steps as tuning, as does the surrogate arm of a transfer run; the real arm does
+    not use the model and does not; the probabilistic ensemble (nothing tuned) counts none."""
+    from sdrl_bench.cli.main import run_fit
+
+    nn = run_fit(compose_cfg("surrogate=nn", "surrogate.model.max_steps=50", f"tracking.uri={store}"))
+    from sdrl_bench.tracking.fit import fit_metrics
+
+    m = fit_metrics(nn)
+    assert m["real_steps/tuning"] == 6114 and m["real_steps/all"] == m["real_steps/this_run"] + 6114
+    assert fit_metrics(run_fit(compose_cfg("surrogate=pe", "surrogate.model.max_steps=50",
+                                           f"tracking.uri={store}")))["real_steps/tuning"] == 0
+    cfg = compose_cfg("experiment=quick_mountain_car", f"tracking.uri={store}", "collector=heuristic", "surrogate=nn",
+                      "surrogate.model.max_steps=50", *TINY_SAC)
+    summary = run_train(cfg, build_fit_job(cfg), None)
+    assert summary["surrogate/real_steps/tuning"] == 6114 and summary["real/real_steps/tuning"] == 0
+    with pytest.raises(ConfigError, match=r"surrogate.tuning_real_steps must be >= 0, got -1"):
+        build_fit_job(compose_cfg("surrogate=nn", "surrogate.tuning_real_steps=-1"))
