@@ -103,7 +103,10 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
     """Typed settings from the composed config; the space and its choices validated."""
     sc, st = cfg.search, cfg.study
     space = parse_space(OmegaConf.to_container(sc.space, resolve=True))
-    check_model_kind(space, str(cfg.surrogate.get("kind", "sindy")))
+    kind = str(cfg.surrogate.get("kind", "sindy"))
+    check_model_kind(space, kind)
+    if kind != "sindy" and "n_terms" in list(sc.objectives):
+        raise ConfigError(f"search.objectives: n_terms counts SINDy's active terms; surrogate={kind} has none: use [error]")
     for p in space:
         if p.name in GROUP_PARAMS:
             for choice in p.choices or ():
@@ -111,7 +114,9 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
     searched = {p.name for p in space}
     searched_keys = {PARAM_KEYS[n] for n in searched}
     context = {
-        "choices": {g: v for g, v in choices.items() if g not in searched},
+        # an NN's fit reads no library or optimizer: its export names neither
+        "choices": {g: v for g, v in choices.items() if g not in searched
+                    and not (kind != "sindy" and g in ("library", "optimizer"))},
         "values": {"seed": int(cfg.seed), "n_transitions": int(cfg.n_transitions),
                    "collector.epsilon": float(cfg.collector.epsilon), **_override_values(cfg, searched_keys)},
     }
@@ -156,8 +161,9 @@ def _print_summary(summary, result, export_dir: str | None) -> None:
           f"{summary.fits_total} fits; this worker ran {len(result.trials)}")
     if summary.best_number is None:
         return
+    terms = "" if summary.best_n_terms is None else f"{summary.best_n_terms} terms, "
     print(f"best trial {summary.best_number}: held-out error {summary.best_error:.4g}, "
-          f"{summary.best_n_terms} terms, after {summary.fits_to_best} fits; params {summary.best_params}")
+          f"{terms}after {summary.fits_to_best} fits; params {summary.best_params}")
     if summary.test_error is not None:
         print(f"fixed test set '{summary.test_name}': mse_norm/mean {summary.test_error:.4g}")
     print(summary.best_equations.rstrip())

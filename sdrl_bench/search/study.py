@@ -182,7 +182,8 @@ def _evaluate(job: FitJob, sd: StudyData, report: Callable[[int, float], bool] |
         if report is not None and report(i, aggregate(errors, sd.floor)):
             return TrialOutcome(aggregate(errors, sd.floor), errors, pruned=True, n_fits=len(errors))
     model = fit_model(make, spec, sd.data, sd.exclude_bound)
-    n_terms = int(model.summary_metrics().get("n_active_terms", 0))
+    active = model.summary_metrics().get("n_active_terms")  # None: a model without terms (an NN)
+    n_terms = None if active is None else int(active)
     return TrialOutcome(aggregate(errors, sd.floor), errors, False, n_terms, len(errors) + 1, model.describe())
 
 
@@ -341,10 +342,13 @@ def _objective(s: StudySettings, build_job: BuildJob, sd: StudyData, uri: str, p
         trial.set_user_attr("n_fits", out.n_fits)
         if out.pruned:
             raise optuna.TrialPruned()
-        trial.set_user_attr("n_terms", out.n_terms)
+        if out.n_terms is not None:
+            trial.set_user_attr("n_terms", out.n_terms)
         trial.set_user_attr("equations", out.equations)
         if len(s.objectives) == 1:
             return out.error
-        return out.error, float(out.n_terms or 0)
+        if out.n_terms is None:
+            raise ConfigError("search.objectives: n_terms counts a model's active terms; this model has none: use [error]")
+        return out.error, float(out.n_terms)
 
     return objective

@@ -140,7 +140,8 @@ def _describe_best(summary: StudySummary, best, done, context: Mapping[str, Any]
     values = dict(context.get("values", {}))
     summary.overrides = to_overrides(best.params, choices) + [f"{k}={v}" for k, v in values.items()]
     header = (f"Best trial {best.number} of study '{summary.name}' ({summary.sampler}): held-out "
-              f"error {summary.best_error:.4g}, {summary.best_n_terms} active terms.\n"
+              f"error {summary.best_error:.4g}" + ("" if summary.best_n_terms is None else
+                                                   f", {summary.best_n_terms} active terms") + ".\n"
               f"Use: sdrl-bench 'hydra.searchpath=[file://<the folder holding experiment/>]' "
               f"experiment={summary.name}\n(or copy it into <your --config-dir>/experiment/ and run: sdrl-bench experiment={summary.name})")
     summary.experiment_yaml = experiment_pack(best.params, choices, values, header)

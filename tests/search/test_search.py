@@ -194,7 +194,8 @@ def test_an_nn_search_chooses_its_hyperparameters_on_the_studys_own_data(tmp_pat
                                                           ("width", "depth", "activation", "learning_rate", "weight_decay")}
         assert {k: r["params"][FIT_PARAM_NAMES[k]] for k in t.params} == {k: str(v) for k, v in t.params.items()}
         assert r["metrics"]["n_fits"] == 4 and r["metrics"]["error"] == pytest.approx(t.value, rel=1e-12)
-    assert "surrogate=nn" in summary.overrides
+    assert "surrogate=nn" in summary.overrides and not any(o.startswith(("library=", "optimizer=")) for o in summary.overrides)
+    assert summary.best_n_terms is None and "active terms" not in summary.experiment_yaml
     fit = fit_dynamics(build_fit_job(compose(summary.overrides)))
     assert fit.model.width == summary.best_params["width"] and fit.model.activation == summary.best_params["activation"]
     assert fit.fidelity.metrics["mse_norm/mean"] == pytest.approx(summary.test_error, rel=1e-9)
@@ -205,6 +206,9 @@ def test_a_space_for_the_other_model_kind_is_refused_before_any_trial(tmp_path, 
         run_search(search_cfg(tmp_path, uri, "search=nn", "study.name=x"), quiet=True)
     with pytest.raises(ConfigError, match=r"search.space.library: a SINDy hyperparameter, but the search fits surrogate=nn"):
         run_search(search_cfg(tmp_path, uri, "surrogate=nn", "study.name=y"), quiet=True)
+    with pytest.raises(ConfigError, match=r"search.objectives: n_terms counts SINDy's active terms; surrogate=nn has none"):
+        run_search(search_cfg(tmp_path, uri, "surrogate=nn", "search=nn", "search.objectives=[error,n_terms]",
+                              "study.name=z"), quiet=True)
     assert not (tmp_path / "optuna.db").exists()
 
 
