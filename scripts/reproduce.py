@@ -26,8 +26,9 @@ with ``--jobs`` processes at a time, one thread each. The stages, in order:
   own          LunarLander's Dyna loop from each run's own data (experiment=dyna_lunar_lander_own:
                contact rules, pessimism and touchdown outcome learned from its own transitions),
                on the same seeds as the dyna stage's LunarLander headline (0-9).
-  pe           the probabilistic-ensemble NN surrogate (surrogate=pe): LunarLander's paper pack and
-               both Dyna packs, seeds 0-4, beside SINDy and the MLP.
+  pe           the probabilistic-ensemble NN surrogate (surrogate=pe): its fits on the fits stage's
+               data (MountainCar, LunarLander, Pendulum), LunarLander's paper pack and both Dyna
+               packs, seeds 0-4, beside SINDy and the MLP.
   search       one Optuna TPE study per env (sdrl-bench-search, seed 0) over the SINDy hyperparameters.
   report       sdrl-bench-report on the store, with this run's provenance (command, seeds,
                budgets, per-stage wall and CPU seconds, commit) as its first section.
@@ -104,6 +105,9 @@ def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
             ["-m", "experiment=dyna_lunar_lander_own", both],
         ]),
         ("pe", [  # the probabilistic-ensemble NN surrogate beside SINDy and the MLP (same data, seeds, real arms)
+            ["-m", "env=mountain_car", "collector=expert", "surrogate=pe", s],
+            ["-m", "env=lunar_lander", "collector=expert", "surrogate=pe", f"+env.spec.touchdown_set={touchdowns}", s],
+            ["-m", "env=pendulum", "collector=random", "surrogate=pe", s],
             ["-m", "experiment=paper_lunar_lander", "surrogate=pe", s],
             *(["-m", f"experiment=dyna_{env}", "surrogate=pe", s] for env in ("mountain_car", "lunar_lander")),
         ]),

@@ -218,6 +218,22 @@ def _with_notes(text: str, envs: Sequence[str], section: str) -> Para:
     return Para(" ".join([text, *notes]))
 
 
+def _nn_models(runs: Sequence[Mapping[str, Any]], kinds: Sequence[str]) -> str:
+    """The other NN kinds' networks, read from their fit runs' params."""
+    parts = []
+    for kind in kinds:
+        fits = [r for r in runs if r["tags"].get("sdrl.kind") == "fit" and r["tags"].get("surrogate") == kind]
+        if not fits:
+            continue
+        p = fits[0]["params"]
+        size = "x".join([str(p.get("surrogate.model.width", "?"))] * int(p.get("surrogate.model.depth", 1) or 1))
+        members = p.get("surrogate.model.ensemble_size", "?")
+        elites = f", the best {p['surrogate.model.n_elites']} kept" if "surrogate.model.n_elites" in p else ""
+        parts.append(f"`surrogate={kind}`: {members} members of {size} {p.get('surrogate.model.activation', '?')} "
+                     f"units{elites}, on the same transitions, its prediction the members' mean")
+    return (" The other NN kinds (their fit runs' params): " + "; ".join(parts) + ".") if parts else ""
+
+
 def _collectors(runs: Sequence[Mapping[str, Any]]) -> str:
     """The collectors of each env's fits in the fidelity table, read from the runs' tags."""
     records = rt.fit_records(runs)
@@ -319,15 +335,18 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
     out.append(_with_notes(ABLATION_DIFFERENCES, _present(abl, "n_fits"), "ablation"))
     out.append(Heading(2, "3. SINDy vs NN surrogate"))
     nn = rt.sindy_vs_nn_table(runs)
+    kinds = rt.nn_kinds(runs)
+    label = {"nn": "NN", "pe": "PE ensemble"}
     out.append(_df_table(nn, [("env", "env", "text"), ("quantity", "quantity", "text"),
-                                                      ("sindy", "SINDy [95% CI]", "gci|n_sindy", "runs_sindy"),
-                                                      ("nn", "NN [95% CI]", "gci|n_nn", "runs_nn"),
-                                                      ("sindy_over_nn", "SINDy / NN", "g|-"),
-                                                      ("n_sindy", "SINDy fits", "int", "runs_sindy"),
-                                                      ("n_nn", "NN fits", "int", "runs_nn")], link,
+                              ("sindy", "SINDy [95% CI]", "gci|n_sindy", "runs_sindy"),
+                              *((k, f"{label.get(k, k)} [95% CI]", f"gci|n_{k}", f"runs_{k}") for k in kinds),
+                              *((f"sindy_over_{k}", f"SINDy / {label.get(k, k)}", "g|-") for k in kinds),
+                              ("n_sindy", "SINDy fits", "int", "runs_sindy"),
+                              *((f"n_{k}", f"{label.get(k, k)} fits", "int", f"runs_{k}") for k in kinds)], link,
                          "Fit runs on the same data per seed; IQM over seeds with a 95% bootstrap CI (the mean "
                          "below 5 seeds)."))
-    out.append(_with_notes(NN_DIFFERENCES, _present(nn, "n_sindy", "n_nn"), "nn"))
+    out.append(_with_notes(NN_DIFFERENCES + _nn_models(runs, [k for k in kinds if k != "nn"]),
+                           _present(nn, "n_sindy", *(f"n_{k}" for k in kinds)), "nn"))
     out.append(Heading(2, "4. RL transfer (real-environment evaluation)"))
     tr = rt.transfer_table(runs)
     rows = []

@@ -244,29 +244,42 @@ def _ratio(a: float, b: float) -> float:
     return a / b if b and not (math.isnan(a) or math.isnan(b)) else math.nan
 
 
-def sindy_vs_nn_table(runs: Iterable[Run]) -> pd.DataFrame:
-    """SINDy vs NN per env: per-state one-step and ``HORIZON``-step rollout MSE, fit wall and
-    CPU seconds, parameters (SINDy: active terms) and the SINDy/NN ratios; each value the IQM
-    over the kind's fit runs (one per seed; the mean below 5) with its 95% bootstrap CI
-    (``<kind>_lo``, ``<kind>_hi``); ``runs_sindy`` and ``runs_nn`` name the runs, so each
-    number links to its own runs."""
+def nn_kinds(runs: Iterable[Run]) -> list[str]:
+    """The NN kinds the fit runs of ``runs`` compare against SINDy: the MLP (``nn``, its row
+    "not run" when absent), then any other kind with fit runs (``pe``), in name order."""
     records = [r for r in fit_records(runs) if r["source"] == "fit"]
+    return ["nn", *sorted({r["surrogate"] for r in records} - {"sindy", "nn"})]
+
+
+def sindy_vs_nn_table(runs: Iterable[Run]) -> pd.DataFrame:
+    """SINDy vs each NN kind (``nn_kinds``: the MLP, and the probabilistic ensemble when it has
+    fit runs) per env: per-state one-step and ``HORIZON``-step rollout MSE, fit wall and CPU
+    seconds, parameters (SINDy: active terms) and the SINDy/NN ratios; each value the IQM over
+    the kind's fit runs (one per seed; the mean below 5) with its 95% bootstrap CI
+    (``<kind>_lo``, ``<kind>_hi``), ``sindy_over_<kind>``, ``n_<kind>``; ``runs_<kind>``
+    name the runs, so each number links to its own runs."""
+    runs = list(runs)
+    records = [r for r in fit_records(runs) if r["source"] == "fit"]
+    kinds = nn_kinds(runs)
     rows = []
     for env in envs_of(records):
-        sindy, nn = main_fits(records, env, "sindy"), main_fits(records, env, "nn")
-        ids = [f["run_id"] for f in sindy + nn]
+        fits = {k: main_fits(records, env, k) for k in ("sindy", *kinds)}
+        ids = [f["run_id"] for group in fits.values() for f in group]
         states = states_of(records, env)
         quantities = ([f"mse/{s}" for s in states] + [f"rollout{HORIZON}_mse/{s}" for s in states]
                       + [f"rollout{HORIZON}/diverged_fraction", "fit_wall_seconds", "fit_cpu_seconds", "n_parameters"])
         for q in quantities:
-            s_val = bootstrap_ci(_values(sindy, q))
-            n_val = bootstrap_ci(_values(nn, q))
-            rows.append({"env": env, "quantity": q, "sindy": s_val[0], "sindy_lo": s_val[1], "sindy_hi": s_val[2],
-                         "nn": n_val[0], "nn_lo": n_val[1], "nn_hi": n_val[2], "sindy_over_nn": _ratio(s_val[0], n_val[0]),
-                         "n_sindy": len(sindy), "n_nn": len(nn), "runs": ids,
-                         "runs_sindy": [f["run_id"] for f in sindy], "runs_nn": [f["run_id"] for f in nn]})
-    return pd.DataFrame(rows, columns=["env", "quantity", "sindy", "sindy_lo", "sindy_hi", "nn", "nn_lo", "nn_hi",
-                                       "sindy_over_nn", "n_sindy", "n_nn", "runs", "runs_sindy", "runs_nn"])
+            row: dict[str, Any] = {"env": env, "quantity": q, "runs": ids}
+            for k, group in fits.items():
+                point, lo, hi, _ = bootstrap_ci(_values(group, q))
+                row.update({k: point, f"{k}_lo": lo, f"{k}_hi": hi, f"n_{k}": len(group),
+                            f"runs_{k}": [f["run_id"] for f in group]})
+            row.update({f"sindy_over_{k}": _ratio(row["sindy"], row[k]) for k in kinds})
+            rows.append(row)
+    columns = ["env", "quantity", *(c for k in ("sindy", *kinds) for c in (k, f"{k}_lo", f"{k}_hi")),
+               *(f"sindy_over_{k}" for k in kinds), *(f"n_{k}" for k in ("sindy", *kinds)), "runs",
+               *(f"runs_{k}" for k in ("sindy", *kinds))]
+    return pd.DataFrame(rows, columns=columns)
 
 
 # ---------------------------------------------------------------------- RL transfer

@@ -87,6 +87,27 @@ def test_tables_equal_the_runs_metrics_read_through_the_client(fits_store: str) 
     assert vs.loc[("mountain_car", "fit_wall_seconds"), "sindy_over_nn"] == pytest.approx(wall / nn["fit_wall_seconds"])
 
 
+def test_a_probabilistic_ensembles_fits_get_columns_of_their_own_and_a_sentence_from_their_params(
+        fits_store: str, tmp_path) -> None:
+    """Section 3 compares SINDy with every NN kind that has fit runs: the MLP, then the PE
+    ensemble, each with its IQM, CI, ratio, count and runs; the PE's network is described from
+    its runs' params. Without PE fits the table has no PE columns."""
+    assert "pe" not in rt.sindy_vs_nn_table(tracking.find_runs(fits_store, EXP)).columns
+    pe = _fit(fits_store, "mountain_car", "pe", "pe", 0, {"x": 5e-9, "v": 8e-10})
+    tracking.Run(fits_store, pe).log_params({"surrogate.model.width": 128, "surrogate.model.depth": 2,
+                                             "surrogate.model.ensemble_size": 7, "surrogate.model.n_elites": 5,
+                                             "surrogate.model.activation": "silu"})
+    runs = tracking.find_runs(fits_store, EXP)
+    assert rt.nn_kinds(runs) == ["nn", "pe"]
+    vs = rt.sindy_vs_nn_table(runs).set_index(["env", "quantity"]).loc[("mountain_car", "mse/v")]
+    assert vs["pe"] == 8e-10 and vs["n_pe"] == 1 and vs["runs_pe"] == [pe] and vs["nn"] == 4e-10
+    assert vs["sindy_over_pe"] == pytest.approx(np.mean([3e-19, 5e-19]) / 8e-10)
+    md = (build_report(ReportInput(fits_store, EXP), "pe", tmp_path, log_run=False).folder / "report.md").read_text()
+    section = md.split("## 3.")[1].split("## 4.")[0]
+    assert "| PE ensemble [95% CI] |" in section and "| SINDy / PE ensemble |" in section
+    assert "`surrogate=pe`: 7 members of 128x128 silu units, the best 5 kept" in section
+
+
 def test_bootstrap_ci_matches_a_hand_computation() -> None:
     three = [90.0, 94.0, 95.5]
     point, lo, hi, name = rt.bootstrap_ci(three, seed=3)
