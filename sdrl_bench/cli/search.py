@@ -145,7 +145,10 @@ def run_search(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet:
 
     def progress(t) -> None:
         if not quiet:
-            value = f"{t.values[0]:.3e}" if t.values else t.state.name.lower()
+            value = f"{t.values[0]:.3e}" if t.values else ""
+            if t.state.name != "COMPLETE":  # a pruned trial's value is its running error when it was stopped
+                folds = len(t.intermediate_values)
+                value = f"{t.state.name.lower()}" + (f" (running error {value} after {folds} folds)" if value else "")
             print(f"[{settings.name} w{settings.worker}] trial {t.number}: {value} {t.params}", flush=True)
 
     result = run_study(settings, build, progress)
