@@ -133,6 +133,14 @@ class EnvSpec:
     """What the env's surrogate takes from outside the run (``envs.task.parse_priors``): fitted
     constants with the real steps behind them, simulator measurements, simulator knowledge,
     knowledge. Every run that uses the env counts the fitted ones' real steps."""
+    reset_seed_bits: int = 64
+    """The widest reset seed the real env accepts. The harness's reset seeds are 64-bit
+    (``seeds.reset_seed``); an env that takes 32 (dm_control through shimmy seeds a legacy
+    ``RandomState``) gets each one hashed to 32 bits (``FoldResetSeed``)."""
+    flatten_observation: bool = False
+    """Wrap the real env in gymnasium's ``FlattenObservation``: a Dict observation (dm_control
+    through shimmy: ``position``, ``velocity``) becomes one Box, its keys' arrays concatenated in
+    the space's order; ``observation_names`` name the flattened entries."""
     own_data: bool = False
     """Learn from each fit's own transitions the constants the env can learn
     (``learned_constants``) and the pessimism's scale and free band (``surrogate.own_data``),
@@ -284,7 +292,10 @@ class EnvSpec:
                               "'my_module:MyEnv-v0' so that it is imported first") from None
 
     def make_env(self, **kwargs: Any) -> gym.Env:
-        return gym.make(self.gym_id, **{**self.gym_kwargs, **kwargs})
+        env = gym.make(self.gym_id, **{**self.gym_kwargs, **kwargs})
+        if self.reset_seed_bits < 64:
+            env = FoldResetSeed(env, self.reset_seed_bits)
+        return gym.wrappers.FlattenObservation(env) if self.flatten_observation else env
 
     @property
     def raw_action_width(self) -> int:
@@ -640,6 +651,21 @@ def find_spec(name: str, config_dirs: Sequence[str] = ()) -> EnvSpec:
     if not isinstance(from_config, EnvSpec):
         raise ConfigError(f"spec '{name}': its _target_ builds a {type(from_config).__name__}, not an EnvSpec")
     return from_config
+
+
+class FoldResetSeed(gym.Wrapper):
+    """Hands the real env each reset seed hashed to ``bits`` bits (``numpy.random.SeedSequence``
+    of the seed), for envs that take no wider seed. Distinct seeds stay distinct with
+    probability about 1 - n^2 / 2^(bits + 1) over n resets (32 bits, 10,000 resets: 99%)."""
+
+    def __init__(self, env: gym.Env, bits: int):
+        super().__init__(env)
+        self.bits = int(bits)
+
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        if seed is not None:
+            seed = int(np.random.SeedSequence(int(seed)).generate_state(1, np.uint64)[0] >> (64 - self.bits))
+        return self.env.reset(seed=seed, options=options)
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,54 @@
+"""Task functions of ``conf/env/cartpole_swingup.yaml``: the DeepMind Control Suite's cartpole
+swing-up (``dm_control`` through ``shimmy``), written from the suite's documented task
+(``dm_control/suite/cartpole.py``) as a user writes them for an env of their own.
+
+States in the spec's order (x, th, xdot, thdot): cart position (m), pole angle (rad, 0 upright,
+pi hanging), their velocities. Actions: the force command in [-1, 1]. dt 0.01 s, 1000 steps, no
+termination. The suite's reward is a smooth product of ``tolerance`` terms (a knowledge prior:
+the task's published definition); ``tolerance`` is written here because ``dm_control.utils.rewards``
+evaluates one value at a time and would tie these functions to dm_control's import.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+CART_MARGIN = 2.0
+"""``centered``: tolerance margin on the cart position (m)."""
+CONTROL_MARGIN = 1.0
+"""``small_control``: tolerance margin on the force command."""
+ANGVEL_MARGIN = 5.0
+"""``small_velocity``: tolerance margin on the pole's angular velocity (rad/s)."""
+
+
+def tolerance_gaussian(x: np.ndarray, margin: float, value_at_margin: float = 0.1) -> np.ndarray:
+    """1 at 0, ``value_at_margin`` at |x| = margin, a Gaussian in between and beyond
+    (``dm_control.utils.rewards.tolerance`` with bounds (0, 0) and sigmoid 'gaussian')."""
+    scale = np.sqrt(-2.0 * np.log(value_at_margin))
+    return np.exp(-0.5 * (np.abs(x) / margin * scale) ** 2)
+
+
+def tolerance_quadratic(x: np.ndarray, margin: float) -> np.ndarray:
+    """1 - (x / margin)^2 within the margin, 0 beyond (sigmoid 'quadratic', value_at_margin 0)."""
+    d = np.abs(x) / margin
+    return np.where(d < 1.0, 1.0 - d**2, 0.0)
+
+
+def swingup_reward(states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+    """The suite's smooth swing-up reward of the state after the step and the action taken:
+    upright (cos th + 1) / 2 x centered (1 + tol(x, 2)) / 2 x small control (4 + tol(u, 1)) / 5
+    x small velocity (1 + tol(thdot, 5)) / 2; in [0, 1] per step."""
+    x, th, thdot = next_states[:, 0], next_states[:, 1], next_states[:, 3]
+    u = np.asarray(actions, dtype=float)[:, 0]
+    upright = (np.cos(th) + 1.0) / 2.0
+    centered = (1.0 + tolerance_gaussian(x, CART_MARGIN)) / 2.0
+    small_control = (4.0 + tolerance_quadratic(u, CONTROL_MARGIN)) / 5.0
+    small_velocity = (1.0 + tolerance_gaussian(thdot, ANGVEL_MARGIN)) / 2.0
+    return upright * centered * small_control * small_velocity
+
+
+def swingup_initial_states(rng: np.random.Generator, n: int) -> np.ndarray:
+    """The suite's swing-up reset: x ~ 0.01 N(0, 1), th ~ pi + 0.01 N(0, 1), velocities ~ 0.01 N(0, 1)."""
+    out = 0.01 * rng.standard_normal((n, 4))
+    out[:, 1] += np.pi
+    return out
