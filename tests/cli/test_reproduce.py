@@ -43,7 +43,7 @@ def test_every_stage_command_builds_and_every_rl_sweep_has_five_seeds(tmp_path, 
     (tmp_path / "mlruns" / "datasets").mkdir(parents=True)
     (tmp_path / "mlruns" / "datasets" / "lunar_lander-touchdowns-v1.npz").write_bytes(b"")
     stages = dict(mod.stages(mod.parse_seeds("0-4")))
-    assert list(stages) == ["experts", "fits", "transfer", "fast", "dyna", "own", "pe", "search"]
+    assert list(stages) == ["experts", "fits", "transfer", "fast", "dyna", "own", "pe", "cartpole", "search"]
     built = 0
     for name, commands in stages.items():
         for cmd in commands:
@@ -119,7 +119,7 @@ def test_a_rerun_skips_finished_stages_and_keeps_the_cost_of_an_interrupted_one(
     ran.clear()
     assert mod.main() == 0
     record = json.loads((tmp_path / "rebuild.json").read_text())
-    assert set(ran) == {"transfer", "fast", "dyna", "own", "pe", "search"}  # experts and fits were skipped
+    assert set(ran) == {"transfer", "fast", "dyna", "own", "pe", "cartpole", "search"}  # experts and fits were skipped
     # the rerun's 100 s added to the failed attempt's 100 s, not in place of them
     assert record["stages"]["transfer"]["attempts"] == 2 and record["stages"]["transfer"]["wall_seconds"] == 200.0
     assert all(v["status"] == "finished" for v in record["stages"].values())
