@@ -11,7 +11,15 @@ evaluates one value at a time and would tie these functions to dm_control's impo
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
+
+# The suite is used without rendering: no OpenGL backend is loaded (and none warns for want of a
+# display). Set before dm_control is imported: gym_id names this module first
+# ("sdrl_bench.envs.dmc:dm_control/..."), and importing it registers the suite's envs (shimmy).
+os.environ.setdefault("MUJOCO_GL", "disabled")
+import shimmy  # noqa: E402,F401  (registers dm_control/* with gymnasium)
 
 CART_MARGIN = 2.0
 """``centered``: tolerance margin on the cart position (m)."""
