@@ -38,6 +38,7 @@ import numpy as np
 
 from sdrl_bench import ConfigError, seeds
 from sdrl_bench.envs.base import CHECK_RESETS
+from sdrl_bench.fidelity import evaluate as evaluate_fidelity
 from sdrl_bench.data import TransitionRecorder, Transitions, collect, concat, held_out_test_set, random_policy, recorded
 from sdrl_bench.pipeline import FitJob, FitResult, check, fit_transitions
 from sdrl_bench.rl.accounting import expert_of, headline
@@ -190,6 +191,8 @@ class DynaOutcome:
     audit: EvalResult | None = None
     curve: list[tuple[int, float, float]] = field(default_factory=list)
     """(real transitions so far, screen mean, screen std) per round: the learning curve."""
+    audit_data: Transitions | None = None
+    """The audit's real transitions (held out: no fit saw them)."""
 
 
 class _Clock:
@@ -318,10 +321,34 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
             recorder.round_done(result, agent)
         if last:
             break
-    audit = None
+    audit, audit_data = None, None
     if cfg.audit_episodes:
-        audit = evaluate_real(agent, spec, cfg.audit_episodes, seeds.reset_seed(seed, "dyna_audit"), loop.counts, "audit")
-    return DynaOutcome(rounds, agent, summarize(rounds, audit, spec.solved_threshold, cfg, job), audit, curve)
+        recorders: list[TransitionRecorder] = []
+
+        def keep(env, i):
+            recorders.append(TransitionRecorder(env, spec, AUDIT_EPISODE + i))
+            return recorders[-1]
+
+        audit = evaluate_real(agent, spec, cfg.audit_episodes, seeds.reset_seed(seed, "dyna_audit"), loop.counts, "audit",
+                              wrap_env=keep)
+        audit_data = recorded(recorders)
+    summary = summarize(rounds, audit, spec.solved_threshold, cfg, job)
+    if audit_data is not None:
+        summary.update(audit_fidelity(rounds[-1].fit, audit_data))
+    return DynaOutcome(rounds, agent, summary, audit, curve, audit_data)
+
+
+AUDIT_EPISODE = 1 << 30
+"""Episode ids of the audit's recorded transitions (apart from the model data's)."""
+AUDIT_HORIZONS = (10, 100)
+
+
+def audit_fidelity(fit: FitResult, audit: Transitions) -> dict[str, float]:
+    """The fidelity of the model the final agent last trained in, on the audit's episodes: held-out
+    real transitions of the final policy's own state distribution (on-policy), that no fit saw
+    (``audit_fidelity/mse/<state>``, k-step rollouts ``audit_fidelity/rollout<k>_mse/<state>``, ...)."""
+    rep = evaluate_fidelity(fit.model, fit.spec or fit.job.spec, audit, horizons=AUDIT_HORIZONS)
+    return {f"audit_fidelity/{k}": float(v) for k, v in rep.metrics.items() if np.isscalar(v)}
 
 
 def _collect(loop: _Loop, agent: Any, n: int) -> Transitions:

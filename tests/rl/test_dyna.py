@@ -13,6 +13,7 @@ from gymnasium.envs.box2d.lunar_lander import heuristic
 from helpers import compose_cfg, run_cli, search
 from sdrl_bench import ConfigError
 from sdrl_bench.cli.build import build_dyna_job, build_fit_job
+from sdrl_bench.fidelity import step
 from sdrl_bench.rl.dyna import LOOP_PHASES, run_dyna
 from sdrl_bench.surrogate.events import fit_event_model, label_events, score_events
 from sdrl_bench.surrogate.vec import SurrogateVecEnv
@@ -64,6 +65,16 @@ def test_two_round_loop_counts_every_real_step_and_keeps_the_agent(store, from_e
     assert s["real_transitions_total"] == sum(s[f"real_steps_{p}"] for p in LOOP_PHASES)
     assert s["real_steps_collect"] == 30 + 20  # the initial collection + one round's (round 2 is the last)
     assert s["audit_steps"] > 0 and s["audit_episodes"] == 1
+    # the last model's fidelity on the audit's own (on-policy, held-out) transitions, as fidelity.evaluate scores it
+    from sdrl_bench.rl.dyna import audit_fidelity
+
+    audit = outcome.audit_data
+    assert len(audit) == s["audit_steps"] and audit.content_hash() != outcome.rounds[-1].fit.test.content_hash()
+    again = audit_fidelity(outcome.rounds[-1].fit, audit)
+    assert {k: s[k] for k in again} == again and "audit_fidelity/rollout100_mse/x" in again
+    assert again["audit_fidelity/mse/v"] == pytest.approx(
+        float(np.mean((step(outcome.rounds[-1].fit.model, job.fit.spec, audit.states, audit.actions)[:, 1]
+                       - audit.next_states[:, 1]) ** 2)), rel=1e-12)
     # round 1's refit saw exactly the rows recorded so far: collections (+ the screens' episodes)
     r1 = outcome.rounds[1]
     expected_rows = 30 + 20 + (r1.screen.steps + (r1.final.steps if r1.final else 0) if from_evaluations else 0)
