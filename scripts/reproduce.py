@@ -29,9 +29,10 @@ with ``--jobs`` processes at a time, one thread each. The stages, in order:
   pe           the probabilistic-ensemble NN surrogate (surrogate=pe): its fits on the fits stage's
                data (MountainCar, LunarLander, Pendulum), LunarLander's paper pack and both Dyna
                packs, seeds 0-4, beside SINDy and the MLP.
-  cartpole     the DeepMind Control Suite's cartpole swing-up (pip install 'sdrl-bench[dmc]'): its
-               Dyna loop (experiment=dyna_cartpole_swingup) and the same PPO recipe in the real
-               env, stopped at its first 5-episode evaluation at 700, seeds 0-4.
+  cartpole     the DeepMind Control Suite's cartpole swing-up (pip install 'sdrl-bench[dmc]'): SINDy
+               and MLP fits on 8,000 random steps, its Dyna loop (experiment=dyna_cartpole_swingup),
+               the same PPO recipe in the real env stopped at its first 5-episode evaluation at
+               700, and the loop with the MLP, seeds 0-4.
   search       one Optuna TPE study per env (sdrl-bench-search, seed 0) over the SINDy hyperparameters.
   report       sdrl-bench-report on the store, with this run's provenance (command, seeds,
                budgets, per-stage wall and CPU seconds, commit) as its first section.
@@ -115,8 +116,10 @@ def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
             *(["-m", f"experiment=dyna_{env}", "surrogate=pe", s] for env in ("mountain_car", "lunar_lander")),
         ]),
         ("cartpole", [  # the DeepMind Control Suite's cartpole swing-up: the Dyna loop from 8,000 random steps, its real arm
+            ["-m", "env=cartpole_swingup", "collector=random", "surrogate=sindy,nn", s],
             ["-m", "experiment=dyna_cartpole_swingup", s],
             ["-m", "experiment=dyna_cartpole_swingup", "task=train", "rl.arms=[real]", s],
+            ["-m", "experiment=dyna_cartpole_swingup", "surrogate=nn", s],
         ]),
         ("search", [  # one Optuna study per env (seed 0): TPE over library, degree, optimizer, threshold, alpha
             ["search:", "env=mountain_car", "collector=expert", f"tracking.experiment={STORE_EXPERIMENT}"],
