@@ -92,10 +92,13 @@ def test_every_experiment_pack_composes_and_validates(pack):
     assert cfg.task in ("train", "dyna")
     job = build_transfer_job(cfg, build_fit_job(cfg))
     job.check()  # agent fits the action space, budgets positive; no expert is trained here
-    assert job.agent.name in {"sac", "ppo", "ppo_fast"} and set(job.arms) == {"surrogate", "real"}
+    assert job.agent.name in {"sac", "ppo", "ppo_fast"} and set(job.arms) == set(cfg.rl.arms) and job.arms
     if cfg.task == "dyna":  # a Dyna pack validates, and finds the real arm of its fast pack (same key)
         build_dyna_job(cfg, build_fit_job(cfg)).check()
-        fast = compose_cfg(f"experiment={pack.replace('dyna_', 'fast_').removesuffix('_own')}")  # a variant: its base's
+        base = pack.replace("dyna_", "fast_").removesuffix("_own")  # a variant: its base's
+        # without a fast pack, its real arm is the pack's own recipe run in the real env
+        fast = (compose_cfg(f"experiment={base}") if base in options("experiment")
+                else compose_cfg(f"experiment={pack}", "task=train", "rl.arms=[real]"))
         assert real_arm_key(cfg) == real_arm_key(fast)
 
 
