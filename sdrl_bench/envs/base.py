@@ -171,6 +171,9 @@ class EnvSpec:
         self._check_actions()
         if self.max_episode_steps <= 0:
             raise ConfigError("env.spec.max_episode_steps must be positive")
+        if isinstance(self.reset_seed_bits, bool) or not isinstance(self.reset_seed_bits, int) \
+                or not 16 <= self.reset_seed_bits <= 64:
+            raise ConfigError(f"env.spec.reset_seed_bits: an integer in [16, 64] is required, got {self.reset_seed_bits!r}")
         object.__setattr__(self, "action_labels", tuple(self.action_labels))
         n_actions = self.n_discrete_actions or len(self.action_names)
         if self.action_labels and len(self.action_labels) != n_actions:

@@ -48,6 +48,14 @@ def test_the_real_env_is_flattened_and_takes_the_harness_seeds(spec):
     assert np.hypot(a[1], a[2]) == pytest.approx(1.0) and a[1] < -0.99  # hanging
 
 
+@pytest.mark.parametrize("bits", [8, 65, "32"])
+def test_a_bad_seed_width_is_one_line_naming_the_key(bits):
+    from sdrl_bench import ConfigError
+
+    with pytest.raises(ConfigError, match=r"^env.spec.reset_seed_bits: an integer in \[16, 64\] is required"):
+        build_fit_job(compose_cfg("env=cartpole_swingup", "collector=random", f"env.spec.reset_seed_bits={bits!r}"))
+
+
 def test_the_reward_function_is_the_suites(spec):
     obs, act, rew, nxt = _rollout(spec, 3, 400)
     s, s2 = spec.coordinates(obs), spec.coordinates(nxt, spec.coordinates(obs))
