@@ -11,7 +11,9 @@ evaluates one value at a time and would tie these functions to dm_control's impo
 
 from __future__ import annotations
 
+import logging
 import os
+import warnings
 
 import numpy as np
 
@@ -19,7 +21,9 @@ import numpy as np
 # display). Set before dm_control is imported: gym_id names this module first
 # ("sdrl_bench.envs.dmc:dm_control/..."), and importing it registers the suite's envs (shimmy).
 os.environ.setdefault("MUJOCO_GL", "disabled")
-import shimmy  # noqa: E402,F401  (registers dm_control/* with gymnasium)
+logging.getLogger("absl").setLevel(logging.WARNING)  # no import notes on the OpenGL backend
+with warnings.catch_warnings():  # the suite's imports reset the warning filters; keep the user's
+    import shimmy  # noqa: E402,F401  (registers dm_control/* with gymnasium)
 
 CART_MARGIN = 2.0
 """``centered``: tolerance margin on the cart position (m)."""

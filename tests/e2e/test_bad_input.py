@@ -195,3 +195,13 @@ def test_a_default_fit_prints_no_warning(store, tmp_path):
     assert res.returncode == 0, res.stderr[-2000:]
     assert "warn" not in res.stderr.lower(), res.stderr[-2000:]
     assert "x[k+1] = 1 x +1 v +0.0015 u -0.0025 cos(3 x)" in res.stdout
+
+
+def test_a_swingup_fit_prints_no_warning_or_import_notes(store, tmp_path):
+    """The DeepMind Control Suite env (dm_control through shimmy): its imports leave the warning
+    filters and the log as they were."""
+    res = run_cli("env=cartpole_swingup", "collector=random", "n_transitions=1000", f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "warn" not in res.stderr.lower(), res.stderr[-2000:]
+    assert "absl" not in res.stderr + res.stdout and "OpenGL" not in res.stderr + res.stdout
+    assert "x' = x +0.00" in res.stdout
