@@ -114,9 +114,9 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
     searched = {p.name for p in space}
     searched_keys = {PARAM_KEYS[n] for n in searched}
     context = {
-        # an NN's fit reads no library or optimizer: its export names neither
+        # an NN's fit reads no library or optimizer (SINDy's groups): its export names neither
         "choices": {g: v for g, v in choices.items() if g not in searched
-                    and not (kind != "sindy" and g in ("library", "optimizer"))},
+                    and not (kind != "sindy" and g in GROUP_PARAMS)},
         "values": {"seed": int(cfg.seed), "n_transitions": int(cfg.n_transitions),
                    "collector.epsilon": float(cfg.collector.epsilon), **_override_values(cfg, searched_keys)},
     }

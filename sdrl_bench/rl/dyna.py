@@ -241,7 +241,8 @@ class _Loop:
 
     def evaluate(self, agent: Any, n: int, seed: int, phase: str, max_steps: int | None = None
                  ) -> tuple[EvalResult, Transitions | None]:
-        """``n`` real episodes with reset seeds ``seed + i``, recorded as model data."""
+        """``n`` real episodes with reset seeds ``seed + i``, and their transitions (model data unless
+        the caller holds them out, as the audit does)."""
         spec, recorders = self.job.fit.spec, []
 
         def wrap(env, i):
@@ -322,24 +323,14 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
         if last:
             break
     audit, audit_data = None, None
-    if cfg.audit_episodes:
-        recorders: list[TransitionRecorder] = []
-
-        def keep(env, i):
-            recorders.append(TransitionRecorder(env, spec, AUDIT_EPISODE + i))
-            return recorders[-1]
-
-        audit = evaluate_real(agent, spec, cfg.audit_episodes, seeds.reset_seed(seed, "dyna_audit"), loop.counts, "audit",
-                              wrap_env=keep)
-        audit_data = recorded(recorders)
+    if cfg.audit_episodes:  # recorded as the screens are, but never model data: held out
+        audit, audit_data = loop.evaluate(agent, cfg.audit_episodes, seeds.reset_seed(seed, "dyna_audit"), "audit")
     summary = summarize(rounds, audit, spec.solved_threshold, cfg, job)
     if audit_data is not None:
         summary.update(audit_fidelity(rounds[-1].fit, audit_data))
     return DynaOutcome(rounds, agent, summary, audit, curve, audit_data)
 
 
-AUDIT_EPISODE = 1 << 30
-"""Episode ids of the audit's recorded transitions (apart from the model data's)."""
 AUDIT_HORIZONS = (10, 100)
 
 
@@ -347,7 +338,7 @@ def audit_fidelity(fit: FitResult, audit: Transitions) -> dict[str, float]:
     """The fidelity of the model the final agent last trained in, on the audit's episodes: held-out
     real transitions of the final policy's own state distribution (on-policy), that no fit saw
     (``audit_fidelity/mse/<state>``, k-step rollouts ``audit_fidelity/rollout<k>_mse/<state>``, ...)."""
-    rep = evaluate_fidelity(fit.model, fit.spec or fit.job.spec, audit, horizons=AUDIT_HORIZONS)
+    rep = evaluate_fidelity(fit.model, fit.spec, audit, horizons=AUDIT_HORIZONS)
     return {f"audit_fidelity/{k}": float(v) for k, v in rep.metrics.items() if np.isscalar(v)}
 
 

@@ -29,7 +29,7 @@ from sdrl_bench.data import Transitions, collect, random_policy
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.models.libraries import build_library
 from sdrl_bench.pipeline import FitJob, build_model, check
-from sdrl_bench.search.space import GROUP_PARAMS, PARAM_KEYS, SearchSpace, describe_space, grid_values, suggest
+from sdrl_bench.search.space import GROUP_PARAMS, NN_PARAMS, PARAM_KEYS, SearchSpace, describe_space, grid_values, suggest
 from sdrl_bench.search.storage import open_storage, open_study, redact, resolve_storage, study_parent_run
 from sdrl_bench.search.validation import Fold, aggregate, cross_validate, fit_model, make_folds, resolution_floor
 
@@ -292,7 +292,7 @@ def run_study(
 FIT_PARAM_NAMES = {"library": "library.name", "optimizer": "optimizer.name", "threshold": "optimizer.threshold",
                    "alpha": "optimizer.alpha", "normalize_columns": "optimizer.normalize_columns",
                    "poly_degree": "env.poly_degree",
-                   **{k: v for k, v in PARAM_KEYS.items() if v.startswith("surrogate.model.")}}
+                   **{k: PARAM_KEYS[k] for k in NN_PARAMS}}
 """A searched parameter -> the name a fit run logs it under (``tracking.used_params``)."""
 
 

@@ -92,6 +92,10 @@ def check_model(model: Any, spec: EnvSpec, source: str = "model") -> Any:
     return model
 
 
+NO_MEMBERS = "none: the model has no members"
+"""The pessimism of a model without a spread estimate (one MLP), as runs and surrogates state it."""
+
+
 def member_predictors(model: Any) -> list:
     """One batched predictor (``models.fast.batch_predictor``) per ensemble member of a
     structured model (``members_``: coefficient matrices over its ``terms_``); [] without."""
@@ -129,7 +133,7 @@ def surrogate_settings(model: Any, spec: EnvSpec) -> dict[str, str]:
                                 "residual covariance per " + ", ".join(sorted(noise)) if noise else "none"),
             "surrogate.pessimism": ("off (the env declares none)" if unc is None or not unc.active else
                                     f"ensemble disagreement ({k} members)" if spread is not None else
-                                    "none: the model has no members")}
+                                    NO_MEMBERS)}
 
 
 class ModelEnv:
@@ -309,7 +313,7 @@ class ModelEnv:
             self._scale = np.asarray(unc.scale, dtype=float)[:, None]
             self._members = spread
         self.pessimism = ("off" if not (penalty and unc is not None and unc.active) else
-                          "ensemble disagreement" if spread is not None else "none: the model has no members")
+                          "ensemble disagreement" if spread is not None else NO_MEMBERS)
         """How the reward is made pessimistic: by the members' disagreement, or not (and why)."""
 
     def __reduce__(self):  # compiled functions are rebuilt, not pickled

@@ -18,7 +18,6 @@ from sdrl_bench.tracking.client import Run
 CODE = Path(__file__).with_name("pyfunc_model.py")
 TERMS_CODE = Path(__file__).with_name("terms_pyfunc.py")
 NN_CODE = Path(__file__).with_name("nn_pyfunc.py")
-NN_FORMAT = "sdrl-bench/nn-model-v1"
 
 
 @contextlib.contextmanager
@@ -192,6 +191,8 @@ def log_surrogate_model(run: Run, result) -> str:
             model_dir = Path(tmp) / "model"
             model.save(model_dir / "model.json")
             artifacts = {"model": str(model_dir)}
+            from sdrl_bench.models.nn_io import FORMAT as NN_FORMAT  # torch: an NN's file format
+
             if json.loads((model_dir / "model.json").read_text()).get("format") == NN_FORMAT:
                 import torch
 
