@@ -102,6 +102,11 @@ class EnvSpec:
     The model regresses the angle (atan2 of the pair; the next angle unwrapped next to the
     current one, so th' = th + 0.05 thdot' stays exact across +-pi); the surrogate wraps it to
     [-pi, pi) and emits cos and sin, which stay on the circle."""
+    circle_pairs: tuple = ()
+    """Pairs of regressed states that lie on the unit circle, ``[[cos_th, sin_th]]``: an angle
+    modelled by its cos and sin rather than mapped (``angles``). The surrogate projects each
+    predicted pair back onto the circle every step (SINDy-RL's renormalisation); a pair at the
+    origin is left as it is."""
     reward_fn: str | None = None
     """Dotted path of ``reward(states, actions, next_states) -> (N,)`` (batched, states in
     ``state_names`` order, raw actions (N, raw width)); makes the spec a task for a surrogate."""
@@ -179,6 +184,7 @@ class EnvSpec:
         if self.action_labels and len(self.action_labels) != n_actions:
             raise ConfigError(f"env.spec.action_labels: {len(self.action_labels)} labels for {n_actions} actions")
         self._check_observation_map()
+        self._check_circle_pairs()
         fns = {k: resolve(getattr(self, k), f"env.spec.{k}") for k in _TASK_FNS}
         object.__setattr__(self, "_fns", fns)
         object.__setattr__(self, "events", tuple(self.events or ()))
@@ -249,6 +255,26 @@ class EnvSpec:
         if missing:
             raise ConfigError(f"env.spec.state_names: {missing} are neither observed nor angles (env.spec.angles)")
         object.__setattr__(self, "_obs_source", tuple(source.get(n, ("state", n)) for n in obs))
+
+    def _check_circle_pairs(self) -> None:
+        """Validate ``circle_pairs``: pairs of distinct regressed states, each in one pair; store
+        their columns among the regressed states."""
+        pairs = tuple(tuple(str(n) for n in p) if isinstance(p, (list, tuple)) else p for p in self.circle_pairs)
+        object.__setattr__(self, "circle_pairs", pairs)
+        seen: list[str] = []
+        for i, pair in enumerate(pairs):
+            if not isinstance(pair, tuple) or len(pair) != 2 or pair[0] == pair[1]:
+                raise ConfigError(f"env.spec.circle_pairs[{i}]: expected [cos name, sin name], two distinct state names, "
+                                  f"got {pair!r}")
+            bad = [n for n in pair if n not in self.target_names]
+            if bad:
+                raise ConfigError(f"env.spec.circle_pairs[{i}]: {bad} are not regressed states ({list(self.target_names)})")
+            if set(pair) & set(seen):
+                raise ConfigError(f"env.spec.circle_pairs[{i}]: {sorted(set(pair) & set(seen))} already in another pair")
+            seen.extend(pair)
+        cols = np.array([[self.target_names.index(n) for n in pair] for pair in pairs], dtype=int).reshape(-1, 2)
+        cols.setflags(write=False)
+        object.__setattr__(self, "_circle_cols", cols)
 
     def __reduce__(self):
         """Pickled as its fields and rebuilt (checked again; the task's functions are rebuilt,
@@ -410,6 +436,11 @@ class EnvSpec:
             low = -np.inf if self.state_low is None else np.asarray(self.state_low)[idx]
             high = np.inf if self.state_high is None else np.asarray(self.state_high)[idx]
             out = np.clip(out, low, high)
+        for c, si in self._circle_cols:  # back onto the unit circle (a pair at the origin stays)
+            r = np.hypot(out[:, c], out[:, si])
+            r = np.where(r > 0, r, 1.0)
+            out[:, c] /= r
+            out[:, si] /= r
         return self.round_obs(out)
 
     def target_bounds(self) -> dict[str, tuple[float, float]]:

@@ -3,7 +3,8 @@ swing-up (``dm_control`` through ``shimmy``), written from the suite's documente
 (``dm_control/suite/cartpole.py``) as a user writes them for an env of their own.
 
 States in the spec's order (x, th, xdot, thdot): cart position (m), pole angle (rad, 0 upright,
-pi hanging), their velocities. Actions: the force command in [-1, 1]. dt 0.01 s, 1000 steps, no
+pi hanging), their velocities; or, for SINDy-RL's model form (``cartpole_swingup_circle``), the
+suite's observations (x, cos th, sin th, xdot, thdot). Actions: the force command in [-1, 1]. dt 0.01 s, 1000 steps, no
 termination. The suite's reward is a smooth product of ``tolerance`` terms (a knowledge prior:
 the task's published definition); ``tolerance`` is written here because ``dm_control.utils.rewards``
 evaluates one value at a time and would tie these functions to dm_control's import.
@@ -46,17 +47,20 @@ def tolerance_quadratic(x: np.ndarray, margin: float) -> np.ndarray:
     return np.where(d < 1.0, 1.0 - d**2, 0.0)
 
 
-def swingup_reward(states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
-    """The suite's smooth swing-up reward of the state after the step and the action taken:
-    upright (cos th + 1) / 2 x centered (1 + tol(x, 2)) / 2 x small control (4 + tol(u, 1)) / 5
-    x small velocity (1 + tol(thdot, 5)) / 2; in [0, 1] per step."""
-    x, th, thdot = next_states[:, 0], next_states[:, 1], next_states[:, 3]
+def _reward(x: np.ndarray, cos_th: np.ndarray, thdot: np.ndarray, actions: np.ndarray) -> np.ndarray:
     u = np.asarray(actions, dtype=float)[:, 0]
-    upright = (np.cos(th) + 1.0) / 2.0
+    upright = (cos_th + 1.0) / 2.0
     centered = (1.0 + tolerance_gaussian(x, CART_MARGIN)) / 2.0
     small_control = (4.0 + tolerance_quadratic(u, CONTROL_MARGIN)) / 5.0
     small_velocity = (1.0 + tolerance_gaussian(thdot, ANGVEL_MARGIN)) / 2.0
     return upright * centered * small_control * small_velocity
+
+
+def swingup_reward(states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+    """The suite's smooth swing-up reward of the state after the step and the action taken:
+    upright (cos th + 1) / 2 x centered (1 + tol(x, 2)) / 2 x small control (4 + tol(u, 1)) / 5
+    x small velocity (1 + tol(thdot, 5)) / 2; in [0, 1] per step."""
+    return _reward(next_states[:, 0], np.cos(next_states[:, 1]), next_states[:, 3], actions)
 
 
 def swingup_initial_states(rng: np.random.Generator, n: int) -> np.ndarray:
@@ -64,3 +68,18 @@ def swingup_initial_states(rng: np.random.Generator, n: int) -> np.ndarray:
     out = 0.01 * rng.standard_normal((n, 4))
     out[:, 1] += np.pi
     return out
+
+
+# ---------------------------------------------------------------- SINDy-RL's model form
+# conf/env/cartpole_swingup_circle.yaml: the states are the suite's observations
+# (x, cos th, sin th, xdot, thdot), the pole's angle modelled by its cos and sin (circle_pairs).
+
+def swingup_reward_circle(states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
+    """``swingup_reward`` of states in observation form (x, cos th, sin th, xdot, thdot)."""
+    return _reward(next_states[:, 0], next_states[:, 1], next_states[:, 4], actions)
+
+
+def swingup_initial_circle(rng: np.random.Generator, n: int) -> np.ndarray:
+    """``swingup_initial_states`` in observation form (the same draws)."""
+    s = swingup_initial_states(rng, n)
+    return np.stack([s[:, 0], np.cos(s[:, 1]), np.sin(s[:, 1]), s[:, 2], s[:, 3]], axis=1)
