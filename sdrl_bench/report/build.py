@@ -405,13 +405,15 @@ def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
         cost_all = NOT_RUN if not ids else ("not solved" if math.isinf(r["median_all"]) else fmt(r["median_all"], "int", "-"))
         vals = [f"{r['n_solved']}/{r['n_seeds']}", cost, _ci_text(r["censored"], "-", number="int"), phases, fmt(r["model_data"], "int", e),
                 fmt(r["surrogate_steps"], "int", e), fmt(r["wall_seconds"], "f1", e), _ci_text(r["final"], "-"),
-                "-" if real else _ci_text(r["audit"], "-"), cost_all, f"{r['n_stopped']}/{r['n_seeds']}"]
+                "-" if real else _ci_text(r["audit"], "-"), cost_all, f"{r['n_stopped']}/{r['n_seeds']}",
+                "-" if not math.isfinite(r["ratio_to_best_real"]) else f"{r['ratio_to_best_real']:.3g}"]
         rows.append([Cell(r["env"]), Cell(r["method"]), Cell(r["agent"])] + [link.cell(v, ids) for v in vals]
                     + [link.ids(ids)])
     out.append(Table(["env", "method", "agent", "solved", "median real transitions to solve",
                       "real transitions, unsolved = spent [95% CI]", "real steps by phase (mean)",
                       "model data (mean)", "surrogate steps (mean)", "wall s (mean)", "last 20-episode return [95% CI]",
-                      "audit return [95% CI]", "median all real steps to solve", "stopped as solved by the loop", "runs"],
+                      "audit return [95% CI]", "median all real steps to solve", "stopped as solved by the loop",
+                      "median real transitions to solve / the best real arm's", "runs"],
                      rows,
                      "Dyna (rl/dyna.py): rounds of collecting with the agent, refitting the surrogate and the env's "
                      "learned event models on all real data, and training the same agent on in the refreshed surrogate; "
@@ -424,7 +426,11 @@ def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
                      "evaluation at the threshold; its cost is its training steps plus those evaluations. An unsolved "
                      "seed counts as infinitely many transitions in the medians; in the IQM column it counts what it "
                      "spent (censored at its budget), so read it beside the fraction solved. A variant pack (e.g. "
-                     "dyna_lunar_lander_own: every constant from the run's own data) has a row of its own."))
+                     "dyna_lunar_lander_own: every constant from the run's own data) has a row of its own. Real arms of other "
+                     "agents on the same env that stopped at the threshold have rows too; the ratio column divides a "
+                     "row's median real transitions to solve by the best real arm's on its env (an env with another "
+                     "model form of the same real env, e.g. cartpole_swingup_circle, is compared with its sibling's real "
+                     "arms in docs/)."))
     out.append(Para("Differences explained: the paper fits once and counts only the model "
                     "data and the surrogate steps; it reports no real steps spent on evaluation, which here decide "
                     "when Dyna stops and are counted."))

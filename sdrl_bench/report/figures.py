@@ -76,6 +76,7 @@ def figure_blocks(uri: str, runs: Sequence[Mapping[str, Any]], folder: Path, url
     figs.mkdir(parents=True, exist_ok=True)
     out: list[Block] = [Heading(2, "6. Figures")]
     out += _transfer_blocks(uri, runs, folder, url)
+    out += _real_steps_blocks(uri, runs, folder)
     out += _fit_blocks(uri, runs, folder, url)
     out += _study_blocks(uri, runs, folder, url)
     _cleanup(folder / ".dl")
@@ -114,6 +115,69 @@ def _transfer_blocks(uri: str, runs: Sequence[Mapping[str, Any]], folder: Path, 
             out.append(Para(f"Policy maps from run {_ref(first, url)}."))
         else:
             out.append(Para(f"{label}: policy maps missing from run {_ref(first, url)}."))
+    return out
+
+
+def real_steps_figure(arms: Mapping[str, Sequence[pd.DataFrame]], title: str, solved: float | None) -> bytes:
+    """Real return vs real steps, all counted (log axis), one line per seed and one colour per
+    arm: the methods' costs differ by orders of magnitude, and their seeds' x values differ."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.4, 3.8))
+    ax = fig.subplots()
+    for i, (arm, curves) in enumerate(arms.items()):
+        color = f"C{i}"
+        for j, c in enumerate(curves):
+            ax.plot(c["real_steps"], c["return_mean"], color=color, lw=1, marker=".", ms=3, alpha=0.8,
+                    label=f"{arm} (n={len(curves)} seeds)" if j == 0 else None)
+    if solved is not None:
+        ax.axhline(solved, ls="--", color="gray", lw=1, label=f"solved ({solved:g})")
+    ax.set_xscale("log")
+    ax.set_xlabel("real steps, all counted (model data, collections, evaluations that stop or select)")
+    ax.set_ylabel("real return (the arm's own evaluations)")
+    ax.set_title(title, fontsize=10)
+    ax.legend(fontsize=7, loc="upper left")
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90)
+    return buf.getvalue()
+
+
+def _all_counted(uri: str, run: Mapping[str, Any], tmp: Path) -> pd.DataFrame | None:
+    """One run's curve against its real steps so far, all counted: a Dyna run's (its curve's x
+    already counts every real step of the loop); a real arm's training steps plus its evaluations
+    so far (each point's share of ``real/eval_steps``)."""
+    if run["tags"].get("sdrl.kind") == "dyna":
+        got = _curves(uri, [run], "dyna", tmp)
+        return got[0].rename(columns={"real_transitions": "real_steps"}) if got else None
+    got = _curves(uri, [run], "real", tmp)
+    if not got or not len(got[0]):
+        return None
+    c = got[0]
+    per_point = float(run["metrics"].get("real/eval_steps", 0.0)) / len(c)
+    return c.assign(real_steps=c["train_steps"] + per_point * (pd.RangeIndex(len(c)) + 1))
+
+
+def _real_steps_blocks(uri: str, runs: Sequence[Mapping[str, Any]], folder: Path) -> list[Block]:
+    """Per env with Dyna runs: every arm of section 5 as real return vs real steps, all counted."""
+    dy = rt.dyna_table(runs)
+    if dy.empty:
+        return []
+    out: list[Block] = [Heading(3, "Real return vs real steps, all counted (section 5's arms)")]
+    by_id = {r["run_id"]: r for r in runs}
+    for env in dy["env"].unique():
+        arms = {}
+        for _, row in dy[dy["env"] == env].iterrows():
+            curves = [c for rid in row["runs"] if (c := _all_counted(uri, by_id[rid], folder / ".dl")) is not None]
+            if curves:
+                arms[f"{row['method']} ({row['agent']})"] = curves
+        if not arms:
+            continue
+        path = folder / "figures" / f"real_steps_{env}.png"
+        members = [by_id[rid] for rids in dy[dy["env"] == env]["runs"] for rid in rids]
+        path.write_bytes(real_steps_figure(arms, f"{env}: every arm in real steps", _solved_threshold(members)))
+        out.append(Image(path, f"{env}: real return vs real steps, all counted, one line per seed (Dyna: its screens; "
+                               "real arms: their evaluations)"))
     return out
 
 

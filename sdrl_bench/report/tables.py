@@ -395,7 +395,9 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
     screens, confirmations; real arm: training to the first solved evaluation, and the
     evaluations); this run's real steps as IQM with a CI, an unsolved seed counted as what it
     spent (censored at its budget); the last 20-episode return and the Dyna audit, each as IQM (or mean) with a 95%
-    bootstrap CI over seeds."""
+    bootstrap CI over seeds. Real arms of other agents on the same env that stopped at the
+    threshold (``rl.stop_when_solved``) get rows too, and every row the ratio of its median real
+    transitions to solve to the best real arm's on its env."""
     runs = list(runs)
     dyna = finished(runs, "dyna")
     # the real arm: every transfer run that trained one of the same agent (alone, as studies/dyna_real_steps.py
@@ -437,25 +439,42 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                              "final": final, "audit": audit, "runs": [r["run_id"] for r in group]})
             group = _real_arms([r for r in dyna if r["tags"].get("env") == env and r["tags"].get("agent") == agent],
                                [r for r in real if r["tags"].get("env") == env and r["tags"].get("agent") == agent])
-            m = [r["metrics"] for r in group]
-            costs = [x["real/solved_real_steps"] + x.get("real/eval_steps", 0.0) if "real/solved_real_steps" in x
-                     else math.inf for x in m]
-            costs_all = [c + x.get("real/real_steps/tuning", 0.0) for c, x in zip(costs, m, strict=True)]
-            spent = bootstrap_ci([c if math.isfinite(c) else x.get("real/real_steps/this_run", math.nan)
-                                  for c, x in zip(costs, m, strict=True)], seed=seed)
-            rows.append({"env": env, "method": "real arm", "agent": agent, "n_seeds": len(group),
-                         "n_solved": sum("real/solved_real_steps" in x for x in m),
-                         "n_stopped": sum("real/solved_real_steps" in x for x in m),
-                         "median_to_solve": _median_cost(costs), "median_all": _median_cost(costs_all), "censored": spent,
-                         "model_data": 0.0, "phase_a": _mean(x.get("real/solved_real_steps") for x in m),
-                         "phase_b": _mean(x.get("real/eval_steps") for x in m), "phase_c": math.nan,
-                         "surrogate_steps": 0.0, "wall_seconds": _mean(x.get("real/train_wall_seconds") for x in m),
-                         "final": bootstrap_ci([x.get("real/final_return_mean", math.nan) for x in m], seed=seed),
-                         "audit": (math.nan, math.nan, math.nan, "mean"), "runs": [r["run_id"] for r in group]})
+            rows.append(_real_arm_row(env, agent, group, seed))
+        # real-env learners of other agents on the same env, stopped at the threshold (a stronger real arm
+        # than the loop's own recipe may be another algorithm or recipe)
+        shown = {r["agent"] for r in rows if r["env"] == env and r["method"] == "real arm"}
+        others = [r for r in real if r["tags"].get("env") == env and r["tags"].get("agent") not in shown
+                  and r.get("params", {}).get("rl.stop_when_solved") == "True"]
+        for agent in sorted({r["tags"].get("agent", "?") for r in others}):
+            rows.append(_real_arm_row(env, agent, newest_per_seed(r for r in others if r["tags"].get("agent") == agent), seed))
+    for row in rows:  # each method's median real steps to solve over the best real arm's on its env
+        best = [r["median_to_solve"] for r in rows if r["env"] == row["env"] and r["method"] == "real arm"
+                and math.isfinite(r["median_to_solve"])]
+        row["ratio_to_best_real"] = row["median_to_solve"] / min(best) if best else math.nan
     return pd.DataFrame(rows, columns=["env", "method", "agent", "n_seeds", "n_solved", "n_stopped", "median_to_solve",
                                        "median_all", "censored", "model_data",
                                        "phase_a", "phase_b", "phase_c", "surrogate_steps", "wall_seconds", "final",
-                                       "audit", "runs"])
+                                       "audit", "ratio_to_best_real", "runs"])
+
+
+def _real_arm_row(env: str, agent: str, group: Sequence[Run], seed: int) -> dict[str, Any]:
+    """One real arm's row of ``dyna_table``: its cost to solve is its training steps up to the
+    first evaluation at the threshold plus every evaluation it ran."""
+    m = [r["metrics"] for r in group]
+    costs = [x["real/solved_real_steps"] + x.get("real/eval_steps", 0.0) if "real/solved_real_steps" in x
+             else math.inf for x in m]
+    costs_all = [c + x.get("real/real_steps/tuning", 0.0) for c, x in zip(costs, m, strict=True)]
+    spent = bootstrap_ci([c if math.isfinite(c) else x.get("real/real_steps/this_run", math.nan)
+                          for c, x in zip(costs, m, strict=True)], seed=seed)
+    return {"env": env, "method": "real arm", "agent": agent, "n_seeds": len(group),
+            "n_solved": sum("real/solved_real_steps" in x for x in m),
+            "n_stopped": sum("real/solved_real_steps" in x for x in m),
+            "median_to_solve": _median_cost(costs), "median_all": _median_cost(costs_all), "censored": spent,
+            "model_data": 0.0, "phase_a": _mean(x.get("real/solved_real_steps") for x in m),
+            "phase_b": _mean(x.get("real/eval_steps") for x in m), "phase_c": math.nan,
+            "surrogate_steps": 0.0, "wall_seconds": _mean(x.get("real/train_wall_seconds") for x in m),
+            "final": bootstrap_ci([x.get("real/final_return_mean", math.nan) for x in m], seed=seed),
+            "audit": (math.nan, math.nan, math.nan, "mean"), "runs": [r["run_id"] for r in group]}
 
 
 RUN_TAGS = ("sdrl.kind", "mlflow.runName", "mlflow.parentRunId", "env", "agent", "surrogate", "library", "optimizer",

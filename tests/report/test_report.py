@@ -347,6 +347,44 @@ def test_dyna_table_equals_the_runs_metrics_and_links_its_runs(store: str, tmp_p
         assert {i for i in sindy + nn + real if i in url} == set(ids)
 
 
+def test_another_agents_real_arm_that_stopped_at_the_threshold_is_a_row_and_the_ratio_uses_the_best(store: str, tmp_path) -> None:
+    """A real-only arm of another agent (SB3's default PPO) stopped by ``rl.stop_when_solved`` is
+    a row of its own; one that ran a fixed budget is not (its cost to solve is unknown); every
+    row's ratio divides its median real transitions to solve by the best real arm's; section 6
+    draws every arm against its real steps, all counted."""
+    d = _dyna(store, 0, "sindy", True, 20_000, 230.0)
+    tracking.Run(store, d).log_text("real_transitions,return_mean,return_std\n9000,300,0\n20000,750,0\n", "curves/dyna.csv")
+    _real_arm(store, 0, 400_000.0)
+    stopped = []
+    for seed, solved_at in ((0, 90_000.0), (1, 110_000.0)):
+        rid = _real_arm(store, seed, solved_at)
+        tracking.Run(store, rid).set_tags({"agent": "ppo"})
+        tracking.Run(store, rid).log_params({"rl.stop_when_solved": "True"})
+        tracking.Run(store, rid).log_text("train_steps,return_mean,return_std\n0,0,0\n50000,400,0\n100000,720,0\n",
+                                          "curves/real.csv")
+        stopped.append(rid)
+    fixed = _real_arm(store, 2, None)
+    tracking.Run(store, fixed).set_tags({"agent": "sac"})
+    dy = rt.dyna_table(tracking.find_runs(store, EXP))
+    real = dy[dy["method"] == "real arm"].set_index("agent")
+    assert sorted(real.index) == ["ppo", "ppo_fast"] and sorted(real.loc["ppo", "runs"]) == sorted(stopped)
+    best = np.median([93_000, 113_000])  # training steps to solve plus the 3,000 evaluation steps
+    assert real.loc["ppo", "median_to_solve"] == best and real.loc["ppo", "ratio_to_best_real"] == 1.0
+    assert real.loc["ppo_fast", "ratio_to_best_real"] == pytest.approx(403_000 / best)
+    sindy = dy[dy["method"] == "Dyna, sindy"].iloc[0]
+    assert sindy["ratio_to_best_real"] == pytest.approx(20_000 / best)
+    res = build_report(ReportInput(store, EXP), "ratio", tmp_path, log_run=False)
+    rows = {(r[1], r[2]): r for r in _md_rows((res.folder / "report.md").read_text(), "## 5. Dyna")}
+    assert rows[("Dyna, sindy", "ppo_fast")][-2] == f"{20_000 / best:.3g}"
+    fig = res.folder / "figures" / "real_steps_lunar_lander.png"
+    assert fig.stat().st_size > 1000 and "figures/real_steps_lunar_lander.png" in (res.folder / "report.md").read_text()
+    # a real arm's x: its training steps plus its evaluations so far (3,000 evaluation steps over 3 points)
+    from sdrl_bench.report.figures import _all_counted
+
+    run = next(r for r in tracking.find_runs(store, EXP) if r["run_id"] == stopped[0])
+    assert list(_all_counted(store, run, tmp_path / "dl")["real_steps"]) == [1000.0, 52_000.0, 103_000.0]
+
+
 def test_the_real_arm_row_holds_each_dyna_seeds_own_real_arm(store: str) -> None:
     """Seed 0's Dyna run was plotted beside its real arm (``dyna.real_arm_run``); seed 1's real
     arm ran after it (found by ``dyna.real_arm_key``); seed 2's Dyna run predates both tags (its
