@@ -32,12 +32,17 @@ def test_groups_have_the_expected_options():
     list(itertools.product(options("env"), options("library"), options("optimizer"))),
 )
 def test_every_combination_instantiates(env, library, optimizer):
-    collector = "random" if env in ("pendulum", "cartpole_swingup") else "heuristic"  # no heuristic policy
+    collector = "random" if env in ("pendulum", "cartpole_swingup", "cartpole_swingup_circle") else "heuristic"  # no heuristic policy
     cfg = compose_cfg(f"env={env}", f"library={library}", f"optimizer={optimizer}", f"collector={collector}")
     job = build_fit_job(cfg)
     # a per-equation library names its env's states (CartPole-v1's are the swing-up's: x, th, xdot, thdot, force)
     home = {"lunar_lander_flight": ("lunar_lander",), "pendulum_law": ("pendulum",),
-            "cartpole_swingup_law": ("cartpole_swingup", "cartpole")}.get(library)
+            "cartpole_swingup_law": ("cartpole_swingup", "cartpole"),
+            "cartpole_swingup_affine": ("cartpole_swingup_circle",)}.get(library)
+    if library in ("trig", "poly_trig") and not cfg.env.trig_inputs:  # an env with no angle state (cos, sin observed)
+        with pytest.raises(ConfigError, match=r"^library.parts\[\d\].inputs: selects no input for this env"):
+            check(job)
+        return
     if home is not None and env not in home:
         with pytest.raises(ConfigError, match=r"^library.equations(.\w+(\[\d+\])?)?: (not a regressed state|unknown name|no equation for)"):
             check(job)
