@@ -33,8 +33,8 @@ with ``--jobs`` processes at a time, one thread each. The stages, in order:
                and MLP fits on 8,000 random steps, its Dyna loop (experiment=dyna_cartpole_swingup),
                the same PPO recipe in the real env stopped at its first 5-episode evaluation at
                700, the loop with the MLP, PPO with SB3's defaults (8 envs) in the real env, the
-               loop with the PE ensemble, and SINDy-RL's model form (env=cartpole_swingup_circle: its
-               fits and its Dyna loop), seeds 0-4.
+               loop with the PE ensemble, SINDy-RL's model form (env=cartpole_swingup_circle: its
+               fits and its Dyna loop), and SB3's default SAC in the real env, seeds 0-4.
   search       one Optuna TPE study per env (sdrl-bench-search, seed 0) over the SINDy hyperparameters.
   report       sdrl-bench-report on the store, with this run's provenance (command, seeds,
                budgets, per-stage wall and CPU seconds, commit) as its first section.
@@ -126,6 +126,7 @@ def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
             ["-m", "experiment=dyna_cartpole_swingup", "surrogate=pe", s],
             ["-m", "env=cartpole_swingup_circle", "collector=random", s],
             ["-m", "experiment=dyna_cartpole_swingup_circle", s],
+            ["-m", "experiment=real_cartpole_swingup_sac", s],
         ]),
         ("search", [  # one Optuna study per env (seed 0): TPE over library, degree, optimizer, threshold, alpha
             ["search:", "env=mountain_car", "collector=expert", f"tracking.experiment={STORE_EXPERIMENT}"],
