@@ -1,0 +1,142 @@
+"""A float64 JAX evaluator of a fitted sparse dynamics model: the surrogate's prediction as a pure function.
+
+What it is for: the compiled training loop of issue 31, where the surrogate step runs as one
+pure JAX function (``jax.jit`` / ``vmap`` / ``lax.scan`` over the agent's rollouts) instead of
+numpy called from Python. ``jax_predictor(model)`` returns ``f(z) -> next regressed states``
+for model inputs ``z`` of shape (N, n_inputs) (states, then encoded controls: the transpose of
+the rows ``surrogate.model_env.ModelEnv.model_inputs`` makes, i.e. the layout of
+``model.predict``), giving (N, n_states); a single input vector (n_inputs,) gives (n_states,).
+
+How: nothing here restates an env's law or an op. The function is generated from the model's
+own data, exactly as the one-state evaluator is (``models.fast.scalar_source``): its term table
+(``terms_``), coefficients (``coef_``) and, for a per-equation model whose primed terms read
+bounded next values, its stages (``stages_``: the rows of each stage, then the env's bounds
+applied, ``jnp.clip`` as ``np.clip`` in ``models.fast._staged_batch``). Each op is the source
+form of the one term table (``terms.TABLE[op].source``), run with the jax.numpy function of the
+same name as each numpy/math function the generated source may call (``terms.SOURCE_NAMESPACE``:
+``_sin`` -> ``jnp.sin``): a new op works here once its source form names a function jax.numpy
+has.
+
+Rounding: evaluated eagerly (op by op), the function computes what the one-state evaluator
+(``models.fast.scalar_predictor``) computes, bit for bit (the same source, on columns; tested on
+every built-in env's fit); it agrees with ``models.fast.batch_predictor`` and ``model.predict``
+to rounding (their sums run in another order; tested to 1e-12). Under ``jax.jit``, XLA's CPU
+backend turns a*b + c inside a fused kernel into one fused multiply-add (always: jaxlib 0.10.2
+has no option against it but the ISA limit below), so compiled results differ from eager ones by rounding (a few 1e-15 on values up to ~25,
+measured); started with ``XLA_FLAGS=--xla_cpu_max_isa=AVX`` (no FMA instructions) the compiled
+function gives the eager bits exactly (tested). A compiled function is deterministic: the same
+inputs give the same bits.
+
+Precision: importing jax through this module (``jax_predictor``) turns on float64 for the
+whole process (``jax.config.update("jax_enable_x64", True)``): the models' coefficients are
+float64 and the surrogate computes in float64. jax is an optional extra (``sdrl-bench[jax]``);
+the package imports without it, and ``jax_predictor`` says how to install it.
+
+Supported: ``SindyModel`` and ``PerEquationModel`` (staged or not). An ensemble member is
+evaluated with ``jax_predictor(model, coef=model.members_[k])`` (its coefficients over the same
+terms and stages). Not supported: models without term tables (the NN models ``nn`` and ``pe``:
+a clear error names the kind).
+
+Not yet covered (the rest of ``ModelEnv.step``): the step noise (``noise_``) and a sampling
+model's draws, the task's functions (regime dynamics, bounds, exogenous variables, reward,
+termination), the divergence guard, learned events, pessimism (the members' disagreement) and
+resets.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from sdrl_bench.models.fast import scalar_source
+from sdrl_bench.models.terms import SOURCE_NAMESPACE, Term
+
+JaxPredict = Callable[[Any], Any]
+
+INSTALL_HINT = "pip install 'sdrl-bench[jax]'"
+
+
+def _jax():
+    """jax and jax.numpy, with float64 on (imported on first use: jax is an optional extra)."""
+    try:
+        import jax  # noqa: PLC0415
+        import jax.numpy as jnp  # noqa: PLC0415
+    except ImportError as exc:
+        raise ImportError(f"sdrl_bench.models.jax_eval needs jax, an optional extra: {INSTALL_HINT}") from exc
+    jax.config.update("jax_enable_x64", True)
+    return jax, jnp
+
+
+def jax_namespace(jnp: Any) -> dict[str, Any]:
+    """The names the generated source may call (``terms.SOURCE_NAMESPACE``), each bound to the
+    jax.numpy function of the same name (``_sin``: ``math.sin`` -> ``jnp.sin``)."""
+    out = {}
+    for name, fn in SOURCE_NAMESPACE.items():
+        jfn = getattr(jnp, fn.__name__, None)
+        if jfn is None:
+            raise NotImplementedError(f"term op function {name} ({fn.__name__}) has no jax.numpy counterpart")
+        out[name] = jfn
+    return out
+
+
+def _compile(terms: Sequence[Term], coef: np.ndarray, n_inputs: int, namespace: dict[str, Any]) -> Callable:
+    """``predict(columns) -> list of output columns``: the generated source of
+    ``models.fast.scalar_source`` over columns (any array shape, elementwise), with jnp ops."""
+    scope: dict[str, Any] = {"__builtins__": {}, **namespace}
+    exec(compile(scalar_source(terms, coef, n_inputs), "<sindy-jax>", "exec"), scope)
+    return scope["predict"]
+
+
+def _check(model: Any, coef: Any) -> tuple[list[Term], np.ndarray, dict | None, int]:
+    """The model's term table, coefficients (``coef`` or ``coef_``), stages and input count."""
+    terms = getattr(model, "terms_", None)
+    if terms is None or getattr(model, "coef_", None) is None:
+        kind = getattr(model, "kind", None) or type(model).__name__
+        raise TypeError(f"jax_predictor: a {kind!r} model ({type(model).__name__}) has no term table (terms_, coef_); "
+                        "only the sparse models (kind 'sindy', 'per_equation') have a JAX evaluator")
+    coef = np.asarray(model.coef_ if coef is None else coef, dtype=float)
+    if coef.shape != (len(model.state_names_), len(terms)):
+        raise ValueError(f"jax_predictor: coefficients of shape {coef.shape} for {len(model.state_names_)} states "
+                         f"and {len(terms)} terms")
+    n_inputs = len(model.state_names_) + len(model.control_names_)
+    stages = getattr(model, "stages_", None) or None
+    if stages is not None and stages["n_inputs"] != n_inputs:
+        raise ValueError(f"jax_predictor: stages for {stages['n_inputs']} inputs, the model has {n_inputs}")
+    return list(terms), coef, stages, n_inputs
+
+
+def jax_predictor(model: Any, coef: Any = None) -> JaxPredict:
+    """``f(z) -> (..., n_states)``: the model's prediction at inputs ``z`` (..., n_inputs), a
+    pure jax.numpy function (jit-able, vmap-able, float64). ``coef``: evaluate these coefficients
+    (an ensemble member's, ``members_[k]``) over the model's terms and stages instead of ``coef_``."""
+    terms, coef, stages, n_inputs = _check(model, coef)
+    _, jnp = _jax()
+    namespace = jax_namespace(jnp)
+    m = coef.shape[0]
+    if stages is None:
+        parts = [(list(range(m)), _compile(terms, coef, n_inputs, namespace), [])]
+        n_ext = n_inputs
+    else:  # as models.fast._staged_batch: each stage over the inputs and the bounded next values so far
+        n_ext = n_inputs + sum(len(st["clips"]) for st in stages["stages"])
+        parts = [(list(st["rows"]), _compile(terms, coef[st["rows"]], n_ext, namespace),
+                  [(int(r), int(col), float(lo), float(hi)) for r, col, lo, hi in st["clips"]])
+                 for st in stages["stages"]]
+
+    def predict(z):
+        z = jnp.asarray(z, dtype=jnp.float64)
+        if z.ndim < 1 or z.shape[-1] != n_inputs:
+            raise ValueError(f"jax_predictor: inputs of shape {z.shape}, expected (..., {n_inputs})")
+        cols = [z[..., j] for j in range(n_inputs)]
+        if n_ext > n_inputs:
+            cols += [jnp.zeros(z.shape[:-1], dtype=jnp.float64)] * (n_ext - n_inputs)
+        out: list[Any] = [None] * m
+        for rows, fn, clips in parts:
+            for r, v in zip(rows, fn(cols), strict=True):
+                out[r] = jnp.broadcast_to(jnp.asarray(v, dtype=jnp.float64), z.shape[:-1])  # a constant equation too
+            for r, col, lo, hi in clips:
+                cols[col] = jnp.clip(out[r], lo, hi)
+        return jnp.stack(out, axis=-1)
+
+    return predict
