@@ -8,8 +8,10 @@ so torch loads only when an NN is used. A new kind of model registers itself wit
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any, Protocol, runtime_checkable
 from collections.abc import Sequence
@@ -17,6 +19,19 @@ from collections.abc import Sequence
 import numpy as np
 
 from sdrl_bench import ConfigError
+
+
+@contextlib.contextmanager
+def seeded_global_numpy(seed: int | None) -> Iterator[None]:
+    """numpy's global random state seeded with ``seed`` inside, restored after: pysindy's
+    ``EnsembleOptimizer`` draws its bootstrap rows and library subsets from ``np.random``, which
+    no argument seeds, so a fit with it is reproducible only this way."""
+    saved = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        yield
+    finally:
+        np.random.set_state(saved)
 
 
 @runtime_checkable

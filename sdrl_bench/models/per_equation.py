@@ -55,7 +55,7 @@ import pysindy as ps
 from pysindy.feature_library.base import BaseFeatureLibrary, x_sequence_or_item
 
 from sdrl_bench import ConfigError
-from sdrl_bench.models.base import read_model_json, residual_noise, write_model_json
+from sdrl_bench.models.base import read_model_json, residual_noise, seeded_global_numpy, write_model_json
 from sdrl_bench.models.blas import matmul_rows
 from sdrl_bench.models.snap import snap_equation
 from sdrl_bench.models.terms import TABLE, Term, evaluate_terms
@@ -289,7 +289,8 @@ class PerEquationModel:
         t0, c0 = time.perf_counter(), time.process_time()
         self._bind(state_names, control_names, bounds)
         z = np.concatenate([x, u], axis=1)
-        self.eq_coef_ = self._fit_rows(z, x_next)
+        with seeded_global_numpy(self.seed):  # an EnsembleOptimizer's resamples
+            self.eq_coef_ = self._fit_rows(z, x_next)
         self.snap_digits_ = self._snap(z, x_next)
         self.n_fit_samples_ = len(x)
         self.library_description_ = json.dumps(self.library_config())
@@ -298,9 +299,10 @@ class PerEquationModel:
         member_coefs = []
         if self.library.ensemble > 1:
             rng = np.random.default_rng(self.seed)
-            for _ in range(self.library.ensemble):
-                idx = rng.integers(len(z), size=len(z))
-                member_coefs.append(self._fit_rows(z[idx], x_next[idx]))
+            with seeded_global_numpy(self.seed):
+                for _ in range(self.library.ensemble):
+                    idx = rng.integers(len(z), size=len(z))
+                    member_coefs.append(self._fit_rows(z[idx], x_next[idx]))
         self._member_coefs = member_coefs
         self._flatten(member_coefs)
         self.members_ = [self._flat_coef(c) for c in member_coefs]

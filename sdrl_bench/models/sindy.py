@@ -22,7 +22,7 @@ import pysindy as ps
 from pysindy.feature_library.base import BaseFeatureLibrary
 
 from sdrl_bench import ConfigError
-from sdrl_bench.models.base import read_model_json, write_model_json
+from sdrl_bench.models.base import read_model_json, seeded_global_numpy, write_model_json
 from sdrl_bench.models.blas import matmul_rows
 from sdrl_bench.models.libraries import compile_terms
 from sdrl_bench.models.snap import prune_exact, snap_equation
@@ -79,16 +79,12 @@ class SindyModel:
             raise ValueError("x / u columns do not match state_names / control_names")
         self._check_columns(x, u, names)
         t0, c0 = time.perf_counter(), time.process_time()
-        saved = np.random.get_state()
-        np.random.seed(self.seed)
-        try:
+        with seeded_global_numpy(self.seed):
             sindy = ps.DiscreteSINDy(
                 optimizer=copy.deepcopy(self.optimizer) if self.optimizer is not None else ps.STLSQ(),
                 feature_library=copy.deepcopy(self.library),
             )
             sindy.fit(x, t=1, x_next=x_next, u=u, feature_names=names)
-        finally:
-            np.random.set_state(saved)
         self.fit_wall_seconds_ = time.perf_counter() - t0
         self.fit_cpu_seconds_ = time.process_time() - c0
         self.state_names_ = list(state_names)
