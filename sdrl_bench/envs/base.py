@@ -334,19 +334,20 @@ class EnvSpec:
     def encode_actions(self, actions: np.ndarray) -> np.ndarray:
         """Raw actions (N, raw width) -> model action features (N, len(action_names)), by
         ``action_encoding``."""
-        actions = np.asarray(actions, dtype=float).reshape(-1, self.raw_action_width)
+        xp = functional.array_namespace(actions)  # numpy, or jax.numpy in a compiled step
+        actions = xp.asarray(actions, dtype=float).reshape(-1, self.raw_action_width)
         enc = self.action_encoding
         if enc == "raw":
             return actions
         if enc == "clip":
             low, high = action_bounds(self)
-            return np.clip(actions, low, high)
+            return xp.clip(actions, low, high)
         index = actions[:, 0].astype(int)
         if enc == "one_hot":
-            return np.eye(self.n_discrete_actions)[index]
+            return xp.eye(self.n_discrete_actions)[index]
         if enc == "index":
-            return actions[:, :1].copy()
-        return self._action_table[index]
+            return actions[:, :1] + 0.0  # a copy
+        return xp.asarray(self._action_table)[index]
 
     # ------------------------------------------------------------------ observations <-> states
     @property
@@ -430,17 +431,20 @@ class EnvSpec:
         Generic behaviour: clip each regressed variable to its box bounds, then round to the
         real env's observation dtype.
         """
-        out = np.asarray(predicted_targets, dtype=float).copy()
+        xp = functional.array_namespace(predicted_targets)  # numpy, or jax.numpy in a compiled step
+        out = xp.asarray(predicted_targets, dtype=float)
         idx = self.target_index
         if self.state_low is not None or self.state_high is not None:
             low = -np.inf if self.state_low is None else np.asarray(self.state_low)[idx]
             high = np.inf if self.state_high is None else np.asarray(self.state_high)[idx]
-            out = np.clip(out, low, high)
-        for c, si in self._circle_cols:  # back onto the unit circle (a pair at the origin stays)
-            r = np.hypot(out[:, c], out[:, si])
-            r = np.where(r > 0, r, 1.0)
-            out[:, c] /= r
-            out[:, si] /= r
+            out = xp.clip(out, low, high)
+        if len(self._circle_cols):  # back onto the unit circle (a pair at the origin stays)
+            cols = [out[:, j] for j in range(out.shape[1])]
+            for c, si in self._circle_cols:
+                r = xp.hypot(cols[c], cols[si])
+                r = xp.where(r > 0, r, 1.0)
+                cols[c], cols[si] = cols[c] / r, cols[si] / r
+            out = xp.stack(cols, axis=1)
         return self.round_obs(out)
 
     def target_bounds(self) -> dict[str, tuple[float, float]]:
@@ -453,7 +457,8 @@ class EnvSpec:
 
     def round_obs(self, values: np.ndarray) -> np.ndarray:
         """Round to the real env's observation dtype (as float64 values)."""
-        return np.asarray(values).astype(self.obs_dtype).astype(float)
+        xp = functional.array_namespace(values)
+        return xp.asarray(values).astype(self.obs_dtype).astype(xp.float64)
 
     def divergence_limit(self) -> np.ndarray:
         """Per regressed variable: a magnitude beyond which a predicted state counts as diverged."""
@@ -650,9 +655,8 @@ def _parse_slice(value: Any, i: int, state_names: tuple[str, ...]) -> tuple:
 _TASK_FNS = ("reward_fn", "termination_fn", "initial_state_fn", "heuristic_fn", "exogenous_fn", "termination_causes_fn")
 
 
-def wrap_angle(values: np.ndarray) -> np.ndarray:
-    """Angles wrapped to [-pi, pi)."""
-    return (np.asarray(values) + np.pi) % (2 * np.pi) - np.pi
+wrap_angle = functional.wrap_angle
+"""Angles wrapped to [-pi, pi) (numpy or jax arrays)."""
 
 
 _ACTION_BOUNDS: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}

@@ -4,13 +4,17 @@ Plain batched functions referenced by dotted path from YAML (``env.spec.reward_f
 a user writes them for an env of their own: states in the spec's ``state_names`` order, raw
 actions (N, width), nothing imported from sdrl_bench but a helper. Constants from gymnasium's
 ``classic_control/pendulum.py`` and ``cartpole.py``.
+
+Written once for numpy and jax (``envs.functional.array_namespace``: jax.numpy for jax arrays,
+numpy otherwise; a jax PRNG key for the resets), so that the surrogate's step runs as one JAX
+function (``surrogate.jax_step``); their numpy results are those of plain numpy code.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from sdrl_bench.envs.base import wrap_angle
+from sdrl_bench.envs.functional import array_namespace, split_rng, uniform, wrap_angle
 
 # ---------------------------------------------------------------------- Pendulum-v1: states (th, thdot)
 PENDULUM_MAX_TORQUE = 2.0
@@ -18,13 +22,15 @@ PENDULUM_MAX_TORQUE = 2.0
 
 def pendulum_reward(states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
     """-(th^2 + 0.1 thdot^2 + 0.001 u^2) of the state before the step (th wrapped, u clipped)."""
-    u = np.clip(actions[:, 0], -PENDULUM_MAX_TORQUE, PENDULUM_MAX_TORQUE)
+    u = array_namespace(states, actions).clip(actions[:, 0], -PENDULUM_MAX_TORQUE, PENDULUM_MAX_TORQUE)
     return -(wrap_angle(states[:, 0]) ** 2 + 0.1 * states[:, 1] ** 2 + 0.001 * u**2)
 
 
 def pendulum_initial_states(rng: np.random.Generator, n: int) -> np.ndarray:
-    """th ~ U[-pi, pi], thdot ~ U[-1, 1]."""
-    return np.column_stack([rng.uniform(-np.pi, np.pi, n), rng.uniform(-1.0, 1.0, n)])
+    """th ~ U[-pi, pi], thdot ~ U[-1, 1] (a numpy Generator: th's draws, then thdot's)."""
+    r_th, r_thdot = split_rng(rng, 2)
+    th, thdot = uniform(r_th, -np.pi, np.pi, n), uniform(r_thdot, -1.0, 1.0, n)
+    return array_namespace(th).stack([th, thdot], axis=1)
 
 
 # ---------------------------------------------------------------------- CartPole-v1: states (x, xdot, th, thdot)
@@ -34,7 +40,7 @@ POLE_ANGLE_LIMIT = 12 * 2 * np.pi / 360
 
 def cartpole_reward(states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
     """+1 for every step, the last one included."""
-    return np.ones(len(states))
+    return array_namespace(states).ones(len(states))
 
 
 def cartpole_terminated(states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
@@ -45,7 +51,7 @@ def cartpole_terminated(states: np.ndarray, actions: np.ndarray, next_states: np
 
 def cartpole_initial_states(rng: np.random.Generator, n: int) -> np.ndarray:
     """Every state variable ~ U[-0.05, 0.05]."""
-    return rng.uniform(-0.05, 0.05, size=(n, 4))
+    return uniform(rng, -0.05, 0.05, (n, 4))
 
 
 def cartpole_heuristic(obs: np.ndarray) -> int:

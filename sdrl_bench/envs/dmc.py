@@ -8,6 +8,10 @@ suite's observations (x, cos th, sin th, xdot, thdot). Actions: the force comman
 termination. The suite's reward is a smooth product of ``tolerance`` terms (a knowledge prior:
 the task's published definition); ``tolerance`` is written here because ``dm_control.utils.rewards``
 evaluates one value at a time and would tie these functions to dm_control's import.
+
+Written once for numpy and jax (``envs.functional.array_namespace``: jax.numpy for jax arrays,
+numpy otherwise; a jax PRNG key for the resets), so that the surrogate's step runs as one JAX
+function (``surrogate.jax_step``); their numpy results are those of plain numpy code.
 """
 
 from __future__ import annotations
@@ -17,6 +21,8 @@ import os
 import warnings
 
 import numpy as np
+
+from sdrl_bench.envs.functional import array_namespace, standard_normal
 
 # The suite is used without rendering: no OpenGL backend is loaded (and none warns for want of a
 # display). Set before dm_control is imported: gym_id names this module first
@@ -37,18 +43,20 @@ ANGVEL_MARGIN = 5.0
 def tolerance_gaussian(x: np.ndarray, margin: float, value_at_margin: float = 0.1) -> np.ndarray:
     """1 at 0, ``value_at_margin`` at |x| = margin, a Gaussian in between and beyond
     (``dm_control.utils.rewards.tolerance`` with bounds (0, 0) and sigmoid 'gaussian')."""
-    scale = np.sqrt(-2.0 * np.log(value_at_margin))
-    return np.exp(-0.5 * (np.abs(x) / margin * scale) ** 2)
+    xp = array_namespace(x)
+    scale = np.sqrt(-2.0 * np.log(value_at_margin))  # a constant
+    return xp.exp(-0.5 * (xp.abs(x) / margin * scale) ** 2)
 
 
 def tolerance_quadratic(x: np.ndarray, margin: float) -> np.ndarray:
     """1 - (x / margin)^2 within the margin, 0 beyond (sigmoid 'quadratic', value_at_margin 0)."""
-    d = np.abs(x) / margin
-    return np.where(d < 1.0, 1.0 - d**2, 0.0)
+    xp = array_namespace(x)
+    d = xp.abs(x) / margin
+    return xp.where(d < 1.0, 1.0 - d**2, 0.0)
 
 
 def _reward(x: np.ndarray, cos_th: np.ndarray, thdot: np.ndarray, actions: np.ndarray) -> np.ndarray:
-    u = np.asarray(actions, dtype=float)[:, 0]
+    u = array_namespace(actions, x).asarray(actions, dtype=float)[:, 0]
     upright = (cos_th + 1.0) / 2.0
     centered = (1.0 + tolerance_gaussian(x, CART_MARGIN)) / 2.0
     small_control = (4.0 + tolerance_quadratic(u, CONTROL_MARGIN)) / 5.0
@@ -60,14 +68,13 @@ def swingup_reward(states: np.ndarray, actions: np.ndarray, next_states: np.ndar
     """The suite's smooth swing-up reward of the state after the step and the action taken:
     upright (cos th + 1) / 2 x centered (1 + tol(x, 2)) / 2 x small control (4 + tol(u, 1)) / 5
     x small velocity (1 + tol(thdot, 5)) / 2; in [0, 1] per step."""
-    return _reward(next_states[:, 0], np.cos(next_states[:, 1]), next_states[:, 3], actions)
+    return _reward(next_states[:, 0], array_namespace(next_states).cos(next_states[:, 1]), next_states[:, 3], actions)
 
 
 def swingup_initial_states(rng: np.random.Generator, n: int) -> np.ndarray:
     """The suite's swing-up reset: x ~ 0.01 N(0, 1), th ~ pi + 0.01 N(0, 1), velocities ~ 0.01 N(0, 1)."""
-    out = 0.01 * rng.standard_normal((n, 4))
-    out[:, 1] += np.pi
-    return out
+    out = 0.01 * standard_normal(rng, (n, 4))
+    return array_namespace(out).stack([out[:, 0], out[:, 1] + np.pi, out[:, 2], out[:, 3]], axis=1)
 
 
 # ---------------------------------------------------------------- SINDy-RL's model form
@@ -82,4 +89,5 @@ def swingup_reward_circle(states: np.ndarray, actions: np.ndarray, next_states: 
 def swingup_initial_circle(rng: np.random.Generator, n: int) -> np.ndarray:
     """``swingup_initial_states`` in observation form (the same draws)."""
     s = swingup_initial_states(rng, n)
-    return np.stack([s[:, 0], np.cos(s[:, 1]), np.sin(s[:, 1]), s[:, 2], s[:, 3]], axis=1)
+    xp = array_namespace(s)
+    return xp.stack([s[:, 0], xp.cos(s[:, 1]), xp.sin(s[:, 1]), s[:, 2], s[:, 3]], axis=1)

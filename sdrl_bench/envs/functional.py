@@ -15,9 +15,12 @@ from __future__ import annotations
 
 import importlib
 import os
+import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from sdrl_bench import ConfigError
 
@@ -71,6 +74,60 @@ def resolve(value: str | Callable | None, key: str) -> Callable | None:
     if not callable(obj):
         raise ConfigError(f"{key}: {value!r} is a {type(obj).__name__}, not a function")
     return obj
+
+
+# ---------------------------------------------------------------------- numpy or jax
+def _is_jax(value: Any) -> bool:
+    jax = sys.modules.get("jax")  # never imported here: a jax array means the caller imported jax
+    return jax is not None and isinstance(value, jax.Array)
+
+
+def array_namespace(*arrays: Any) -> Any:
+    """The array module for ``arrays``: ``jax.numpy`` when any of them is a jax array (or a
+    tracer inside ``jax.jit``; a jax PRNG key too), else ``numpy``. A task function written
+    with ``xp = array_namespace(states, ...)`` runs on both; its numpy path is plain numpy."""
+    if any(_is_jax(a) for a in arrays):
+        import jax.numpy as jnp  # noqa: PLC0415  (already imported: the arrays are jax's)
+
+        return jnp
+    return np
+
+
+def wrap_angle(values: Any) -> Any:
+    """Angles wrapped to [-pi, pi) in their own array module (``envs.base.wrap_angle``, for numpy
+    and jax arrays: the same operations, so numpy gives the same bits)."""
+    xp = array_namespace(values)
+    return (xp.asarray(values) + np.pi) % (2 * np.pi) - np.pi
+
+
+def split_rng(rng: Any, n: int) -> tuple:
+    """``n`` random sources from ``rng`` for ``n`` draws in a row: a numpy ``Generator`` n times
+    (its draws follow one another, as before), a jax PRNG key split into ``n`` keys."""
+    if _is_jax(rng):
+        import jax  # noqa: PLC0415  (already imported: rng is a jax key)
+
+        return tuple(jax.random.split(rng, n))
+    return (rng,) * n
+
+
+def uniform(rng: Any, low: Any, high: Any, shape: int | tuple) -> Any:
+    """U[low, high) of ``shape`` from a numpy ``Generator`` (``rng.uniform``) or a jax PRNG key."""
+    if _is_jax(rng):
+        import jax  # noqa: PLC0415
+
+        shape = (shape,) if isinstance(shape, int) else tuple(shape)
+        return jax.random.uniform(rng, shape, minval=low, maxval=high)
+    return rng.uniform(low, high, shape)
+
+
+def standard_normal(rng: Any, shape: int | tuple) -> Any:
+    """N(0, 1) of ``shape`` from a numpy ``Generator`` (``rng.standard_normal``) or a jax PRNG key."""
+    if _is_jax(rng):
+        import jax  # noqa: PLC0415
+
+        shape = (shape,) if isinstance(shape, int) else tuple(shape)
+        return jax.random.normal(rng, shape)
+    return rng.standard_normal(shape)
 
 
 # ---------------------------------------------------------------------- specs by name

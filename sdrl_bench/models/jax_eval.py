@@ -37,10 +37,8 @@ evaluated with ``jax_predictor(model, coef=model.members_[k])`` (its coefficient
 terms and stages). Not supported: models without term tables (the NN models ``nn`` and ``pe``:
 a clear error names the kind).
 
-Not yet covered (the rest of ``ModelEnv.step``): the step noise (``noise_``) and a sampling
-model's draws, the task's functions (regime dynamics, bounds, exogenous variables, reward,
-termination), the divergence guard, learned events, pessimism (the members' disagreement) and
-resets.
+The rest of ``ModelEnv.step`` (bounds, divergence guard, the task's reward and termination, the
+step noise as an input) is ``surrogate.jax_step``; what neither covers yet is listed there.
 """
 
 from __future__ import annotations
@@ -58,13 +56,14 @@ JaxPredict = Callable[[Any], Any]
 INSTALL_HINT = "pip install 'sdrl-bench[jax]'"
 
 
-def _jax():
-    """jax and jax.numpy, with float64 on (imported on first use: jax is an optional extra)."""
+def jax_modules(who: str = "sdrl_bench.models.jax_eval"):
+    """jax and jax.numpy, with float64 on (imported on first use: jax is an optional extra);
+    ``who`` names the caller in the install hint."""
     try:
         import jax  # noqa: PLC0415
         import jax.numpy as jnp  # noqa: PLC0415
     except ImportError as exc:
-        raise ImportError(f"sdrl_bench.models.jax_eval needs jax, an optional extra: {INSTALL_HINT}") from exc
+        raise ImportError(f"{who} needs jax, an optional extra: {INSTALL_HINT}") from exc
     jax.config.update("jax_enable_x64", True)
     return jax, jnp
 
@@ -112,7 +111,7 @@ def jax_predictor(model: Any, coef: Any = None) -> JaxPredict:
     pure jax.numpy function (jit-able, vmap-able, float64). ``coef``: evaluate these coefficients
     (an ensemble member's, ``members_[k]``) over the model's terms and stages instead of ``coef_``."""
     terms, coef, stages, n_inputs = _check(model, coef)
-    _, jnp = _jax()
+    _, jnp = jax_modules()
     namespace = jax_namespace(jnp)
     m = coef.shape[0]
     if stages is None:
