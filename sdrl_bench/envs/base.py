@@ -365,12 +365,13 @@ class EnvSpec:
         sin, the other states as they are. The identity (the same array) without a map."""
         if not self.maps_observations:
             return states
-        states = np.asarray(states, dtype=float)
+        xp = functional.array_namespace(states)  # numpy, or jax.numpy in a compiled step
+        states = xp.asarray(states, dtype=float)
         cols = []
         for kind, name in self._obs_source:
             col = states[..., self.state_names.index(name)]
-            cols.append(np.cos(col) if kind == "cos" else np.sin(col) if kind == "sin" else col)
-        return np.stack(cols, axis=-1)
+            cols.append(xp.cos(col) if kind == "cos" else xp.sin(col) if kind == "sin" else col)
+        return xp.stack(cols, axis=-1)
 
     def coordinates(self, observations: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
         """Real observations (N, n_obs) -> states (N, n_state): angles by atan2 in [-pi, pi],

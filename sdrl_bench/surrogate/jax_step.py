@@ -36,6 +36,12 @@ Rounding: ModelEnv evaluates the model with ``models.fast.batch_predictor`` and 
 transcendental functions, so the two agree to rounding (tested: <= 1e-12 on 10,000 states spanning
 and beyond the data, diverging rows included); jit fuses a*b + c into FMAs (again to rounding).
 
+Around the step, for a loop compiled with it (``rl.jax_ppo``): ``jax_observe(model_env)``, the
+observations ``ModelEnv.observation`` emits (the spec's observation map in jax: each angle's cos and
+sin, clipped to the real env's observation space, in its dtype); ``jax_reset(model_env)``, reset
+states drawn from a jax PRNG key (the spec's ``initial_state_fn``, or the ModelEnv's reset pool);
+``has_step_noise(model_env)``, whether its step adds noise (a loop that feeds none must refuse it).
+
 Not covered (refused when the step is built, one line naming each): the task's compiled kernels
 (``task.step_batch``), exogenous states, regime dynamics, learned events, pessimism (build the
 ModelEnv with ``penalty=False``), a sampling model's own draws (``noise=False`` steps its mean),
@@ -184,3 +190,49 @@ def step_noise(model_env: Any, actions: Any, eps: Any = None) -> Any:
     if eps.shape != (n, m):
         raise ValueError(f"step_noise: eps of shape {eps.shape}, expected ({n}, {m})")
     return np.einsum("nij,nj->in", chol[a], eps).T
+
+
+def has_step_noise(model_env: Any) -> bool:
+    """Whether ``model_env.step`` adds noise to the model's prediction (the residual covariance of
+    a discrete action, or a sampling model's own draws): a compiled loop that steps ``jax_step``
+    without its ``noise`` input would step the mean instead."""
+    return model_env._chol is not None or model_env._sample is not None
+
+
+def jax_observe(model_env: Any) -> Callable:
+    """``observe(states (N, n_state)) -> observations (N, n_obs)``: ``ModelEnv.observation`` as a
+    pure jax function: without an observation map the states themselves; with one, each angle's
+    cos and sin and the other states (``EnvSpec.observe``), clipped to the real env's observation
+    space; in the observation space's dtype either way."""
+    spec = model_env.spec
+    _, jnp = jax_modules("sdrl_bench.surrogate.jax_step")
+    dtype = np.dtype(model_env.observation_space.dtype)
+    if not spec.maps_observations:
+        return lambda states: jnp.asarray(states).astype(dtype)
+    low, high = model_env.obs_low, model_env.obs_high
+    return lambda states: jnp.clip(spec.observe(jnp.asarray(states, dtype=jnp.float64)), low, high).astype(dtype)
+
+
+def jax_reset(model_env: Any) -> Callable:
+    """``reset(key, n) -> (n, n_state)`` float64 reset states from a jax PRNG key: uniformly from
+    the ModelEnv's reset pool when it has one (given initial states, or the real env's first
+    observations), else the spec's ``initial_state_fn`` called on the key (written with
+    ``envs.functional``'s draws; checked when built: one line naming the key). The same
+    distribution as ``ModelEnv.initial_states``, not the same draws."""
+    jax, jnp = jax_modules("sdrl_bench.surrogate.jax_step")
+    spec = model_env.spec
+    pool = model_env._pool
+    if pool is not None:
+        pool = jnp.asarray(pool, dtype=jnp.float64)
+        return lambda key, n: pool[jax.random.randint(key, (n,), 0, pool.shape[0])]
+    fn = resolve(spec.initial_state_fn, "env.spec.initial_state_fn")
+    n_state = len(spec.state_names)
+    try:
+        out = jax.eval_shape(lambda k: fn(k, 2), jax.random.key(0))
+    except Exception as exc:  # a user's function may raise anything
+        raise ConfigError(f"jax_reset: env.spec.initial_state_fn ({spec.initial_state_fn}) does not draw from a jax key: "
+                          f"{one_line(exc)}; write it with envs.functional's uniform / standard_normal") from None
+    if tuple(getattr(out, "shape", ())) != (2, n_state):
+        raise ConfigError(f"jax_reset: env.spec.initial_state_fn ({spec.initial_state_fn}) returned shape "
+                          f"{getattr(out, 'shape', None)} for n=2; expected (2, {n_state})")
+    return lambda key, n: jnp.asarray(fn(key, n), dtype=jnp.float64)

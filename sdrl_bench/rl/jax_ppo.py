@@ -1,0 +1,481 @@
+"""PPO compiled together with the surrogate's step (issue 31, third block): rollout and update in
+one ``jax.jit`` of ``lax.scan`` loops, written after the PureJaxRL pattern.
+
+``train(model_env, cfg, total_steps, seed) -> (params, stats)`` trains a Gaussian policy in the
+surrogate ``model_env`` (a ``surrogate.model_env.ModelEnv``) without leaving XLA: each iteration
+collects ``n_steps`` steps of ``n_envs`` copies (``surrogate.jax_step``: the ModelEnv's step as a
+float64 jax function) and runs ``n_epochs`` epochs of minibatch updates on them; the iterations
+are one ``lax.scan``. ``policy_fn(params)`` is the trained policy's deterministic action (its mean,
+clipped to the action space) for numpy observations, to judge it in the real env;
+``evaluate_surrogate`` plays deterministic episodes in the surrogate, compiled.
+
+What it does as stable-baselines3's ``PPO`` with ``MlpPolicy`` does (so that the two compare):
+
+* the policy: a diagonal Gaussian whose mean comes from a [64, 64] tanh MLP and whose log-std is
+  one free parameter per action dimension (initialised to 0); the value from a separate [64, 64]
+  tanh MLP; orthogonal weights (gain sqrt 2 in the hidden layers, 0.01 for the mean, 1 for the
+  value), zero biases; float32, as SB3's torch networks (the surrogate steps in float64);
+* rollouts: the sampled action is stored (and scored) unclipped; the env steps it clipped to the
+  action space; an episode ends at termination, at ``spec.max_episode_steps`` or when the model
+  diverges (``ModelEnv``'s guard, a truncation) and restarts at once from the task's reset
+  distribution (``surrogate.jax_step.jax_reset``); a truncated episode's last reward gets
+  gamma x V(final observation) added (SB3's timeout bootstrap, which the surrogate vector env
+  triggers for the step limit and divergence alike);
+* the update: GAE(lambda) over the rollout, ``n_epochs`` passes over a fresh permutation in
+  minibatches of ``batch_size``, advantages normalised per minibatch (unbiased std + 1e-8), the
+  clipped surrogate objective (``clip_range``), the value loss as plain MSE (no value clipping),
+  the entropy bonus, the gradient's global norm clipped to ``max_grad_norm``, Adam (eps 1e-5, as
+  SB3 sets it) at a constant ``learning_rate``.
+
+Not done here (on purpose): **reward normalisation** (SB3's ``VecNormalize(norm_reward=True)``,
+which the package's ``ppo_fast`` recipe turns on): rewards reach the learner as the task gives them
+(the cartpole swing-up's lie in [0, 1] per step); observation normalisation (the package never uses
+it); gSDE, learning-rate schedules, ``target_kl`` and value clipping (refused by ``PPOConfig.from_agent``
+when a recipe sets them). Random streams are jax's, so a run is not the SB3 run with the same seed.
+
+Covered: the surrogates ``jax_step`` covers (tasks of plain functions), with continuous (Box)
+actions and no step noise (``jax_step``'s ``noise`` stays None; a ModelEnv that adds noise is
+refused, as are discrete actions: no categorical policy yet). jax and optax are the optional
+``jax`` extra (``pip install 'sdrl-bench[jax]'``), imported on first use.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, fields
+from typing import Any, NamedTuple
+
+import numpy as np
+
+from sdrl_bench import ConfigError
+from sdrl_bench.surrogate.jax_step import has_step_noise, jax_observe, jax_reset, jax_step
+
+HIDDEN = (64, 64)
+"""SB3's default ``net_arch`` for PPO's MlpPolicy: separate actor and critic MLPs."""
+ADAM_EPS = 1e-5
+"""SB3's ``ActorCriticPolicy`` sets Adam's eps to 1e-5."""
+INSTALL_HINT = "pip install 'sdrl-bench[jax]' (jax, optax)"
+
+
+def _modules() -> tuple[Any, Any, Any]:
+    """jax (float64 on), jax.numpy and optax, imported on first use (an optional extra)."""
+    from sdrl_bench.models.jax_eval import jax_modules  # noqa: PLC0415
+
+    jax, jnp = jax_modules("sdrl_bench.rl.jax_ppo")
+    try:
+        import optax  # noqa: PLC0415
+    except ImportError as exc:
+        raise ImportError(f"sdrl_bench.rl.jax_ppo needs optax, an optional extra: {INSTALL_HINT}") from exc
+    return jax, jnp, optax
+
+
+@dataclass(frozen=True)
+class PPOConfig:
+    """PPO's hyperparameters, named as stable-baselines3 names them; defaults are SB3's PPO
+    defaults (``n_envs``: the vector env's copies)."""
+
+    n_envs: int = 1
+    n_steps: int = 2048
+    batch_size: int = 64
+    n_epochs: int = 10
+    gamma: float = 0.99
+    gae_lambda: float = 0.95
+    learning_rate: float = 3e-4
+    ent_coef: float = 0.0
+    vf_coef: float = 0.5
+    clip_range: float = 0.2
+    max_grad_norm: float = 0.5
+
+    def __post_init__(self) -> None:
+        for k in ("n_envs", "n_steps", "batch_size", "n_epochs"):
+            if int(getattr(self, k)) < 1:
+                raise ConfigError(f"PPOConfig.{k} must be >= 1, got {getattr(self, k)}")
+        if (self.n_envs * self.n_steps) % self.batch_size:
+            raise ConfigError(f"PPOConfig: batch_size {self.batch_size} must divide n_envs x n_steps = "
+                              f"{self.n_envs * self.n_steps} (compiled minibatches have one shape)")
+
+    @property
+    def rollout_size(self) -> int:
+        """Transitions per iteration (n_envs x n_steps)."""
+        return self.n_envs * self.n_steps
+
+    @classmethod
+    def from_agent(cls, agent: Any) -> PPOConfig:
+        """The config of a package recipe (``rl.agents.AgentConfig`` of SB3's PPO, e.g.
+        ``agent=ppo_fast``): its ``n_envs`` and the algorithm's bound hyperparameters. Settings
+        this PPO does not have are refused in one line; ``normalize_reward`` is not applied
+        (see the module docstring)."""
+        algo = agent.algo
+        if getattr(getattr(algo, "func", None), "__name__", None) != "PPO":
+            raise ConfigError(f"PPOConfig.from_agent: agent '{agent.name}' is not SB3's PPO")
+        kw = dict(getattr(algo, "keywords", {}))
+        ignored = {"policy": "MlpPolicy", "device": None, "verbose": None}
+        names = {f.name for f in fields(cls)} - {"n_envs"}
+        bad = [k for k, v in kw.items() if k not in names and not (k in ignored and ignored[k] in (None, v))]
+        if bad:
+            raise ConfigError(f"PPOConfig.from_agent: agent '{agent.name}' sets {sorted(bad)}, which the compiled PPO "
+                              f"does not have (it has {sorted(names)})")
+        for k in ("learning_rate", "clip_range"):
+            if k in kw and not isinstance(kw[k], (int, float)):
+                raise ConfigError(f"PPOConfig.from_agent: {k} must be a constant (no schedules), got {kw[k]!r}")
+        return cls(n_envs=int(agent.n_envs), **{k: kw[k] for k in names if k in kw})
+
+
+# ---------------------------------------------------------------------- the networks
+def mlp_layers(n_obs: int, n_act: int) -> dict[str, list[tuple[int, int]]]:
+    """(inputs, outputs) of each linear layer of the actor and the critic."""
+    sizes = (n_obs, *HIDDEN)
+    hidden = list(zip(sizes[:-1], sizes[1:], strict=True))
+    return {"actor": [*hidden, (HIDDEN[-1], n_act)], "critic": [*hidden, (HIDDEN[-1], 1)]}
+
+
+def init_net(key: Any, n_obs: int, n_act: int) -> dict[str, Any]:
+    """The actor, critic and log-std, initialised as SB3's MlpPolicy (``ortho_init``): orthogonal
+    weights with gain sqrt(2) in hidden layers, 0.01 for the action mean, 1 for the value; zero
+    biases; log-std 0. float32."""
+    jax, jnp, _ = _modules()
+    net: dict[str, Any] = {}
+    layers = mlp_layers(n_obs, n_act)
+    keys = iter(jax.random.split(key, sum(len(v) for v in layers.values())))
+    for name, last_gain in (("actor", 0.01), ("critic", 1.0)):
+        out = []
+        for i, (n_in, n_out) in enumerate(layers[name]):
+            gain = last_gain if i == len(layers[name]) - 1 else math.sqrt(2.0)
+            w = jax.nn.initializers.orthogonal(scale=gain)(next(keys), (n_in, n_out), jnp.float32)
+            out.append((w, jnp.zeros(n_out, jnp.float32)))
+        net[name] = out
+    net["log_std"] = jnp.zeros(n_act, jnp.float32)
+    return net
+
+
+def _mlp(layers: list, x: Any) -> Any:
+    import jax.numpy as jnp  # noqa: PLC0415  (imported by _modules before any call)
+
+    for w, b in layers[:-1]:
+        x = jnp.tanh(x @ w + b)
+    w, b = layers[-1]
+    return x @ w + b
+
+
+def action_mean(net: dict, obs: Any) -> Any:
+    """The policy's mean action (N, n_act) for float32 observations (N, n_obs)."""
+    return _mlp(net["actor"], obs)
+
+
+def value(net: dict, obs: Any) -> Any:
+    """The critic's value (N,)."""
+    return _mlp(net["critic"], obs)[:, 0]
+
+
+def log_prob(actions: Any, mean: Any, log_std: Any) -> Any:
+    """log N(actions; mean, exp(log_std)^2), summed over action dimensions."""
+    import jax.numpy as jnp  # noqa: PLC0415
+
+    z = (actions - mean) * jnp.exp(-log_std)
+    return jnp.sum(-0.5 * z**2 - log_std - 0.5 * math.log(2 * math.pi), axis=-1)
+
+
+def entropy(log_std: Any) -> Any:
+    """The Gaussian's entropy, summed over action dimensions (the same for every state)."""
+    import jax.numpy as jnp  # noqa: PLC0415
+
+    return jnp.sum(log_std + 0.5 + 0.5 * math.log(2 * math.pi))
+
+
+# ---------------------------------------------------------------------- the surrogate, compiled
+class EnvState(NamedTuple):
+    """The vector env's state inside the loop."""
+
+    states: Any
+    """(n_envs, n_state) float64 surrogate states."""
+    t: Any
+    """(n_envs,) int32 steps into each episode."""
+    ep_return: Any
+    """(n_envs,) float64 return of each episode so far (the task's rewards)."""
+
+
+class Transition(NamedTuple):
+    """One step of the rollout, (n_steps, n_envs, ...) once scanned. The first six are what the
+    update reads; the rest record the env's step (for tests and statistics)."""
+
+    obs: Any
+    action: Any
+    """The sampled action, unclipped (float32), as SB3 stores it."""
+    log_prob: Any
+    value: Any
+    reward: Any
+    """The learner's reward (float32): the task's, plus gamma x V(final observation) on a truncation."""
+    done: Any
+    state: Any
+    """The state stepped from (float64)."""
+    env_action: Any
+    """The action stepped (clipped to the action space, float64)."""
+    next_state: Any
+    """The step's next state, before any reset."""
+    task_reward: Any
+    terminated: Any
+    diverged: Any
+    t: Any
+    """Steps into the episode after this step."""
+    episode_return: Any
+    """The return of the episode this step ended (0 where none ended)."""
+
+
+class Surrogate(NamedTuple):
+    """The surrogate's pieces as jax functions, with its sizes and bounds."""
+
+    step: Callable
+    observe: Callable
+    reset: Callable
+    n_obs: int
+    n_act: int
+    action_low: np.ndarray
+    action_high: np.ndarray
+    max_steps: int
+
+
+def surrogate(model_env: Any) -> Surrogate:
+    """``model_env`` as the compiled loop steps it; refuses (in one line) what it does not cover:
+    discrete actions, step noise, and whatever ``jax_step`` refuses."""
+    _modules()
+    spec = model_env.spec
+    if spec.n_discrete_actions:
+        raise NotImplementedError(f"jax_ppo: env '{spec.name}' has discrete actions; the compiled PPO has a Gaussian "
+                                  "policy for Box actions only")
+    if has_step_noise(model_env):
+        raise NotImplementedError(f"jax_ppo: the surrogate of env '{spec.name}' adds step noise (its model's residual "
+                                  "covariance or its own draws); the compiled loop steps without noise: build the "
+                                  "ModelEnv with noise=False to train on its mean")
+    space = model_env.action_space
+    return Surrogate(jax_step(model_env), jax_observe(model_env), jax_reset(model_env), len(spec.obs_names),
+                     spec.raw_action_width, np.asarray(space.low, np.float32), np.asarray(space.high, np.float32),
+                     int(spec.max_episode_steps))
+
+
+def init_env(sur: Surrogate, key: Any, n_envs: int) -> tuple[EnvState, Any]:
+    """Fresh episodes in every copy: (env state, float32 observations)."""
+    _, jnp, _ = _modules()
+    states = sur.reset(key, n_envs)
+    env = EnvState(states, jnp.zeros(n_envs, jnp.int32), jnp.zeros(n_envs, jnp.float64))
+    return env, sur.observe(states).astype(jnp.float32)
+
+
+def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
+    """``rollout(net, env, obs, key) -> (env, obs, transitions, last value)``: ``cfg.n_steps``
+    steps of the ``cfg.n_envs`` copies (pure; jit it, or call it inside a compiled loop)."""
+    jax, jnp, _ = _modules()
+    low, high = jnp.asarray(sur.action_low), jnp.asarray(sur.action_high)
+    n, gamma = cfg.n_envs, cfg.gamma
+
+    def one_step(net, carry, key):
+        env, obs = carry
+        k_act, k_reset = jax.random.split(key)
+        mean = action_mean(net, obs)
+        v = value(net, obs)
+        action = mean + jnp.exp(net["log_std"]) * jax.random.normal(k_act, mean.shape, jnp.float32)
+        logp = log_prob(action, mean, net["log_std"])
+        env_action = jnp.clip(action, low, high).astype(jnp.float64)
+        nxt, reward, terminated, diverged = sur.step(env.states, env_action)
+        t = env.t + 1
+        truncated = (t >= sur.max_steps) | diverged
+        done = terminated | truncated
+        final_obs = sur.observe(nxt).astype(jnp.float32)
+        timeout = truncated & ~terminated
+        boot = jax.lax.cond(jnp.any(timeout), lambda: value(net, final_obs), lambda: jnp.zeros(n, jnp.float32))
+        learn_reward = reward.astype(jnp.float32) + gamma * jnp.where(timeout, boot, 0.0)
+        ep_return = env.ep_return + reward
+        fresh = sur.reset(k_reset, n)
+        states = jnp.where(done[:, None], fresh, nxt)
+        new_obs = jnp.where(done[:, None], sur.observe(fresh).astype(jnp.float32), final_obs)
+        new_env = EnvState(states, jnp.where(done, 0, t), jnp.where(done, 0.0, ep_return))
+        tr = Transition(obs, action, logp, v, learn_reward, done, env.states, env_action, nxt, reward, terminated,
+                        diverged, t, jnp.where(done, ep_return, 0.0))
+        return (new_env, new_obs), tr
+
+    def rollout(net, env, obs, key):
+        (env, obs), traj = jax.lax.scan(lambda c, k: one_step(net, c, k), (env, obs), jax.random.split(key, cfg.n_steps))
+        return env, obs, traj, value(net, obs)
+
+    return rollout
+
+
+def gae(cfg: PPOConfig, values: Any, rewards: Any, dones: Any, last_value: Any) -> tuple[Any, Any]:
+    """(advantages, returns), (n_steps, n_envs): GAE(lambda) as SB3's rollout buffer computes it
+    (a step's successor counts unless the step ended its episode)."""
+    jax, jnp, _ = _modules()
+
+    def back(carry, x):
+        adv, next_value = carry
+        v, r, d = x
+        live = 1.0 - d.astype(jnp.float32)
+        delta = r + cfg.gamma * next_value * live - v
+        adv = delta + cfg.gamma * cfg.gae_lambda * live * adv
+        return (adv, v), adv
+
+    _, adv = jax.lax.scan(back, (jnp.zeros_like(last_value), last_value), (values, rewards, dones), reverse=True)
+    return adv, adv + values
+
+
+def optimizer(cfg: PPOConfig) -> Any:
+    """The gradient's global norm clipped, then Adam (eps 1e-5), as SB3's PPO steps."""
+    _, _, optax = _modules()
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate, eps=ADAM_EPS))
+
+
+def make_update(cfg: PPOConfig) -> Callable:
+    """``update(net, opt_state, batch, key) -> (net, opt_state, stats)``: ``cfg.n_epochs`` passes
+    over ``batch`` (obs, action, log_prob, advantage, return; first axis the samples) in shuffled
+    minibatches of ``cfg.batch_size``, one Adam step each."""
+    jax, jnp, optax = _modules()
+    tx = optimizer(cfg)
+    c = cfg.clip_range
+
+    def loss_fn(net, b):
+        obs, act, old_logp, adv, ret = b
+        logp = log_prob(act, action_mean(net, obs), net["log_std"])
+        adv = (adv - adv.mean()) / (jnp.std(adv, ddof=1) + 1e-8)
+        log_ratio = logp - old_logp
+        ratio = jnp.exp(log_ratio)
+        pg_loss = -jnp.mean(jnp.minimum(adv * ratio, adv * jnp.clip(ratio, 1.0 - c, 1.0 + c)))
+        value_loss = jnp.mean((ret - value(net, obs)) ** 2)
+        ent = entropy(net["log_std"])
+        loss = pg_loss - cfg.ent_coef * ent + cfg.vf_coef * value_loss
+        return loss, {"pg_loss": pg_loss, "value_loss": value_loss, "entropy": ent,
+                      "approx_kl": jnp.mean((ratio - 1.0) - log_ratio), "clip_fraction": jnp.mean(jnp.abs(ratio - 1.0) > c)}
+
+    grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
+
+    def minibatch(carry, b):
+        net, opt = carry
+        (_, aux), grads = grad_fn(net, b)
+        updates, opt = tx.update(grads, opt, net)
+        return (optax.apply_updates(net, updates), opt), aux
+
+    def epoch(carry, key, batch):
+        n = batch[0].shape[0]
+        perm = jax.random.permutation(key, n)
+        mbs = jax.tree_util.tree_map(lambda x: x[perm].reshape(n // cfg.batch_size, cfg.batch_size, *x.shape[1:]), batch)
+        return jax.lax.scan(minibatch, carry, mbs)
+
+    def update(net, opt_state, batch, key):
+        (net, opt_state), aux = jax.lax.scan(lambda c_, k: epoch(c_, k, batch), (net, opt_state),
+                                             jax.random.split(key, cfg.n_epochs))
+        return net, opt_state, jax.tree_util.tree_map(jnp.mean, aux)
+
+    return update
+
+
+def make_batch(cfg: PPOConfig, traj: Transition, last_value: Any) -> tuple:
+    """The update's batch from a rollout: (obs, action, log_prob, advantage, return), flattened."""
+    adv, ret = gae(cfg, traj.value, traj.reward, traj.done, last_value)
+    flat = lambda x: x.reshape(-1, *x.shape[2:])  # noqa: E731
+    return tuple(flat(x) for x in (traj.obs, traj.action, traj.log_prob, adv, ret))
+
+
+def n_iterations(cfg: PPOConfig, total_steps: int) -> int:
+    """Iterations (rollout + update) to reach ``total_steps`` env steps: SB3's ``learn`` also
+    collects whole rollouts until it has at least that many."""
+    return max(1, math.ceil(int(total_steps) / cfg.rollout_size))
+
+
+def make_train(model_env: Any, cfg: PPOConfig, total_steps: int) -> Callable:
+    """``train_fn(key) -> (net, stats)``, jitted: initialise, then ``n_iterations`` of rollout and
+    update in one ``lax.scan``. Calling it again with another key reuses the compiled program
+    (what ``benchmarks/compiled_ppo.py`` times as the second call). ``stats``: per iteration,
+    the rollout's episodes ended, their summed return, diverged steps, mean task reward, and the
+    update's mean losses, entropy, approximate KL and clip fraction."""
+    jax, jnp, _ = _modules()
+    sur = surrogate(model_env)
+    rollout, update, tx = make_rollout(sur, cfg), make_update(cfg), optimizer(cfg)
+    iters = n_iterations(cfg, total_steps)
+
+    def iteration(carry, key):
+        net, opt, env, obs = carry
+        k_roll, k_upd = jax.random.split(key)
+        env, obs, traj, last_value = rollout(net, env, obs, k_roll)
+        net, opt, stats = update(net, opt, make_batch(cfg, traj, last_value), k_upd)
+        stats.update(episodes=jnp.sum(traj.done), episode_return_sum=jnp.sum(traj.episode_return),
+                     diverged=jnp.sum(traj.diverged), reward_mean=jnp.mean(traj.task_reward))
+        return (net, opt, env, obs), stats
+
+    def train_fn(key):
+        k_net, k_env, k_loop = jax.random.split(key, 3)
+        net = init_net(k_net, sur.n_obs, sur.n_act)
+        env, obs = init_env(sur, k_env, cfg.n_envs)
+        (net, _, _, _), stats = jax.lax.scan(iteration, (net, tx.init(net), env, obs), jax.random.split(k_loop, iters))
+        return net, stats
+
+    return jax.jit(train_fn)
+
+
+def as_params(net: Any, model_env: Any) -> dict[str, Any]:
+    """``train``'s params: the trained networks (``net``) and the action space's bounds."""
+    space = model_env.action_space
+    return {"net": net, "action_low": np.asarray(space.low, np.float32), "action_high": np.asarray(space.high, np.float32)}
+
+
+def train(model_env: Any, cfg: PPOConfig, total_steps: int, seed: int = 0) -> tuple[dict[str, Any], dict[str, np.ndarray]]:
+    """Train in the surrogate for at least ``total_steps`` env steps (whole iterations of
+    ``cfg.rollout_size``). Returns (params, stats): params for ``policy_fn`` /
+    ``evaluate_surrogate``; stats as numpy arrays per iteration (``make_train``), plus ``steps``
+    (env steps after each iteration) and ``episode_return_mean`` (NaN where no episode ended)."""
+    jax, _, _ = _modules()
+    net, stats = make_train(model_env, cfg, total_steps)(jax.random.key(int(seed)))
+    out = {k: np.asarray(v) for k, v in stats.items()}
+    out["steps"] = cfg.rollout_size * np.arange(1, len(out["episodes"]) + 1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out["episode_return_mean"] = np.where(out["episodes"] > 0, out["episode_return_sum"] / out["episodes"], np.nan)
+    return as_params(net, model_env), out
+
+
+class JaxPolicy:
+    """The trained policy's deterministic action: the Gaussian's mean, clipped to the action
+    space. ``policy(obs)`` for one observation (n_obs,) or a batch (N, n_obs) (numpy in, numpy
+    float32 out); ``predict(obs, deterministic=True)`` as SB3's, so ``rl.agents.evaluate_real``
+    plays it in the real env."""
+
+    def __init__(self, params: dict[str, Any]):
+        jax, jnp, _ = _modules()
+        self.params = params
+        low, high = params["action_low"], params["action_high"]
+        self._act = jax.jit(lambda net, obs: jnp.clip(action_mean(net, obs), low, high))
+
+    def __call__(self, obs: Any) -> np.ndarray:
+        obs = np.asarray(obs, dtype=np.float32)
+        single = obs.ndim == 1
+        out = np.asarray(self._act(self.params["net"], obs[None] if single else obs))
+        return out[0] if single else out
+
+    def predict(self, obs: Any, state: Any = None, episode_start: Any = None, deterministic: bool = True):
+        if not deterministic:
+            raise NotImplementedError("JaxPolicy.predict: only the deterministic (mean) action")
+        return self(obs), None
+
+
+def policy_fn(params: dict[str, Any]) -> JaxPolicy:
+    """``params`` (from ``train``) as a callable ``obs (numpy) -> action (numpy)``: the mean action,
+    clipped to the action space (see ``JaxPolicy``)."""
+    return JaxPolicy(params)
+
+
+def evaluate_surrogate(model_env: Any, params: dict[str, Any], n_episodes: int, seed: int = 0) -> np.ndarray:
+    """Returns of ``n_episodes`` deterministic episodes (the mean action, clipped) in the surrogate,
+    side by side, compiled: each from a reset drawn with jax key ``seed``, up to
+    ``spec.max_episode_steps`` steps or its end (termination, divergence)."""
+    jax, jnp, _ = _modules()
+    sur = surrogate(model_env)
+    low, high = jnp.asarray(params["action_low"]), jnp.asarray(params["action_high"])
+
+    def run(net, key):
+        def body(carry, _):
+            states, ret, live = carry
+            a = jnp.clip(action_mean(net, sur.observe(states).astype(jnp.float32)), low, high).astype(jnp.float64)
+            nxt, r, term, div = sur.step(states, a)
+            return (nxt, ret + jnp.where(live, r, 0.0), live & ~term & ~div), None
+
+        init = (sur.reset(key, n_episodes), jnp.zeros(n_episodes), jnp.ones(n_episodes, bool))
+        (_, ret, _), _ = jax.lax.scan(body, init, None, length=sur.max_steps)
+        return ret
+
+    return np.asarray(jax.jit(run)(params["net"], jax.random.key(int(seed))))

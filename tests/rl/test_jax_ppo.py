@@ -1,0 +1,146 @@
+"""The compiled PPO (rl/jax_ppo.py) on a Pendulum surrogate (its law is exact from 200 random
+transitions): its rollout is ``jax_step`` step by step (resets at the step limit and on
+divergence, observations, the timeout bootstrap, episode returns); a short training run lifts
+the surrogate return well above the initial policy's; the trained policy acts in the real env;
+what it does not cover is refused in one line; a package recipe maps onto its config."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+jax = pytest.importorskip("jax")
+pytest.importorskip("optax")
+pytestmark = pytest.mark.jax
+
+import jax.numpy as jnp  # noqa: E402
+
+from helpers import compose_cfg  # noqa: E402
+from sdrl_bench import ConfigError  # noqa: E402
+from sdrl_bench.cli.build import build_fit_job, instantiate_key  # noqa: E402
+from sdrl_bench.pipeline import fit_dynamics  # noqa: E402
+from sdrl_bench.rl import jax_ppo  # noqa: E402
+from sdrl_bench.rl.agents import evaluate_real  # noqa: E402
+from sdrl_bench.surrogate.jax_step import jax_reset, jax_step  # noqa: E402
+from sdrl_bench.surrogate.model_env import ModelEnv  # noqa: E402
+
+TRAIN = jax_ppo.PPOConfig(n_envs=64, n_steps=64, batch_size=1024, n_epochs=10, gamma=0.95, learning_rate=1e-3)
+TRAIN_STEPS = 2**18
+"""Measured (3 seeds, deterministic return over 20 surrogate episodes): from about -1290 to
+-260 .. -450 after 300k steps (-430 .. -730 after 200k); the test asks for +300."""
+
+
+@pytest.fixture(scope="module")
+def pendulum():
+    res = fit_dynamics(build_fit_job(compose_cfg("env=pendulum", "collector=random", "n_transitions=200")))
+    return res.model, res.spec
+
+
+@pytest.fixture(scope="module")
+def trained(pendulum):
+    menv = ModelEnv(*pendulum, seed=0)
+    params, stats = jax_ppo.train(menv, TRAIN, TRAIN_STEPS, seed=0)
+    return menv, params, stats
+
+
+def test_the_compiled_rollout_is_the_jax_step_step_by_step(pendulum):
+    menv = ModelEnv(*pendulum, seed=0)
+    spec, n, steps = menv.spec, 8, 250
+    cfg = jax_ppo.PPOConfig(n_envs=n, n_steps=steps, batch_size=n * steps // 2, gamma=0.9)
+    sur = jax_ppo.surrogate(menv)
+    net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act)
+    net["log_std"] = jnp.full(sur.n_act, 0.7, jnp.float32)  # wide: actions beyond the bounds get clipped
+    states = sur.reset(jax.random.key(1), n).at[0, 0].set(5e3)  # copy 0 diverges at once
+    t0 = np.array([0, 50, 100, 150, 199, 0, 10, 190], dtype=np.int32)  # episodes end at different steps
+    env = jax_ppo.EnvState(states, jnp.asarray(t0), jnp.zeros(n))
+    obs = sur.observe(states).astype(jnp.float32)
+    env_end, _, tr, last = jax.jit(jax_ppo.make_rollout(sur, cfg))(net, env, obs, jax.random.key(2))
+    tr = jax.tree_util.tree_map(np.asarray, tr)
+
+    assert tr.obs.shape == (steps, n, 3) and tr.obs.dtype == np.float32
+    assert tr.action.shape == tr.env_action.shape == (steps, n, 1) and tr.env_action.dtype == np.float64
+    assert tr.state.shape == tr.next_state.shape == (steps, n, 2) and last.shape == (n,)
+    for x in (tr.log_prob, tr.value, tr.reward, tr.done, tr.task_reward, tr.terminated, tr.diverged, tr.t):
+        assert x.shape == (steps, n)
+    low, high = menv.action_space.low, menv.action_space.high
+    assert np.array_equal(tr.env_action, np.clip(tr.action, low, high).astype(np.float64))
+    assert np.any(tr.action > high) and np.any(tr.action < low)
+
+    step, observe = jax.jit(jax_step(menv)), jax.jit(sur.observe)
+    t, ret, starts = t0.copy(), np.zeros(n), 0
+    for k in range(steps):
+        nxt, r, term, div = (np.asarray(x) for x in step(tr.state[k], tr.env_action[k]))
+        assert np.max(np.abs(nxt - tr.next_state[k])) <= 1e-12 and np.max(np.abs(r - tr.task_reward[k])) <= 1e-12
+        assert np.array_equal(term, tr.terminated[k]) and np.array_equal(div, tr.diverged[k])
+        assert np.array_equal(tr.obs[k], np.asarray(observe(tr.state[k])).astype(np.float32))
+        assert np.allclose(tr.obs[k], menv.observation(tr.state[k]), rtol=0, atol=1e-6)  # ModelEnv's observations
+        t += 1
+        done = term | div | (t >= spec.max_episode_steps)
+        assert np.array_equal(done, tr.done[k]) and np.array_equal(tr.t[k], t)
+        ret += r
+        assert np.allclose(tr.episode_return[k], np.where(done, ret, 0.0), rtol=1e-12, atol=1e-9)
+        timeout = done & ~term
+        boot = np.asarray(jax_ppo.value(net, np.asarray(observe(nxt)).astype(np.float32)))
+        want = r.astype(np.float32) + np.float32(cfg.gamma) * np.where(timeout, boot, 0.0)
+        assert np.allclose(tr.reward[k], want, rtol=1e-6, atol=1e-5)
+        after = np.asarray(env_end.states) if k == steps - 1 else tr.state[k + 1]
+        assert np.array_equal(after[~done], nxt[~done])  # running episodes go on from the step's state
+        fresh = after[done]  # ended ones restart from the reset distribution: th ~ U[-pi, pi], thdot ~ U[-1, 1]
+        assert np.all(np.abs(fresh[:, 0]) <= np.pi) and np.all(np.abs(fresh[:, 1]) <= 1.0)
+        assert not np.any(np.all(fresh == nxt[done], axis=1))
+        starts += int(done.sum())
+        t, ret = np.where(done, 0, t), np.where(done, 0.0, ret)
+    assert np.array_equal(np.asarray(env_end.t), t)
+    assert tr.diverged[0, 0] and tr.diverged.sum() == 1 and tr.done[0, 4] and not tr.done[0, 1:4].any()
+    # ends: at step 199 - t0 and 200 steps later (t0 = 150, 190, 199 end twice), copy 0 at its divergence and at 200
+    assert starts == 12
+
+
+def test_a_short_training_run_improves_the_surrogate_return(trained):
+    menv, params, stats = trained
+    before = jax_ppo.evaluate_surrogate(menv, jax_ppo.as_params(jax_ppo.init_net(jax.random.key(0), 3, 1), menv), 20, 7)
+    after = jax_ppo.evaluate_surrogate(menv, params, 20, 7)
+    print(f"surrogate return, 20 episodes: initial policy {before.mean():.0f}, after {TRAIN_STEPS:,} steps {after.mean():.0f}")
+    assert after.mean() > before.mean() + 300
+    assert len(stats["steps"]) == TRAIN_STEPS // TRAIN.rollout_size and stats["steps"][-1] == TRAIN_STEPS
+    assert stats["diverged"].sum() == 0 and np.all(np.isfinite(stats["value_loss"]))
+    per_copy = TRAIN_STEPS // TRAIN.n_envs // menv.spec.max_episode_steps  # episodes in lockstep, none diverged
+    assert stats["episodes"].sum() == per_copy * TRAIN.n_envs
+
+
+def test_the_policy_acts_in_the_real_env(trained):
+    menv, params, _ = trained
+    policy = jax_ppo.policy_fn(params)
+    env = menv.spec.make_env()
+    obs, _ = env.reset(seed=0)
+    action = policy(obs)
+    assert action.shape == env.action_space.shape and env.action_space.contains(action)
+    env.step(action)
+    env.close()
+    batch = policy(np.stack([obs, obs, -obs]))
+    assert batch.shape == (3, 1) and np.all(np.abs(batch) <= menv.action_space.high)
+    mean = np.asarray(jax_ppo.action_mean(params["net"], jnp.asarray(obs[None], jnp.float32)))[0]
+    assert np.array_equal(action, np.clip(mean, menv.action_space.low, menv.action_space.high))
+    res = evaluate_real(policy, menv.spec, 2, seed=0)
+    assert res.lengths.tolist() == [200, 200] and np.all(np.isfinite(res.returns))
+
+
+def test_what_it_does_not_cover_is_refused_and_a_recipe_maps_onto_its_config(pendulum):
+    menv = ModelEnv(*pendulum, seed=0)
+    menv._chol = np.ones((1, 2, 2))  # as if its model had step noise
+    with pytest.raises(NotImplementedError, match=r"^jax_ppo: the surrogate of env 'pendulum' adds step noise") as err:
+        jax_ppo.surrogate(menv)
+    assert "\n" not in str(err.value)
+    pool = np.array([[0.1, 0.2], [0.3, 0.4], [-1.0, 2.0]])  # a ModelEnv given its reset states resets from them
+    drawn = np.asarray(jax_reset(ModelEnv(*pendulum, initial_states=pool, seed=0))(jax.random.key(0), 300))
+    assert {tuple(r) for r in drawn} == {tuple(r) for r in pool}
+    with pytest.raises(ConfigError, match="batch_size 1000 must divide"):
+        jax_ppo.PPOConfig(n_envs=64, n_steps=32, batch_size=1000)
+
+    agent = instantiate_key(compose_cfg("experiment=dyna_cartpole_swingup").agent, "agent")
+    cfg = jax_ppo.PPOConfig.from_agent(agent)
+    assert (cfg.n_envs, cfg.n_steps, cfg.batch_size, cfg.n_epochs, cfg.gamma) == (64, 256, 1024, 4, 0.995)
+    assert (cfg.gae_lambda, cfg.learning_rate, cfg.ent_coef, cfg.clip_range, cfg.max_grad_norm) == (0.95, 3e-4, 0.0, 0.2, 0.5)
+    sde = instantiate_key(compose_cfg("env=cartpole_swingup", "agent=ppo_fast", "+agent.algo.use_sde=true").agent, "agent")
+    with pytest.raises(ConfigError, match=r"sets \['use_sde'\]"):
+        jax_ppo.PPOConfig.from_agent(sde)
