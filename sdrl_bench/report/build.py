@@ -429,7 +429,7 @@ def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
                      "dyna_lunar_lander_own: every constant from the run's own data) has a row of its own. Real arms of other "
                      "agents on the same env that stopped at the threshold have rows too; the ratio column divides a "
                      "row's median real transitions to solve by the best real arm's on its env (an env config that models the "
-                     "same real env in another form has rows of its own, without real arms)."))
+                     "same real env in another form has rows of its own; its real arms are its sibling's)."))
     out.append(Para("Differences explained: the paper fits once and counts only the model "
                     "data and the surrogate steps; it reports no real steps spent on evaluation, which here decide "
                     "when Dyna stops and are counted."))
