@@ -397,7 +397,7 @@ def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
     for _, r in dy.iterrows():
         ids = list(r["runs"])
         e = MISSING if ids else NOT_RUN
-        real = r["method"] == "real arm"
+        real = r["method"].startswith("real arm")
         cost = NOT_RUN if not ids else ("not solved" if math.isinf(r["median_to_solve"]) else fmt(r["median_to_solve"], "int"))
         phases = (f"train {fmt(r['phase_a'], 'int', e)}, evaluations {fmt(r['phase_b'], 'int', e)}" if real else
                   f"collect {fmt(r['phase_a'], 'int', e)}, screens {fmt(r['phase_b'], 'int', e)}, "

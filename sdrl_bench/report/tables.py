@@ -442,13 +442,17 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
             rows.append(_real_arm_row(env, agent, group, seed))
         # real-env learners of other agents on the same env, stopped at the threshold (a stronger real arm
         # than the loop's own recipe may be another algorithm or recipe)
+        # (one row per agent and pack: two recipes of one algorithm are two arms)
         shown = {r["agent"] for r in rows if r["env"] == env and r["method"] == "real arm"}
         others = [r for r in real if r["tags"].get("env") == env and r["tags"].get("agent") not in shown
                   and r.get("params", {}).get("rl.stop_when_solved") == "True"]
-        for agent in sorted({r["tags"].get("agent", "?") for r in others}):
-            rows.append(_real_arm_row(env, agent, newest_per_seed(r for r in others if r["tags"].get("agent") == agent), seed))
+        arms = sorted({(r["tags"].get("agent", "?"), r["tags"].get("sdrl.experiment") or "") for r in others})
+        for agent, pack in arms:
+            group = newest_per_seed(r for r in others if r["tags"].get("agent") == agent
+                                    and (r["tags"].get("sdrl.experiment") or "") == pack)
+            rows.append(_real_arm_row(env, agent, group, seed, f"real arm, {pack}" if pack else "real arm"))
     for row in rows:  # each method's median real steps to solve over the best real arm's on its env
-        best = [r["median_to_solve"] for r in rows if r["env"] == row["env"] and r["method"] == "real arm"
+        best = [r["median_to_solve"] for r in rows if r["env"] == row["env"] and r["method"].startswith("real arm")
                 and math.isfinite(r["median_to_solve"])]
         row["ratio_to_best_real"] = row["median_to_solve"] / min(best) if best else math.nan
     return pd.DataFrame(rows, columns=["env", "method", "agent", "n_seeds", "n_solved", "n_stopped", "median_to_solve",
@@ -457,7 +461,7 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                                        "audit", "ratio_to_best_real", "runs"])
 
 
-def _real_arm_row(env: str, agent: str, group: Sequence[Run], seed: int) -> dict[str, Any]:
+def _real_arm_row(env: str, agent: str, group: Sequence[Run], seed: int, method: str = "real arm") -> dict[str, Any]:
     """One real arm's row of ``dyna_table``: its cost to solve is its training steps up to the
     first evaluation at the threshold plus every evaluation it ran."""
     m = [r["metrics"] for r in group]
@@ -466,7 +470,7 @@ def _real_arm_row(env: str, agent: str, group: Sequence[Run], seed: int) -> dict
     costs_all = [c + x.get("real/real_steps/tuning", 0.0) for c, x in zip(costs, m, strict=True)]
     spent = bootstrap_ci([c if math.isfinite(c) else x.get("real/real_steps/this_run", math.nan)
                           for c, x in zip(costs, m, strict=True)], seed=seed)
-    return {"env": env, "method": "real arm", "agent": agent, "n_seeds": len(group),
+    return {"env": env, "method": method, "agent": agent, "n_seeds": len(group),
             "n_solved": sum("real/solved_real_steps" in x for x in m),
             "n_stopped": sum("real/solved_real_steps" in x for x in m),
             "median_to_solve": _median_cost(costs), "median_all": _median_cost(costs_all), "censored": spent,

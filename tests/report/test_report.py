@@ -349,7 +349,7 @@ def test_dyna_table_equals_the_runs_metrics_and_links_its_runs(store: str, tmp_p
 
 def test_another_agents_real_arm_that_stopped_at_the_threshold_is_a_row_and_the_ratio_uses_the_best(store: str, tmp_path) -> None:
     """A real-only arm of another agent (SB3's default PPO) stopped by ``rl.stop_when_solved`` is
-    a row of its own; one that ran a fixed budget is not (its cost to solve is unknown); every
+    a row of its own, one per pack; one that ran a fixed budget is not (its cost to solve is unknown); every
     row's ratio divides its median real transitions to solve by the best real arm's; section 6
     draws every arm against its real steps, all counted."""
     d = _dyna(store, 0, "sindy", True, 20_000, 230.0)
@@ -358,15 +358,20 @@ def test_another_agents_real_arm_that_stopped_at_the_threshold_is_a_row_and_the_
     stopped = []
     for seed, solved_at in ((0, 90_000.0), (1, 110_000.0)):
         rid = _real_arm(store, seed, solved_at)
-        tracking.Run(store, rid).set_tags({"agent": "ppo"})
+        tracking.Run(store, rid).set_tags({"agent": "ppo", "sdrl.experiment": "real_pack"})
         tracking.Run(store, rid).log_params({"rl.stop_when_solved": "True"})
         tracking.Run(store, rid).log_text("train_steps,return_mean,return_std\n0,0,0\n50000,400,0\n100000,720,0\n",
                                           "curves/real.csv")
         stopped.append(rid)
     fixed = _real_arm(store, 2, None)
     tracking.Run(store, fixed).set_tags({"agent": "sac"})
+    other_pack = _real_arm(store, 0, 300_000.0)  # the same agent in another pack: an arm of its own
+    tracking.Run(store, other_pack).set_tags({"agent": "ppo", "sdrl.experiment": "other_pack"})
+    tracking.Run(store, other_pack).log_params({"rl.stop_when_solved": "True"})
     dy = rt.dyna_table(tracking.find_runs(store, EXP))
-    real = dy[dy["method"] == "real arm"].set_index("agent")
+    assert list(dy[dy["agent"] == "ppo"]["method"]) == ["real arm, other_pack", "real arm, real_pack"]
+    assert dy[dy["method"] == "real arm, other_pack"].iloc[0]["runs"] == [other_pack]
+    real = dy[dy["method"].isin(["real arm", "real arm, real_pack"])].set_index("agent")
     assert sorted(real.index) == ["ppo", "ppo_fast"] and sorted(real.loc["ppo", "runs"]) == sorted(stopped)
     best = np.median([93_000, 113_000])  # training steps to solve plus the 3,000 evaluation steps
     assert real.loc["ppo", "median_to_solve"] == best and real.loc["ppo", "ratio_to_best_real"] == 1.0
