@@ -33,6 +33,12 @@ which the package's ``ppo_fast`` recipe turns on): rewards reach the learner as 
 it); gSDE, learning-rate schedules, ``target_kl`` and value clipping (refused by ``PPOConfig.from_agent``
 when a recipe sets them). Random streams are jax's, so a run is not the SB3 run with the same seed.
 
+Hand-written, and why: the two MLPs are a few lines of jax.numpy over a plain pytree of
+(weight, bias) pairs, not flax modules; flax would add a dependency for two tanh matmul chains
+and a second parameter format beside SB3's. optax provides the optimiser (Adam, gradient-norm
+clipping); the PPO loop itself is what no installed library offers over the harness's surrogate
+step (rejax and PureJaxRL expect their own env API).
+
 Covered: the surrogates ``jax_step`` covers (tasks of plain functions), with continuous (Box)
 actions and no step noise (``jax_step``'s ``noise`` stays None; a ModelEnv that adds noise is
 refused, as are discrete actions: no categorical policy yet). jax and optax are the optional
