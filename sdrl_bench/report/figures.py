@@ -123,7 +123,7 @@ def real_steps_figure(arms: Mapping[str, Sequence[pd.DataFrame]], title: str, so
     arm: the methods' costs differ by orders of magnitude, and their seeds' x values differ."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(6.4, 3.8))
+    fig = Figure(figsize=(9.0, 3.8))
     ax = fig.subplots()
     for i, (arm, curves) in enumerate(arms.items()):
         color = f"C{i}"
@@ -136,10 +136,10 @@ def real_steps_figure(arms: Mapping[str, Sequence[pd.DataFrame]], title: str, so
     ax.set_xlabel("real steps, all counted (model data, collections, evaluations that stop or select)")
     ax.set_ylabel("real return (the arm's own evaluations)")
     ax.set_title(title, fontsize=10)
-    ax.legend(fontsize=7, loc="upper left")
+    ax.legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0))  # outside: the curves fill the axes
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90)
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")  # the legend outside the axes
     return buf.getvalue()
 
 
