@@ -35,11 +35,39 @@ def raise_on_stop_signals() -> None:
         _stop["signum"] = signum
         if _stop["held"]:
             _stop["pending"] = True
+        elif _in_gc_callback(frame):
+            # An exception raised inside a garbage-collector callback is printed and dropped
+            # ("Exception ignored in ..."), and the stop would be lost: jax registers one
+            # (pysindy imports jax where it is installed). Deliver the signal again a moment later,
+            # outside the callback.
+            _redeliver(signum)
         else:
             raise Terminated(signum)
 
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, handler)
+
+
+def _in_gc_callback(frame) -> bool:
+    """Whether ``frame`` (a signal handler's) runs inside one of ``gc.callbacks``."""
+    import gc
+
+    codes = {getattr(cb, "__code__", None) for cb in gc.callbacks} - {None}
+    while frame is not None and codes:
+        if frame.f_code in codes:
+            return True
+        frame = frame.f_back
+    return False
+
+
+def _redeliver(signum: int, delay: float = 0.05) -> None:
+    """Send ``signum`` to this process again after ``delay`` seconds (a daemon timer thread)."""
+    import os
+    import threading
+
+    timer = threading.Timer(delay, os.kill, (os.getpid(), signum))
+    timer.daemon = True
+    timer.start()
 
 
 def stop_signal_received() -> int | None:
