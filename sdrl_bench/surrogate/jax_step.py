@@ -181,15 +181,14 @@ def step_noise(model_env: Any, actions: Any, eps: Any = None) -> Any:
     n = a.shape[0]
     if chol is None:
         return xp.zeros((n, m))
-    a = a.reshape(n, -1)[:, 0].astype(np.intp)
-    if eps is None:
-        eps = model_env.noise_rng.standard_normal((n, m))
     if xp is not np:
+        a = a.reshape(n, -1)[:, 0].astype(np.intp)
         return xp.einsum("nij,nj->ni", xp.asarray(chol)[a], xp.asarray(eps, dtype=xp.float64))
-    eps = np.asarray(eps, dtype=float)
-    if eps.shape != (n, m):
-        raise ValueError(f"step_noise: eps of shape {eps.shape}, expected ({n}, {m})")
-    return np.einsum("nij,nj->in", chol[a], eps).T
+    if eps is not None:
+        eps = np.asarray(eps, dtype=float)
+        if eps.shape != (n, m):
+            raise ValueError(f"step_noise: eps of shape {eps.shape}, expected ({n}, {m})")
+    return model_env.noise_rows(a, eps).T  # ModelEnv's own noise (and draws, eps None)
 
 
 def has_step_noise(model_env: Any) -> bool:

@@ -392,9 +392,16 @@ class ModelEnv:
         return (self._members(z).std(axis=0) / self._scale).max(axis=0)
 
     def _add_noise(self, rows: np.ndarray, actions: np.ndarray) -> np.ndarray:
+        return rows + self.noise_rows(actions)
+
+    def noise_rows(self, actions: np.ndarray, eps: np.ndarray | None = None) -> np.ndarray:
+        """The step noise (n_targets, N) for raw discrete ``actions``: the square root of each
+        row's action's residual covariance times standard-normal draws ``eps`` (N, n_targets),
+        drawn from the ``noise`` stream when not given."""
         a = np.asarray(actions).reshape(len(actions), -1)[:, 0].astype(np.intp)
-        eps = self.noise_rng.standard_normal((len(a), rows.shape[0]))
-        return rows + np.einsum("nij,nj->in", self._chol[a], eps)
+        if eps is None:
+            eps = self.noise_rng.standard_normal((len(a), self._chol.shape[1]))
+        return np.einsum("nij,nj->in", self._chol[a], eps)
 
     # ------------------------------------------------------------------ the step
     def step(self, states: np.ndarray, actions: np.ndarray) -> tuple[np.ndarray, ...]:
