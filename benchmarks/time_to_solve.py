@@ -8,6 +8,11 @@ threshold (``rl.stop_when_solved=true``, 10 real episodes per evaluation):
   (c) the zoo recipe in the surrogate          (the paper's surrogate arm)
   (d) the fast recipe in the surrogate
   (e) (d) with the surrogate fitted on the env's heuristic controller's data (no expert needed)
+  (d') (d) trained by the compiled PPO (``agent=ppo_jax``, ``rl.jax_agent``): rollout and update in jax
+  (b') (b) trained by the same compiled PPO, its rollout in real envs (the control of (d'))
+
+(d') and (b') need the optional ``[jax]`` extra; their compile seconds (``compile_wall_seconds``, inside
+the training wall) are printed apart, and the ratios with the compiled arms are given with and without them.
 
 For each: training wall and CPU seconds to the first solved evaluation (the surrogate arms'
 collection and fit included, every evaluation's time excluded and reported apart), real
@@ -43,16 +48,19 @@ from sdrl_bench.tracking.read import find_runs
 
 PACKS = {"mountain_car": {"zoo": "paper_mountain_car", "fast": "fast_mountain_car"},
          "lunar_lander": {"zoo": "paper_lunar_lander", "fast": "fast_lunar_lander"}}
-AGENTS = {"mountain_car": {"zoo": "sac", "fast": "ppo_fast"}, "lunar_lander": {"zoo": "ppo", "fast": "ppo_fast"}}
+AGENTS = {"mountain_car": {"zoo": "sac", "fast": "ppo_fast", "jax": "ppo_jax"},
+          "lunar_lander": {"zoo": "ppo", "fast": "ppo_fast", "jax": "ppo_jax"}}
 """The packs' agent names: how the runs of each recipe are told apart in the store."""
 ARMS = {"a": ("zoo", "real"), "b": ("fast", "real"), "c": ("zoo", "surrogate"), "d": ("fast", "surrogate"),
-        "e": ("fast", "surrogate")}
-COLLECTOR = {"c": "expert", "d": "expert", "e": "heuristic"}
+        "e": ("fast", "surrogate"), "B": ("jax", "real"), "D": ("jax", "surrogate")}
+"""Arm letters; B and D are (b') and (d'): the fast pack with ``agent=ppo_jax``."""
+COLLECTOR = {"c": "expert", "d": "expert", "e": "heuristic", "D": "expert"}
 """The surrogate arms' data: the paper's (the pack's expert, eps = 0.2), or (e) the env's
 hand-written controller with the same eps, which needs no trained expert at all."""
 LABELS = {"a": "(a) zoo recipe, real env", "b": "(b) fast recipe, real envs (control)",
           "c": "(c) zoo recipe, surrogate (paper)", "d": "(d) fast recipe, surrogate",
-          "e": "(e) = (d), heuristic data"}
+          "e": "(e) = (d), heuristic data", "B": "(b') = (b), compiled PPO (control of d')",
+          "D": "(d') = (d), compiled PPO"}
 # learning-curve cadence of the zoo recipes here (the fast packs set their own: one rollout):
 # finer than the paper packs' so the first solved point is not rounded up by a coarse grid
 ZOO_EVAL_EVERY = {"mountain_car": 1000, "lunar_lander": 16384}
@@ -81,6 +89,9 @@ def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int, rer
            f"tracking.uri={uri}", f"hydra.launcher.n_jobs={jobs}", *(["resume=false"] if rerun else [])]
     if recipe == "zoo":
         out.append(f"rl.eval_every={ZOO_EVAL_EVERY[env]}")
+    if recipe == "jax":
+        out[0] = f"experiment={PACKS[env]['fast']}"
+        out.append(f"agent={AGENTS[env]['jax']}")
     if arm in COLLECTOR:
         out.append(f"collector={COLLECTOR[arm]}")
     return out
@@ -136,6 +147,9 @@ def arm_row(metrics: dict[int, dict[str, float]], seeds: list[int]) -> dict[str,
         "wall": med("solved_wall_seconds"), "cpu": med("solved_cpu_seconds"),
         "real": med("solved_real_steps"), "surrogate": med("solved_surrogate_steps") if solved else math.nan,
         "eval_wall": med("curve_eval_wall_seconds", math.nan), "final": med("final_return_mean", math.nan),
+        "compile": med("compile_wall_seconds", math.nan),
+        "wall_ex_compile": float(np.median([m.get("solved_wall_seconds", math.inf) - m.get("compile_wall_seconds", 0.0)
+                                            for m in rows])) if rows else math.nan,
         "rollout_share": float(np.median([m["solved_rollout_wall_seconds"] / m["solved_train_wall"]
                                           for m in solved if "solved_rollout_wall_seconds" in m and m["solved_train_wall"] > 0]))
         if any("solved_rollout_wall_seconds" in m for m in solved) else math.nan,
@@ -160,12 +174,13 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None) -
                                 for k in ARMS])
     print(tabulate(per_seed, headers=["seed", *(f"({k}) wall s" for k in ARMS)], stralign="right"))
     rows = {k: arm_row(data[k], seeds) for k in ARMS}
-    table = [[LABELS[k], f"{r['solved']}/{r['seeds']}", fmt(r["wall"]), fmt(r["cpu"]), fmt(r["real"], ",.0f"),
-              fmt(r["surrogate"], ",.0f"), fmt(r["rollout_share"], ".0%"), fmt(r["eval_wall"]), fmt(r["final"], ".1f")]
-             for k, r in rows.items()]
-    print(tabulate(table, headers=["arm", "solved", "median wall s", "median CPU s", "real transitions",
-                                   "surrogate steps", "rollouts' share of training", "eval wall s (apart)",
-                                   "final real return"],
+    table = [[LABELS[k], f"{r['solved']}/{r['seeds']}", fmt(r["wall"]), fmt(r["compile"]), fmt(r["cpu"]),
+              fmt(r["real"], ",.0f"), fmt(r["surrogate"], ",.0f"), fmt(r["rollout_share"], ".0%"), fmt(r["eval_wall"]),
+              fmt(r["final"], ".1f")]
+             for k, r in rows.items() if r["seeds"]]
+    print(tabulate(table, headers=["arm", "solved", "median wall s", "of it compile s", "median CPU s",
+                                   "real transitions", "surrogate steps", "rollouts' share of training",
+                                   "eval wall s (apart)", "final real return"],
                    stralign="right"))
 
     def ratio(num: str, den: str, key: str) -> str:
@@ -176,6 +191,10 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None) -
 
     print(f"wall (d)/(a) = {ratio('d', 'a', 'wall')}, (d)/(b) = {ratio('d', 'b', 'wall')}, "
           f"(b)/(a) = {ratio('b', 'a', 'wall')}; real transitions (d)/(b) = {ratio('d', 'b', 'real')}")
+    if rows["D"]["seeds"]:
+        print(f"compiled: wall (d')/(b) = {ratio('D', 'b', 'wall')} (compile excluded: {ratio('D', 'b', 'wall_ex_compile')}), "
+              f"(d')/(b') = {ratio('D', 'B', 'wall')} (compile excluded: {ratio('D', 'B', 'wall_ex_compile')}), "
+              f"(d')/(d) = {ratio('D', 'd', 'wall')}")
     if expert_seconds is not None:
         print(f"expert collector trained once before the arms: {expert_seconds:.0f} s wall (not in (c) or (d))")
 
@@ -186,7 +205,8 @@ def main() -> None:
     ap.add_argument("--seeds", default="0-4", help="e.g. 0-4 or 0,2")
     ap.add_argument("--workdir", default=".", help="where mlruns/ (store, experts cache) lives")
     ap.add_argument("--uri", default=None, help="tracking URI (default: <workdir>/mlruns/mlflow.db)")
-    ap.add_argument("--arms", default="abcde", help="which arms to run, e.g. bd")
+    ap.add_argument("--arms", default="abcde", help="which arms to run, e.g. bd; B and D: (b') and (d'), the "
+                    "compiled PPO (the [jax] extra)")
     ap.add_argument("--jobs", type=int, default=2, help="jobs in parallel within an arm's sweep")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--rerun", action="store_true", help="run the arms again (resume=false); the table takes "

@@ -43,6 +43,7 @@ step noise as an input) is ``surrogate.jax_step``; what neither covers yet is li
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 from collections.abc import Callable, Sequence
 
@@ -65,6 +66,8 @@ def jax_modules(who: str = "sdrl_bench.models.jax_eval"):
     except ImportError as exc:
         raise ImportError(f"{who} needs jax, an optional extra: {INSTALL_HINT}") from exc
     jax.config.update("jax_enable_x64", True)
+    # its backend probe logs a failed TPU/GPU lookup at INFO, which a Hydra run prints as noise
+    logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
     return jax, jnp
 
 

@@ -285,12 +285,22 @@ def train(
         progress_bar = False
     clock, cpu_clock = (callback.clock, callback.cpu_clock) if callback is not None else (time.perf_counter, time.process_time)
     t0, c0 = clock(), cpu_clock()
-    model.learn(total_timesteps=int(steps), callback=callbacks, progress_bar=bool(progress_bar))
+    try:
+        model.learn(total_timesteps=int(steps), callback=callbacks, progress_bar=bool(progress_bar))
+    finally:
+        close_logger(model)  # its batched rows (tracking.sb3), also when a stop signal ends the run
     wall, cpu = clock() - t0, cpu_clock() - c0
     if callback is None:
         return TrainResult(model, Curve(), wall, cpu, 0.0)
     return TrainResult(model, callback.curve, wall - callback.eval_wall_seconds, cpu - callback.eval_cpu_seconds,
                        callback.eval_wall_seconds, callback.rollout_wall_seconds)
+
+
+def close_logger(model: Any) -> None:
+    """Write what the agent's logger holds (``tracking.sb3`` batches its rows)."""
+    logger = getattr(model, "logger", None)
+    if logger is not None:
+        logger.close()
 
 
 def make_agent(agent: AgentConfig, env: VecEnv, seed: int, logger: Any = None, env_seed: int | None = None) -> BaseAlgorithm:

@@ -42,7 +42,7 @@ from sdrl_bench.fidelity import evaluate as evaluate_fidelity
 from sdrl_bench.data import TransitionRecorder, Transitions, collect, concat, held_out_test_set, random_policy, recorded
 from sdrl_bench.pipeline import FitJob, FitResult, check, fit_transitions
 from sdrl_bench.rl.accounting import expert_of, headline
-from sdrl_bench.rl.agents import AgentConfig, EvalResult, StepCounter, evaluate_real, make_agent
+from sdrl_bench.rl.agents import AgentConfig, EvalResult, StepCounter, close_logger, evaluate_real, make_agent
 
 LOOP_PHASES = ("collect", "evaluate", "final")
 """The phases whose real steps the loop counts (the audit is reported apart)."""
@@ -288,6 +288,7 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
         drawn0 = {e: dict(outs) for e, outs in venv.event_counts.items()}
         steps = cfg.first_round_steps if k == 1 else cfg.surrogate_steps_per_round
         clock.run("train", agent.learn, total_timesteps=int(steps), reset_num_timesteps=False)
+        close_logger(agent)
         screen, new = clock.run("evaluate", loop.evaluate, agent, cfg.eval_episodes,
                                 seeds.reset_seed(seed, "dyna_screen", (k - 1) * cfg.eval_episodes), "evaluate",
                                 cfg.screen_max_steps)

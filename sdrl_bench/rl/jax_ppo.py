@@ -12,7 +12,10 @@ clipped to the action space) for numpy observations, to judge it in the real env
 What it does as stable-baselines3's ``PPO`` with ``MlpPolicy`` does (so that the two compare):
 
 * the policy: a diagonal Gaussian whose mean comes from a [64, 64] tanh MLP and whose log-std is
-  one free parameter per action dimension (initialised to 0); the value from a separate [64, 64]
+  one free parameter per action dimension (initialised to ``log_std_init``), or with gSDE
+  (``use_sde``) one per (last hidden feature, action) and the noise mean + latent @ E, one
+  exploration matrix E per env copy drawn at each rollout's start (SB3's ``full_std=True``,
+  ``sde_sample_freq=-1``, features without gradient); the value from a separate [64, 64]
   tanh MLP; orthogonal weights (gain sqrt 2 in the hidden layers, 0.01 for the mean, 1 for the
   value), zero biases; float32, as SB3's torch networks (the surrogate steps in float64);
 * rollouts: the sampled action is stored (and scored) unclipped; the env steps it clipped to the
@@ -27,11 +30,14 @@ What it does as stable-baselines3's ``PPO`` with ``MlpPolicy`` does (so that the
   the entropy bonus, the gradient's global norm clipped to ``max_grad_norm``, Adam (eps 1e-5, as
   SB3 sets it) at a constant ``learning_rate``.
 
-Not done here (on purpose): **reward normalisation** (SB3's ``VecNormalize(norm_reward=True)``,
-which the package's ``ppo_fast`` recipe turns on): rewards reach the learner as the task gives them
-(the cartpole swing-up's lie in [0, 1] per step); observation normalisation (the package never uses
-it); gSDE, learning-rate schedules, ``target_kl`` and value clipping (refused by ``PPOConfig.from_agent``
-when a recipe sets them). Random streams are jax's, so a run is not the SB3 run with the same seed.
+* reward normalisation (``normalize_reward``, which the package's ``ppo_fast`` recipe turns on):
+  SB3's ``VecNormalize(norm_obs=False, norm_reward=True)`` inside the loop (``RewardNorm``).
+
+Not done here: observation normalisation (the package never uses it); learning-rate schedules,
+``target_kl``, value clipping, ``sde_sample_freq`` > 0 and other ``policy_kwargs`` than
+``log_std_init`` (refused by ``PPOConfig.from_agent`` when a recipe sets them). Random streams are
+jax's, so a run is not the SB3 run with the same seed. ``rl.jax_agent.JaxPPO`` puts this PPO
+behind SB3's interface (``agent=ppo_jax``), in the surrogate and, as the control, in real envs.
 
 Hand-written, and why: the two MLPs are a few lines of jax.numpy over a plain pytree of
 (weight, bias) pairs, not flax modules; flax would add a dependency for two tanh matmul chains
@@ -39,8 +45,8 @@ and a second parameter format beside SB3's. optax provides the optimiser (Adam, 
 clipping); the PPO loop itself is what no installed library offers over the harness's surrogate
 step (rejax and PureJaxRL expect their own env API).
 
-Covered: the surrogates ``jax_step`` covers (tasks of plain functions), with continuous (Box)
-actions and no step noise (``jax_step``'s ``noise`` stays None; a ModelEnv that adds noise is
+Covered: the surrogates ``jax_step`` covers (Pendulum, MountainCar, CartPole, the swing-up), with
+continuous (Box) actions and no step noise (``jax_step``'s ``noise`` stays None; a ModelEnv that adds noise is
 refused, as are discrete actions: no categorical policy yet). jax and optax are the optional
 ``jax`` extra (``pip install 'sdrl-bench[jax]'``), imported on first use.
 """
@@ -92,6 +98,16 @@ class PPOConfig:
     vf_coef: float = 0.5
     clip_range: float = 0.2
     max_grad_norm: float = 0.5
+    use_sde: bool = False
+    """gSDE (generalized state-dependent exploration), as SB3's PPO does it with ``sde_sample_freq=-1``:
+    one exploration matrix per env copy, drawn at each rollout's start (see ``sample_action``)."""
+    log_std_init: float = 0.0
+    """The initial log-std (SB3's ``policy_kwargs.log_std_init``)."""
+    normalize_reward: bool = False
+    """Rewards scaled by a running std of the discounted return, as SB3's ``VecNormalize(norm_obs=False,
+    norm_reward=True)`` does it (``RewardNorm``)."""
+    clip_reward: float = 10.0
+    """VecNormalize's clip of the scaled reward."""
 
     def __post_init__(self) -> None:
         for k in ("n_envs", "n_steps", "batch_size", "n_epochs"):
@@ -113,19 +129,30 @@ class PPOConfig:
         this PPO does not have are refused in one line; ``normalize_reward`` is not applied
         (see the module docstring)."""
         algo = agent.algo
-        if getattr(getattr(algo, "func", None), "__name__", None) != "PPO":
-            raise ConfigError(f"PPOConfig.from_agent: agent '{agent.name}' is not SB3's PPO")
-        kw = dict(getattr(algo, "keywords", {}))
-        ignored = {"policy": "MlpPolicy", "device": None, "verbose": None}
-        names = {f.name for f in fields(cls)} - {"n_envs"}
+        if getattr(getattr(algo, "func", None), "__name__", None) not in ("PPO", "JaxPPO"):
+            raise ConfigError(f"PPOConfig.from_agent: agent '{agent.name}' is not PPO (SB3's or rl.jax_agent.JaxPPO)")
+        return cls.from_kwargs(dict(getattr(algo, "keywords", {})), int(agent.n_envs), bool(agent.normalize_reward),
+                               f"agent '{agent.name}'")
+
+    @classmethod
+    def from_kwargs(cls, kw: dict[str, Any], n_envs: int, normalize_reward: bool = False, who: str = "PPO") -> PPOConfig:
+        """The config of SB3-style PPO keyword arguments (``n_steps``, ``use_sde``,
+        ``policy_kwargs={"log_std_init": ...}``, ...); what this PPO does not have is refused in
+        one line naming ``who``."""
+        kw = dict(kw)
+        ignored = {"policy": "MlpPolicy", "device": None, "verbose": None, "sde_sample_freq": -1}
+        policy_kwargs = dict(kw.pop("policy_kwargs", None) or {})
+        names = {f.name for f in fields(cls)} - {"n_envs", "log_std_init", "normalize_reward", "clip_reward"}
         bad = [k for k, v in kw.items() if k not in names and not (k in ignored and ignored[k] in (None, v))]
+        bad += [f"policy_kwargs.{k}" for k in policy_kwargs if k != "log_std_init"]
         if bad:
-            raise ConfigError(f"PPOConfig.from_agent: agent '{agent.name}' sets {sorted(bad)}, which the compiled PPO "
-                              f"does not have (it has {sorted(names)})")
+            raise ConfigError(f"PPOConfig: {who} sets {sorted(bad)}, which the compiled PPO does not have (it has "
+                              f"{sorted(names | {'policy_kwargs.log_std_init', 'sde_sample_freq=-1'})})")
         for k in ("learning_rate", "clip_range"):
             if k in kw and not isinstance(kw[k], (int, float)):
-                raise ConfigError(f"PPOConfig.from_agent: {k} must be a constant (no schedules), got {kw[k]!r}")
-        return cls(n_envs=int(agent.n_envs), **{k: kw[k] for k in names if k in kw})
+                raise ConfigError(f"PPOConfig: {who}: {k} must be a constant (no schedules), got {kw[k]!r}")
+        extra = {"log_std_init": float(policy_kwargs["log_std_init"])} if "log_std_init" in policy_kwargs else {}
+        return cls(n_envs=int(n_envs), normalize_reward=normalize_reward, **extra, **{k: kw[k] for k in names if k in kw})
 
 
 # ---------------------------------------------------------------------- the networks
@@ -136,11 +163,13 @@ def mlp_layers(n_obs: int, n_act: int) -> dict[str, list[tuple[int, int]]]:
     return {"actor": [*hidden, (HIDDEN[-1], n_act)], "critic": [*hidden, (HIDDEN[-1], 1)]}
 
 
-def init_net(key: Any, n_obs: int, n_act: int) -> dict[str, Any]:
+def init_net(key: Any, n_obs: int, n_act: int, cfg: PPOConfig | None = None) -> dict[str, Any]:
     """The actor, critic and log-std, initialised as SB3's MlpPolicy (``ortho_init``): orthogonal
     weights with gain sqrt(2) in hidden layers, 0.01 for the action mean, 1 for the value; zero
-    biases; log-std 0. float32."""
+    biases; log-std ``cfg.log_std_init`` (one per action, or with gSDE one per (latent feature,
+    action), SB3's ``full_std``). float32."""
     jax, jnp, _ = _modules()
+    cfg = cfg or PPOConfig()
     net: dict[str, Any] = {}
     layers = mlp_layers(n_obs, n_act)
     keys = iter(jax.random.split(key, sum(len(v) for v in layers.values())))
@@ -151,17 +180,22 @@ def init_net(key: Any, n_obs: int, n_act: int) -> dict[str, Any]:
             w = jax.nn.initializers.orthogonal(scale=gain)(next(keys), (n_in, n_out), jnp.float32)
             out.append((w, jnp.zeros(n_out, jnp.float32)))
         net[name] = out
-    net["log_std"] = jnp.zeros(n_act, jnp.float32)
+    shape = (HIDDEN[-1], n_act) if cfg.use_sde else (n_act,)
+    net["log_std"] = jnp.full(shape, cfg.log_std_init, jnp.float32)
     return net
 
 
-def _mlp(layers: list, x: Any) -> Any:
+def _hidden(layers: list, x: Any) -> Any:
     import jax.numpy as jnp  # noqa: PLC0415  (imported by _modules before any call)
 
     for w, b in layers[:-1]:
         x = jnp.tanh(x @ w + b)
+    return x
+
+
+def _mlp(layers: list, x: Any) -> Any:
     w, b = layers[-1]
-    return x @ w + b
+    return _hidden(layers, x) @ w + b
 
 
 def action_mean(net: dict, obs: Any) -> Any:
@@ -174,19 +208,100 @@ def value(net: dict, obs: Any) -> Any:
     return _mlp(net["critic"], obs)[:, 0]
 
 
-def log_prob(actions: Any, mean: Any, log_std: Any) -> Any:
-    """log N(actions; mean, exp(log_std)^2), summed over action dimensions."""
+SDE_EPS = 1e-6
+"""SB3's ``StateDependentNoiseDistribution`` epsilon, added to the variance."""
+
+
+def policy(net: dict, obs: Any) -> tuple[Any, Any, Any]:
+    """(mean (N, n_act), std (N, n_act), latent features (N, 64)) of the policy's Gaussian.
+    Plain: std = exp(log_std) for every state. gSDE (a 2-D log-std): the std of mean +
+    latent @ E with E ~ N(0, exp(log_std)^2) elementwise, i.e. sqrt(latent^2 @ exp(log_std)^2 +
+    1e-6), the latent features taken without gradient (SB3's ``learn_features=False``)."""
+    import jax  # noqa: PLC0415
     import jax.numpy as jnp  # noqa: PLC0415
 
-    z = (actions - mean) * jnp.exp(-log_std)
-    return jnp.sum(-0.5 * z**2 - log_std - 0.5 * math.log(2 * math.pi), axis=-1)
+    latent = _hidden(net["actor"], obs)
+    w, b = net["actor"][-1]
+    mean = latent @ w + b
+    log_std = net["log_std"]
+    if log_std.ndim == 1:
+        std = jnp.broadcast_to(jnp.exp(log_std), mean.shape)
+    else:
+        std = jnp.sqrt(jax.lax.stop_gradient(latent) ** 2 @ jnp.exp(log_std) ** 2 + SDE_EPS)
+    return mean, std, latent
 
 
-def entropy(log_std: Any) -> Any:
-    """The Gaussian's entropy, summed over action dimensions (the same for every state)."""
+def exploration_matrices(net: dict, key: Any, n: int) -> Any:
+    """gSDE: one exploration matrix per env copy (n, 64, n_act), each entry N(0, exp(log_std)^2)
+    (SB3's ``reset_noise``); None without gSDE."""
+    import jax  # noqa: PLC0415
     import jax.numpy as jnp  # noqa: PLC0415
 
-    return jnp.sum(log_std + 0.5 + 0.5 * math.log(2 * math.pi))
+    log_std = net["log_std"]
+    if log_std.ndim == 1:
+        return None
+    return jnp.exp(log_std) * jax.random.normal(key, (n, *log_std.shape), jnp.float32)
+
+
+def sample_action(net: dict, obs: Any, key: Any, explore: Any = None) -> tuple[Any, Any, Any]:
+    """(action (N, n_act), its log-probability (N,), mean): plain, mean + std x N(0, 1); gSDE
+    (``explore``: ``exploration_matrices``), mean + latent @ E_i for copy i, as SB3 samples."""
+    import jax  # noqa: PLC0415
+    import jax.numpy as jnp  # noqa: PLC0415
+
+    mean, std, latent = policy(net, obs)
+    if explore is None:
+        action = mean + std * jax.random.normal(key, mean.shape, jnp.float32)
+    else:
+        action = mean + jnp.einsum("ni,nij->nj", latent, explore)
+    return action, log_prob(action, mean, std), mean
+
+
+def log_prob(actions: Any, mean: Any, std: Any) -> Any:
+    """log N(actions; mean, std^2), summed over action dimensions (``std`` broadcasts)."""
+    import jax.numpy as jnp  # noqa: PLC0415
+
+    z = (actions - mean) / std
+    return jnp.sum(-0.5 * z**2 - jnp.log(std) - 0.5 * math.log(2 * math.pi), axis=-1)
+
+
+def entropy(std: Any) -> Any:
+    """The Gaussian's entropy per state (..., summed over action dimensions)."""
+    import jax.numpy as jnp  # noqa: PLC0415
+
+    return jnp.sum(jnp.log(std) + 0.5 + 0.5 * math.log(2 * math.pi), axis=-1)
+
+
+class RewardNorm(NamedTuple):
+    """SB3's ``VecNormalize`` reward scaling, as a pytree: per copy the discounted return so far;
+    its running mean, variance and count (``RunningMeanStd``, updated with each step's batch of
+    returns, count starting at 1e-4). A reward is divided by sqrt(var + 1e-8) and clipped."""
+
+    returns: Any
+    mean: Any
+    var: Any
+    count: Any
+
+    @staticmethod
+    def init(n: int) -> RewardNorm:
+        import jax.numpy as jnp  # noqa: PLC0415
+
+        return RewardNorm(jnp.zeros(n, jnp.float64), jnp.float64(0.0), jnp.float64(1.0), jnp.float64(1e-4))
+
+    def step(self, reward: Any, done: Any, gamma: float, clip: float) -> tuple[RewardNorm, Any]:
+        """(the state after this step's rewards, the scaled float32 rewards): the statistics
+        are updated first, then the reward scaled, then finished episodes' returns reset, in
+        VecNormalize's order."""
+        import jax.numpy as jnp  # noqa: PLC0415
+
+        returns = self.returns * gamma + reward
+        b_mean, b_var, b_count = jnp.mean(returns), jnp.var(returns), returns.shape[0]
+        delta = b_mean - self.mean
+        tot = self.count + b_count
+        mean = self.mean + delta * b_count / tot
+        var = (self.var * self.count + b_var * b_count + delta**2 * self.count * b_count / tot) / tot
+        scaled = jnp.clip(reward / jnp.sqrt(var + 1e-8), -clip, clip).astype(jnp.float32)
+        return RewardNorm(jnp.where(done, 0.0, returns), mean, var, tot), scaled
 
 
 # ---------------------------------------------------------------------- the surrogate, compiled
@@ -199,6 +314,8 @@ class EnvState(NamedTuple):
     """(n_envs,) int32 steps into each episode."""
     ep_return: Any
     """(n_envs,) float64 return of each episode so far (the task's rewards)."""
+    norm: Any = None
+    """``RewardNorm`` when the config normalizes rewards, else None."""
 
 
 class Transition(NamedTuple):
@@ -211,7 +328,8 @@ class Transition(NamedTuple):
     log_prob: Any
     value: Any
     reward: Any
-    """The learner's reward (float32): the task's, plus gamma x V(final observation) on a truncation."""
+    """The learner's reward (float32): the task's (scaled, ``cfg.normalize_reward``), plus gamma x
+    V(final observation) on a truncation."""
     done: Any
     state: Any
     """The state stepped from (float64)."""
@@ -259,11 +377,12 @@ def surrogate(model_env: Any) -> Surrogate:
                      int(spec.max_episode_steps))
 
 
-def init_env(sur: Surrogate, key: Any, n_envs: int) -> tuple[EnvState, Any]:
+def init_env(sur: Surrogate, key: Any, n_envs: int, cfg: PPOConfig | None = None) -> tuple[EnvState, Any]:
     """Fresh episodes in every copy: (env state, float32 observations)."""
     _, jnp, _ = _modules()
     states = sur.reset(key, n_envs)
-    env = EnvState(states, jnp.zeros(n_envs, jnp.int32), jnp.zeros(n_envs, jnp.float64))
+    norm = RewardNorm.init(n_envs) if cfg is not None and cfg.normalize_reward else None
+    env = EnvState(states, jnp.zeros(n_envs, jnp.int32), jnp.zeros(n_envs, jnp.float64), norm)
     return env, sur.observe(states).astype(jnp.float32)
 
 
@@ -274,13 +393,11 @@ def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
     low, high = jnp.asarray(sur.action_low), jnp.asarray(sur.action_high)
     n, gamma = cfg.n_envs, cfg.gamma
 
-    def one_step(net, carry, key):
+    def one_step(net, explore, carry, key):
         env, obs = carry
         k_act, k_reset = jax.random.split(key)
-        mean = action_mean(net, obs)
+        action, logp, _ = sample_action(net, obs, k_act, explore)
         v = value(net, obs)
-        action = mean + jnp.exp(net["log_std"]) * jax.random.normal(k_act, mean.shape, jnp.float32)
-        logp = log_prob(action, mean, net["log_std"])
         env_action = jnp.clip(action, low, high).astype(jnp.float64)
         nxt, reward, terminated, diverged = sur.step(env.states, env_action)
         t = env.t + 1
@@ -289,18 +406,23 @@ def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
         final_obs = sur.observe(nxt).astype(jnp.float32)
         timeout = truncated & ~terminated
         boot = jax.lax.cond(jnp.any(timeout), lambda: value(net, final_obs), lambda: jnp.zeros(n, jnp.float32))
-        learn_reward = reward.astype(jnp.float32) + gamma * jnp.where(timeout, boot, 0.0)
+        norm, scaled = (None, reward.astype(jnp.float32)) if env.norm is None else \
+            env.norm.step(reward, done, gamma, cfg.clip_reward)
+        learn_reward = scaled + gamma * jnp.where(timeout, boot, 0.0)
         ep_return = env.ep_return + reward
         fresh = sur.reset(k_reset, n)
         states = jnp.where(done[:, None], fresh, nxt)
         new_obs = jnp.where(done[:, None], sur.observe(fresh).astype(jnp.float32), final_obs)
-        new_env = EnvState(states, jnp.where(done, 0, t), jnp.where(done, 0.0, ep_return))
+        new_env = EnvState(states, jnp.where(done, 0, t), jnp.where(done, 0.0, ep_return), norm)
         tr = Transition(obs, action, logp, v, learn_reward, done, env.states, env_action, nxt, reward, terminated,
                         diverged, t, jnp.where(done, ep_return, 0.0))
         return (new_env, new_obs), tr
 
     def rollout(net, env, obs, key):
-        (env, obs), traj = jax.lax.scan(lambda c, k: one_step(net, c, k), (env, obs), jax.random.split(key, cfg.n_steps))
+        k_explore, k_steps = jax.random.split(key)
+        explore = exploration_matrices(net, k_explore, n)  # gSDE: drawn once per rollout (sde_sample_freq=-1)
+        (env, obs), traj = jax.lax.scan(lambda c, k: one_step(net, explore, c, k), (env, obs),
+                                        jax.random.split(k_steps, cfg.n_steps))
         return env, obs, traj, value(net, obs)
 
     return rollout
@@ -339,13 +461,14 @@ def make_update(cfg: PPOConfig) -> Callable:
 
     def loss_fn(net, b):
         obs, act, old_logp, adv, ret = b
-        logp = log_prob(act, action_mean(net, obs), net["log_std"])
+        mean, std, _ = policy(net, obs)
+        logp = log_prob(act, mean, std)
         adv = (adv - adv.mean()) / (jnp.std(adv, ddof=1) + 1e-8)
         log_ratio = logp - old_logp
         ratio = jnp.exp(log_ratio)
         pg_loss = -jnp.mean(jnp.minimum(adv * ratio, adv * jnp.clip(ratio, 1.0 - c, 1.0 + c)))
         value_loss = jnp.mean((ret - value(net, obs)) ** 2)
-        ent = entropy(net["log_std"])
+        ent = jnp.mean(entropy(std))
         loss = pg_loss - cfg.ent_coef * ent + cfg.vf_coef * value_loss
         return loss, {"pg_loss": pg_loss, "value_loss": value_loss, "entropy": ent,
                       "approx_kl": jnp.mean((ratio - 1.0) - log_ratio), "clip_fraction": jnp.mean(jnp.abs(ratio - 1.0) > c)}
@@ -407,8 +530,8 @@ def make_train(model_env: Any, cfg: PPOConfig, total_steps: int) -> Callable:
 
     def train_fn(key):
         k_net, k_env, k_loop = jax.random.split(key, 3)
-        net = init_net(k_net, sur.n_obs, sur.n_act)
-        env, obs = init_env(sur, k_env, cfg.n_envs)
+        net = init_net(k_net, sur.n_obs, sur.n_act, cfg)
+        env, obs = init_env(sur, k_env, cfg.n_envs, cfg)
         (net, _, _, _), stats = jax.lax.scan(iteration, (net, tx.init(net), env, obs), jax.random.split(k_loop, iters))
         return net, stats
 

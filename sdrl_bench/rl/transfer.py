@@ -205,9 +205,12 @@ def run_arm(
     counts["eval_episodes"] = job.eval_episodes * len(result.curve.steps)
     seconds.update(train_wall=result.wall_seconds, train_cpu=result.cpu_seconds, curve_eval_wall=result.eval_wall_seconds,
                    train_rollout_wall=result.rollout_wall_seconds)
+    if hasattr(result.model, "compile_seconds"):  # a compiled agent (rl.jax_agent): its compiles, inside train_wall
+        seconds["compile_wall"] = float(result.model.compile_seconds)
     sur = getattr(venv, "surrogate", None)
     if arm == "surrogate" and sur is not None:
-        stats = {"diverged_episodes": float(sum(venv.n_diverged))}
+        # a compiled agent steps its own copy of the surrogate and counts its divergences itself
+        stats = {"diverged_episodes": float(sum(venv.n_diverged) + getattr(result.model, "diverged_episodes", 0))}
         stats.update({f"events/{e}/{o}": float(n) for e, outs in sur.event_counts.items() for o, n in outs.items()})
     venv.close()
     t0, c0 = time.perf_counter(), time.process_time()

@@ -1,4 +1,4 @@
-"""The surrogate's step as one pure JAX function (issue 31, second block), for tasks of plain functions.
+"""The surrogate's step as one pure JAX function (issue 31, second block), for tasks written for jax too.
 
 ``jax_step(model_env)`` returns ``step(states, actions, noise=None) -> (next_states, rewards,
 terminated, diverged)``: ``ModelEnv.step`` (``surrogate.model_env``, its steps 1, 3, 4 and 5) as
@@ -27,9 +27,11 @@ one beyond ``spec.divergence_limit()``, keeps the state; the rules below see the
 its place, as ModelEnv's placeholders); the spec's bounds (``EnvSpec.apply_bounds``: the box
 clip, each ``circle_pairs`` pair projected back onto the unit circle, rounding to ``obs_dtype``);
 clipping to the real env's observation space where ModelEnv clips (``ModelEnv._clip``); angles
-wrapped to [-pi, pi); the task's reward and termination, the spec's own functions
-(``env.spec.reward_fn`` / ``termination_fn``) called on jax arrays: they must be written with
-``envs.functional.array_namespace`` (checked when the step is built: one line naming the key).
+wrapped to [-pi, pi); the task's reward and termination called on jax arrays: the spec's plain
+functions (``env.spec.reward_fn`` / ``termination_fn``), or the ``task.reward_terminated`` of a task
+an env class builds (``build_task``). Each must be written with ``envs.functional.array_namespace``
+(checked when the step is built: one line naming the key or the function), as must the spec's
+``apply_bounds`` and ``encode_actions`` when a class overrides them.
 
 Rounding: ModelEnv evaluates the model with ``models.fast.batch_predictor`` and numpy's libm
 (hypot, exp, cos); jax sums the model's terms in the one-state evaluator's order and has its own
@@ -39,14 +41,16 @@ and beyond the data, diverging rows included); jit fuses a*b + c into FMAs (agai
 Around the step, for a loop compiled with it (``rl.jax_ppo``): ``jax_observe(model_env)``, the
 observations ``ModelEnv.observation`` emits (the spec's observation map in jax: each angle's cos and
 sin, clipped to the real env's observation space, in its dtype); ``jax_reset(model_env)``, reset
-states drawn from a jax PRNG key (the spec's ``initial_state_fn``, or the ModelEnv's reset pool);
+states drawn from a jax PRNG key (the spec's ``initial_state_fn`` or the task's ``initial_states``,
+or the ModelEnv's reset pool);
 ``has_step_noise(model_env)``, whether its step adds noise (a loop that feeds none must refuse it).
 
 Not covered (refused when the step is built, one line naming each): the task's compiled kernels
 (``task.step_batch``), exogenous states, regime dynamics, learned events, pessimism (build the
-ModelEnv with ``penalty=False``), a sampling model's own draws (``noise=False`` steps its mean),
-and tasks an env class builds itself (``build_task``: not the plain functions). Models without
-term tables (``nn``, ``pe``): ``jax_predictor``'s error.
+ModelEnv with ``penalty=False``), a sampling model's own draws (``noise=False`` steps its mean).
+A task's one-state kernel (``task.step_one``) is no obstacle: ``ModelEnv.step`` composes the batched
+step with numpy, which this mirrors. Models without term tables (``nn``, ``pe``):
+``jax_predictor``'s error.
 """
 
 from __future__ import annotations
@@ -68,9 +72,6 @@ def unsupported(model_env: Any) -> list[str]:
     """What of ``model_env``'s step ``jax_step`` does not cover yet (empty: all of it)."""
     spec, task = model_env.spec, model_env.task
     out = []
-    if type(spec).build_task is not EnvSpec.build_task or spec.reward_fn is None:
-        out.append(f"a task built by {type(spec).__name__}.build_task (not the plain functions env.spec.reward_fn / "
-                   "termination_fn)")
     if task.step_batch is not None:
         out.append("compiled kernels (task.step_batch)")
     if spec.exogenous_names or task.exogenous is not None:
@@ -86,27 +87,65 @@ def unsupported(model_env: Any) -> list[str]:
     return out
 
 
+def _is_method(fn: Any, method: Callable) -> bool:
+    """Whether ``fn`` is ``method`` bound to a spec (the task's plain-function wrappers)."""
+    return getattr(fn, "__func__", None) is method
+
+
+def _describe(fn: Any) -> str:
+    """A task function's name for an error: ``Class.method`` for a bound method."""
+    owner = getattr(fn, "__self__", None)
+    name = getattr(fn, "__name__", None)
+    if owner is not None and name:
+        return f"{type(owner).__name__}.{name}"
+    return getattr(fn, "__qualname__", None) or type(fn).__name__
+
+
+def _traced(jax: Any, fn: Callable, args: tuple, who: str) -> Any:
+    """``jax.eval_shape(fn, *args)``; a function written for numpy alone fails here, in one line
+    (``who``: ``jax_step: <key> (<path>)``)."""
+    try:
+        return jax.eval_shape(fn, *args)
+    except Exception as exc:  # a user's function may raise anything
+        raise ConfigError(f"{who} does not run on jax arrays: {one_line(exc)}; write it with "
+                          "envs.functional.array_namespace") from None
+
+
+def _size(out: Any) -> int:
+    return int(np.prod(getattr(out, "shape", (0,))))
+
+
 def _check_traceable(jax: Any, fn: Callable, key: str, path: Any, n_state: int, action: Any) -> None:
     """``fn(states, actions, next_states)`` traced on abstract jax arrays of two rows: a function
     written for numpy alone fails here, in one line naming its key."""
     s = jax.ShapeDtypeStruct((2, n_state), np.float64)
-    try:
-        out = jax.eval_shape(fn, s, action, s)
-    except Exception as exc:  # a user's function may raise anything
-        raise ConfigError(f"jax_step: {key} ({path}) does not run on jax arrays: {one_line(exc)}; write it with "
-                          "envs.functional.array_namespace") from None
-    if int(np.prod(getattr(out, "shape", (0,)))) != 2:
+    out = _traced(jax, fn, (s, action, s), f"jax_step: {key} ({path})")
+    if _size(out) != 2:
         raise ConfigError(f"jax_step: {key} ({path}) returned shape {getattr(out, 'shape', None)} for 2 states; expected (2,)")
 
 
-def _reward_terminated(spec: EnvSpec, jax: Any, jnp: Any) -> Callable:
-    """``(s, a, s') -> (rewards (N,), terminated (N,) bool)``: the spec's plain functions
-    (``env.spec.reward_fn``, ``termination_fn``; never terminated without one), as its task calls
-    them, each checked to run on jax arrays."""
-    reward_fn = resolve(spec.reward_fn, "env.spec.reward_fn")
-    term_fn = resolve(spec.termination_fn, "env.spec.termination_fn")
+def _reward_terminated(spec: EnvSpec, task: Any, jax: Any, jnp: Any) -> Callable:
+    """``(s, a, s') -> (rewards (N,), terminated (N,) bool)``, checked to run on jax arrays: the
+    spec's plain functions (``env.spec.reward_fn``, ``termination_fn``; never terminated without
+    one), as its task calls them, or the ``task.reward_terminated`` a spec class built."""
     n_state = len(spec.state_names)
     action = jax.ShapeDtypeStruct((2, spec.raw_action_width), np.int64 if spec.n_discrete_actions else np.float64)
+    if not _is_method(task.reward_terminated, EnvSpec._reward_terminated):
+        fn = task.reward_terminated
+        s = jax.ShapeDtypeStruct((2, n_state), np.float64)
+        who = f"jax_step: task.reward_terminated ({_describe(fn)})"
+        out = _traced(jax, fn, (s, action, s), who)
+        if not (isinstance(out, (tuple, list)) and len(out) == 2 and _size(out[0]) == _size(out[1]) == 2):
+            raise ConfigError(f"{who} returned {out} for 2 states; expected (rewards (2,), terminated (2,))")
+
+        def task_reward_terminated(states, actions, nxt):
+            n = states.shape[0]
+            rewards, terminated = fn(states, actions, nxt)
+            return (jnp.asarray(rewards, dtype=jnp.float64).reshape(n), jnp.asarray(terminated, dtype=bool).reshape(n))
+
+        return task_reward_terminated
+    reward_fn = resolve(spec.reward_fn, "env.spec.reward_fn")
+    term_fn = resolve(spec.termination_fn, "env.spec.termination_fn")
     _check_traceable(jax, reward_fn, "env.spec.reward_fn", spec.reward_fn, n_state, action)
     if term_fn is not None:
         _check_traceable(jax, term_fn, "env.spec.termination_fn", spec.termination_fn, n_state, action)
@@ -138,7 +177,7 @@ def jax_step(model_env: Any) -> JaxStep:
                  else np.array([], dtype=int))
     obs_low, obs_high = model_env.obs_low[clip_cols], model_env.obs_high[clip_cols]
     angles = None if model_env._angles is None else np.asarray(model_env._angles, dtype=int)
-    reward_terminated = _reward_terminated(spec, jax, jnp)
+    reward_terminated = _reward_terminated(spec, model_env.task, jax, jnp)
 
     def step(states, actions, noise=None):
         states = jnp.asarray(states, dtype=jnp.float64)
@@ -215,23 +254,28 @@ def jax_observe(model_env: Any) -> Callable:
 def jax_reset(model_env: Any) -> Callable:
     """``reset(key, n) -> (n, n_state)`` float64 reset states from a jax PRNG key: uniformly from
     the ModelEnv's reset pool when it has one (given initial states, or the real env's first
-    observations), else the spec's ``initial_state_fn`` called on the key (written with
-    ``envs.functional``'s draws; checked when built: one line naming the key). The same
-    distribution as ``ModelEnv.initial_states``, not the same draws."""
+    observations), else the spec's ``initial_state_fn`` (or the ``task.initial_states`` a spec
+    class built) called on the key (written with ``envs.functional``'s draws; checked when built:
+    one line naming the key or the function). The same distribution as
+    ``ModelEnv.initial_states``, not the same draws."""
     jax, jnp = jax_modules("sdrl_bench.surrogate.jax_step")
-    spec = model_env.spec
+    spec, task = model_env.spec, model_env.task
     pool = model_env._pool
     if pool is not None:
         pool = jnp.asarray(pool, dtype=jnp.float64)
         return lambda key, n: pool[jax.random.randint(key, (n,), 0, pool.shape[0])]
-    fn = resolve(spec.initial_state_fn, "env.spec.initial_state_fn")
+    if _is_method(task.initial_states, EnvSpec._checked_initial_states):
+        fn = resolve(spec.initial_state_fn, "env.spec.initial_state_fn")
+        who = f"env.spec.initial_state_fn ({spec.initial_state_fn})"
+    else:
+        fn = task.initial_states
+        who = f"task.initial_states ({_describe(fn)})"
     n_state = len(spec.state_names)
     try:
         out = jax.eval_shape(lambda k: fn(k, 2), jax.random.key(0))
     except Exception as exc:  # a user's function may raise anything
-        raise ConfigError(f"jax_reset: env.spec.initial_state_fn ({spec.initial_state_fn}) does not draw from a jax key: "
-                          f"{one_line(exc)}; write it with envs.functional's uniform / standard_normal") from None
+        raise ConfigError(f"jax_reset: {who} does not draw from a jax key: {one_line(exc)}; write it with "
+                          "envs.functional's uniform / standard_normal") from None
     if tuple(getattr(out, "shape", ())) != (2, n_state):
-        raise ConfigError(f"jax_reset: env.spec.initial_state_fn ({spec.initial_state_fn}) returned shape "
-                          f"{getattr(out, 'shape', None)} for n=2; expected (2, {n_state})")
+        raise ConfigError(f"jax_reset: {who} returned shape {getattr(out, 'shape', None)} for n=2; expected (2, {n_state})")
     return lambda key, n: jnp.asarray(fn(key, n), dtype=jnp.float64)

@@ -215,6 +215,19 @@ class Run:
         for i in range(0, len(items), 1000):
             self._client.log_batch(self.run_id, metrics=items[i : i + 1000])
 
+    def log_metric_rows(self, rows: list[tuple[Mapping[str, float], int]]) -> None:
+        """Several steps' metrics ((metrics, step) pairs) in as few batches as MLflow allows."""
+        import math
+        import time
+
+        from mlflow.entities import Metric
+
+        now = int(time.time() * 1000)
+        items = [Metric(k, float(v), now, step) for metrics, step in rows for k, v in metrics.items()
+                 if v is not None and not math.isnan(float(v))]
+        for i in range(0, len(items), 1000):
+            self._client.log_batch(self.run_id, metrics=items[i : i + 1000])
+
     def set_tags(self, tags: Mapping[str, Any]) -> None:
         from mlflow.entities import RunTag
 

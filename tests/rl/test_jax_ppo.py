@@ -141,6 +141,71 @@ def test_what_it_does_not_cover_is_refused_and_a_recipe_maps_onto_its_config(pen
     cfg = jax_ppo.PPOConfig.from_agent(agent)
     assert (cfg.n_envs, cfg.n_steps, cfg.batch_size, cfg.n_epochs, cfg.gamma) == (64, 256, 1024, 4, 0.995)
     assert (cfg.gae_lambda, cfg.learning_rate, cfg.ent_coef, cfg.clip_range, cfg.max_grad_norm) == (0.95, 3e-4, 0.0, 0.2, 0.5)
-    sde = instantiate_key(compose_cfg("env=cartpole_swingup", "agent=ppo_fast", "+agent.algo.use_sde=true").agent, "agent")
-    with pytest.raises(ConfigError, match=r"sets \['use_sde'\]"):
-        jax_ppo.PPOConfig.from_agent(sde)
+    assert not cfg.use_sde and cfg.normalize_reward and cfg.log_std_init == 0.0  # the pack scales rewards
+    fast = jax_ppo.PPOConfig.from_agent(instantiate_key(compose_cfg("experiment=fast_mountain_car").agent, "agent"))
+    assert (fast.n_envs, fast.n_steps, fast.batch_size, fast.n_epochs, fast.learning_rate) == (128, 32, 1024, 4, 3e-3)
+    assert fast.use_sde and fast.normalize_reward and fast.log_std_init == -1.0
+    kl = instantiate_key(compose_cfg("env=cartpole_swingup", "agent=ppo_fast", "+agent.algo.target_kl=0.01").agent, "agent")
+    with pytest.raises(ConfigError, match=r"sets \['target_kl'\]"):
+        jax_ppo.PPOConfig.from_agent(kl)
+    with pytest.raises(ConfigError, match=r"sets \['policy_kwargs.net_arch', 'sde_sample_freq'\]"):
+        jax_ppo.PPOConfig.from_kwargs({"sde_sample_freq": 4, "policy_kwargs": {"net_arch": [32]}}, 8)
+
+
+@pytest.mark.parametrize("use_sde", [False, True])
+def test_the_policy_is_sb3s_policy_given_its_weights(pendulum, use_sde):
+    """SB3's PPO policy (plain and gSDE) with its weights copied in: the same values, mean,
+    log-probabilities and entropies, and with gSDE the same action for the same exploration
+    matrices; the log-std has SB3's shape and initial value."""
+    import torch as th
+    from stable_baselines3 import PPO
+
+    spec = pendulum[1]
+    sb3 = PPO("MlpPolicy", spec.make_env(), use_sde=use_sde, policy_kwargs={"log_std_init": -0.5}, seed=0, device="cpu")
+    pol = sb3.policy
+    cfg = jax_ppo.PPOConfig(use_sde=use_sde, log_std_init=-0.5)
+    net = jax_ppo.init_net(jax.random.key(0), 3, 1, cfg)
+    assert net["log_std"].shape == tuple(pol.log_std.shape) and np.all(np.asarray(net["log_std"]) == np.float32(-0.5))
+    rng = np.random.default_rng(0)
+    with th.no_grad():
+        pol.log_std.copy_(th.as_tensor(rng.normal(-0.5, 0.4, size=tuple(pol.log_std.shape)), dtype=th.float32))
+    lin = lambda seq: [m for m in seq if isinstance(m, th.nn.Linear)]  # noqa: E731
+    as_layers = lambda ms: [(jnp.asarray(m.weight.detach().numpy().T), jnp.asarray(m.bias.detach().numpy())) for m in ms]  # noqa: E731
+    net["actor"] = as_layers([*lin(pol.mlp_extractor.policy_net), pol.action_net])
+    net["critic"] = as_layers([*lin(pol.mlp_extractor.value_net), pol.value_net])
+    net["log_std"] = jnp.asarray(pol.log_std.detach().numpy())
+    obs = rng.uniform(-1, 1, size=(64, 3)).astype(np.float32) * np.array([1, 1, 8], np.float32)
+    actions = rng.normal(0, 1.5, size=(64, 1)).astype(np.float32)
+    with th.no_grad():
+        v_sb3, logp_sb3, ent_sb3 = (x.numpy() for x in pol.evaluate_actions(th.as_tensor(obs), th.as_tensor(actions)))
+    mean, std, latent = jax_ppo.policy(net, jnp.asarray(obs))
+    assert np.allclose(np.asarray(jax_ppo.value(net, jnp.asarray(obs))), v_sb3[:, 0], rtol=1e-5, atol=1e-5)
+    assert np.allclose(np.asarray(jax_ppo.log_prob(jnp.asarray(actions), mean, std)), logp_sb3, rtol=1e-5, atol=1e-5)
+    assert np.allclose(np.asarray(jax_ppo.entropy(std)), ent_sb3, rtol=1e-5, atol=1e-5)
+    if use_sde:
+        assert np.ptp(np.asarray(std)) > 0.1  # state-dependent
+        explore = jax_ppo.exploration_matrices(net, jax.random.key(3), 64)
+        pol.action_dist.exploration_matrices = th.as_tensor(np.array(explore))
+        with th.no_grad():
+            a_sb3, _, _ = pol(th.as_tensor(obs))
+        a, logp, _ = jax_ppo.sample_action(net, jnp.asarray(obs), jax.random.key(4), explore)
+        assert np.allclose(np.asarray(a), a_sb3.numpy(), rtol=1e-5, atol=1e-5)
+        assert np.allclose(np.asarray(logp), np.asarray(jax_ppo.log_prob(a, mean, std)))
+
+
+def test_reward_scaling_is_vecnormalizes():
+    """``RewardNorm`` fed a real VecNormalize's raw rewards and dones (4 Pendulum copies, random
+    actions, past two episode ends) gives its scaled rewards and return statistics."""
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    venv = VecNormalize(make_vec_env("Pendulum-v1", n_envs=4, seed=0), norm_obs=False, norm_reward=True, gamma=0.97)
+    venv.reset()
+    norm, rng = jax_ppo.RewardNorm.init(4), np.random.default_rng(0)
+    for _ in range(450):
+        _, scaled, dones, _ = venv.step(rng.uniform(-2, 2, size=(4, 1)).astype(np.float32))
+        norm, ours = norm.step(jnp.asarray(venv.get_original_reward()), jnp.asarray(dones), 0.97, 10.0)
+        assert ours.dtype == jnp.float32 and np.allclose(np.asarray(ours), scaled, rtol=1e-6, atol=1e-7)
+    assert np.isclose(float(norm.var), float(venv.ret_rms.var), rtol=1e-12) and float(norm.count) == venv.ret_rms.count
+    assert np.allclose(np.asarray(norm.returns), venv.returns, rtol=1e-12, atol=1e-12)
+    venv.close()

@@ -1,9 +1,10 @@
 """The surrogate's step as one JAX function (surrogate/jax_step.py) against ``ModelEnv.step``: for
-every env whose task is plain functions (Pendulum, CartPole, the swing-up in both forms), 10,000
-random states and actions spanning the data and beyond (bounds, clips, circle projection, and
-rows whose prediction diverges or is not finite), with the step noise off and fed in; jit against
-eager; ModelEnv's noise draws reproduced; the task functions on jax keys; unsupported tasks refused
-in one line; the package imports without jax."""
+every env whose task is plain functions (Pendulum, CartPole, the swing-up in both forms) and
+MountainCar (a task its spec class builds), 10,000 random states and actions spanning the data, the
+bounds and beyond (bounds, clips, circle projection, MountainCar's wall and goal, and rows whose
+prediction diverges or is not finite), with the step noise off and fed in; jit against eager;
+ModelEnv's noise draws reproduced; the task functions on jax keys; unsupported tasks refused in
+one line; the package imports without jax."""
 
 from __future__ import annotations
 
@@ -27,11 +28,13 @@ from sdrl_bench.cli.build import build_fit_job  # noqa: E402
 from sdrl_bench.envs.base import action_bounds  # noqa: E402
 from sdrl_bench.envs.functional import resolve  # noqa: E402
 from sdrl_bench.pipeline import fit_dynamics  # noqa: E402
-from sdrl_bench.surrogate.jax_step import jax_step, step_noise  # noqa: E402
+from sdrl_bench.surrogate.jax_step import jax_reset, jax_step, step_noise  # noqa: E402
 from sdrl_bench.surrogate.model_env import ModelEnv  # noqa: E402
 
-ENVS = {"pendulum": 200, "cartpole": 200, "cartpole_swingup": 300, "cartpole_swingup_circle": 300}
-"""Every env whose task is plain functions, with transitions for a quick fit."""
+ENVS = {"pendulum": 200, "cartpole": 200, "cartpole_swingup": 300, "cartpole_swingup_circle": 300, "mountain_car": 300}
+"""Every env whose task is plain functions, and MountainCar's (its spec's class builds it), with
+transitions for a quick fit (MountainCar: 300 random ones give its exact law)."""
+PLAIN = [env for env in ENVS if env != "mountain_car"]
 N, TOL = 10_000, 1e-12
 _FITS: dict[str, tuple] = {}
 
@@ -45,11 +48,15 @@ def fitted(env: str) -> tuple:
 
 
 def draw(spec, data: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """N states spanning the data's range widened by its span on each side (past the bounds);
-    3% of them 1000 times larger (beyond the divergence limit), 0.5% with an inf or NaN entry
-    (a non-finite prediction). Actions: indices, or 1.5 times the action space's range."""
+    """N states spanning the data's range and the spec's finite bounds, widened by that span on
+    each side (past the bounds); 3% of them 1000 times larger (beyond the divergence limit), 0.5%
+    with an inf or NaN entry (a non-finite prediction). Actions: indices, or 1.5 times the action
+    space's range."""
     rng = np.random.default_rng(seed)
     lo, hi = data.min(axis=0), data.max(axis=0)
+    for bound, side, pick in ((spec.state_low, lo, np.fmin), (spec.state_high, hi, np.fmax)):
+        if bound is not None:  # fmin / fmax skip the NaN of an unbounded side
+            side[:] = pick(side, np.where(np.isfinite(bound), bound, np.nan))
     span = np.where(hi > lo, hi - lo, 1.0)
     s = rng.uniform(lo - span, hi + span, size=(N, data.shape[1]))
     s[:300] *= 1e3
@@ -85,7 +92,8 @@ def check_exercised(menv, s, a, nxt, diverged) -> None:
     live = nxt[~diverged]
     for bound in (spec.state_low, spec.state_high):
         for j in np.flatnonzero(np.isfinite(bound if bound is not None else [np.nan])):
-            assert np.mean(live[:, j] == bound[j]) > 0.01, (spec.state_names[j], bound[j])
+            at = spec.round_obs(np.asarray(bound, dtype=float))[j]  # the bound in the obs dtype
+            assert np.mean(live[:, j] == at) > 0.01, (spec.state_names[j], bound[j])
     if menv._clip:
         j = np.flatnonzero(np.isfinite(menv.obs_high))
         assert not len(j) or np.any(live[:, j] == menv.obs_high[j])
@@ -125,7 +133,7 @@ def test_the_jax_step_is_the_model_envs_step(env):
 
 def test_step_noise_is_the_model_envs_draw_and_unsupported_tasks_are_refused():
     """A task with compiled kernels, exogenous states, regime dynamics and pessimism: one line
-    naming each. Its step noise (residual covariance per one-hot action): ``step_noise`` gives
+    naming each (a task its spec class builds is no reason in itself). Its step noise (residual covariance per one-hot action): ``step_noise`` gives
     ModelEnv's draws bit for bit and advances the noise stream as a step does."""
     res = fit_dynamics(build_fit_job(compose_cfg("env=lunar_lander", "collector=random", "n_transitions=300")))
     a_env, b_env = (ModelEnv(res.model, res.job.spec, seed=0) for _ in range(2))
@@ -133,8 +141,9 @@ def test_step_noise_is_the_model_envs_draw_and_unsupported_tasks_are_refused():
         jax_step(a_env)
     msg = str(err.value)
     assert "\n" not in msg and msg.startswith("jax_step: env 'lunar_lander': not covered yet: ")
-    for what in ("build_task", "task.step_batch", "exogenous states", "regime dynamics", "pessimism"):
+    for what in ("task.step_batch", "exogenous states", "regime dynamics", "pessimism"):
         assert what in msg, (what, msg)
+    assert "build_task" not in msg
 
     n, m = 500, len(res.job.spec.target_names)
     actions = np.random.default_rng(0).integers(res.job.spec.n_discrete_actions, size=(n, 1))
@@ -148,6 +157,72 @@ def test_step_noise_is_the_model_envs_draw_and_unsupported_tasks_are_refused():
     b_env.step(states, actions)  # a step draws what step_noise drew: the streams stay together
     step_noise(a_env, actions)
     assert a_env.noise_rng.bit_generator.state == b_env.noise_rng.bit_generator.state
+
+
+def test_mountain_car_wall_velocity_clip_and_goal():
+    """MountainCar's task (its spec class builds it) in jax: states crowded at the left wall, the
+    goal and the speed limit, besides the generic draw's diverging rows, with its (near) exact law
+    fitted from random data: every case is hit, and next states, rewards, terminated and diverged
+    are ModelEnv's (jitted)."""
+    model, spec, data = fitted("mountain_car")
+    menv = ModelEnv(model, spec, noise=False, penalty=False, seed=0)
+    s, a = draw(spec, data, seed=2)
+    rng = np.random.default_rng(3)
+    lo, hi = np.asarray(spec.state_low), np.asarray(spec.state_high)
+    k = np.arange(1000, 9000)
+    near_low = rng.uniform(lo, lo + 0.15 * (hi - lo), size=(len(k), 2))  # at the wall, moving left
+    near_high = rng.uniform(hi - 0.15 * (hi - lo), hi, size=(len(k), 2))  # at the goal, fast
+    s[k] = np.where((k % 3 == 0)[:, None], near_low, np.where((k % 3 == 1)[:, None], near_high, s[k]))
+    s[k[k % 3 == 1], 1] *= rng.choice([-1.0, 1.0], size=int(np.sum(k % 3 == 1)))  # both speed limits
+    ref = menv.step(s, a)
+    got = jax.jit(jax_step(menv))(s, a)
+    diffs = compare(got, ref)
+    nxt, _, terminated, diverged = (np.asarray(x) for x in got)
+    v_pred = menv._predict_rows(menv.model_inputs(s, a))[1]
+    f32 = spec.round_obs(np.array([*lo, *hi, 0.45]))  # the bounds and the goal as the float32 state holds them
+    wall = ~diverged & (nxt[:, 0] == f32[0]) & (np.clip(v_pred, lo[1], hi[1]) < 0)
+    clip = ~diverged & (np.abs(v_pred) > hi[1])
+    counts = {"wall": int(wall.sum()), "velocity clip": int(clip.sum()), "goal": int(terminated.sum()),
+              "diverged": int(diverged.sum())}
+    assert min(counts.values()) >= 100, counts
+    assert np.all(nxt[wall, 1] == 0.0)
+    assert np.all(np.isin(nxt[clip & ~wall, 1], f32[[1, 3]]))
+    assert np.array_equal(terminated, ~diverged & (nxt[:, 0] >= f32[4]) & (nxt[:, 1] >= 0.0))
+    print(f"mountain_car: max |jax - numpy| next states, rewards {diffs}; rows of {N}: {counts}")
+
+
+def test_mountain_car_resets_from_a_jax_key():
+    """``jax_reset`` draws from the task's own ``initial_states`` (no pool): x ~ U[-0.6, -0.4), v = 0."""
+    model, spec, _ = fitted("mountain_car")
+    menv = ModelEnv(model, spec, noise=False, penalty=False, seed=0)
+    assert menv._pool is None
+    got = np.asarray(jax.jit(jax_reset(menv), static_argnums=1)(jax.random.key(0), 4000))
+    assert got.shape == (4000, 2) and got.dtype == np.float64
+    assert np.all((got[:, 0] >= -0.6) & (got[:, 0] < -0.4)) and np.all(got[:, 1] == 0.0)
+    assert abs(got[:, 0].mean() + 0.5) < 0.01 and abs(got[:, 0].std() - 0.2 / np.sqrt(12)) < 0.005
+
+
+def numpy_only_reward_terminated(states, actions, next_states):
+    return -np.asarray(actions)[:, 0] ** 2, np.asarray(next_states)[:, 0] > 0
+
+
+def numpy_only_initial_states(rng, n):
+    return np.stack([np.asarray(rng.uniform(-0.6, -0.4, n)), np.zeros(n)], axis=1)
+
+
+def test_a_task_written_for_numpy_alone_is_one_line_naming_the_function():
+    model, spec, _ = fitted("mountain_car")
+    menv = ModelEnv(model, spec, noise=False, penalty=False, seed=0)
+    menv.task = dataclasses.replace(menv.task, reward_terminated=numpy_only_reward_terminated,
+                                    initial_states=numpy_only_initial_states)
+    with pytest.raises(ConfigError, match=r"^jax_step: task.reward_terminated \(numpy_only_reward_terminated\) "
+                                          r"does not run on jax arrays: ") as err:
+        jax_step(menv)
+    assert "\n" not in str(err.value) and str(err.value).endswith("envs.functional.array_namespace")
+    with pytest.raises(ConfigError, match=r"^jax_reset: task.initial_states \(numpy_only_initial_states\) "
+                                          r"does not draw from a jax key: ") as err:
+        jax_reset(menv)
+    assert "\n" not in str(err.value)
 
 
 def numpy_only_reward(states, actions, next_states):
@@ -164,7 +239,7 @@ def test_a_reward_written_for_numpy_alone_is_one_line_naming_its_key():
 
 def test_the_task_functions_draw_resets_from_a_jax_key():
     """The reset distributions from a jax PRNG key (jit-able), distributed as the numpy draws."""
-    for env in ENVS:
+    for env in PLAIN:
         spec = fitted(env)[1]
         fn = resolve(spec.initial_state_fn, "env.spec.initial_state_fn")
         got = np.asarray(jax.jit(fn, static_argnums=1)(jax.random.key(0), 4000))

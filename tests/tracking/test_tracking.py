@@ -154,3 +154,25 @@ def test_a_logged_nn_model_loads_and_predicts_without_the_harness(store, surroga
     expected = result.model.predict(x, u)
     assert np.max(np.abs(np.asarray(got["pred"]) - expected)) <= 1e-12
     assert np.max(np.abs(expected - x)) > 0  # the model predicts a change: the comparison is not of inputs
+
+
+def test_sb3_rows_are_batched_and_all_written_when_the_logger_closes(store):
+    """``tracking.sb3.sb3_logger`` holds SB3's rows until its flush interval or ``close``; then
+    every row is in the run at its own step."""
+    from sdrl_bench.tracking.client import start_run
+    from sdrl_bench.tracking.sb3 import sb3_logger
+
+    with start_run(store, "sdrl-bench", "sb3-rows") as run:
+        held, eager = sb3_logger(run, "arm/sb3", flush_seconds=3600.0), sb3_logger(run, "eager/sb3", flush_seconds=0.0)
+        for step in (128, 256, 384):
+            for logger in (held, eager):
+                logger.record("train/value_loss", step / 1000)
+                logger.record("train/flag", True)  # not a number: left out
+                logger.dump(step=step)
+        client = MlflowClient(store)
+        history = lambda key: [(m.step, m.value) for m in client.get_metric_history(run.run_id, key)]  # noqa: E731
+        assert history("arm/sb3/train/value_loss") == []
+        assert sorted(history("eager/sb3/train/value_loss")) == [(128, 0.128), (256, 0.256), (384, 0.384)]
+        held.close()
+        assert sorted(history("arm/sb3/train/value_loss")) == [(128, 0.128), (256, 0.256), (384, 0.384)]
+        assert "arm/sb3/train/flag" not in client.get_run(run.run_id).data.metrics

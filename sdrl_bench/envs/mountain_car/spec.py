@@ -4,7 +4,9 @@ Real dynamics (gymnasium source): v' = clip(v + 0.0015 clip(a) - 0.0025 cos(3x),
 x' = clip(x + v', -1.2, 0.6); if x' == -1.2 and v' < 0 then v' = 0 (an inelastic left wall).
 Terminated when x' >= 0.45 and v' >= 0; reward 100 * terminated - 0.1 a^2 (a unclipped);
 reset x ~ U[-0.6, -0.4], v = 0. The task functions below reproduce these exactly, including the
-real env's float32 state (see ``terminated``).
+real env's float32 state (see ``terminated``). The bounds, action encoding, reward, termination and
+resets are written once for numpy and jax (``envs.functional.array_namespace``): numpy gives plain
+numpy's bits, jax arrays give the same step traceably (``surrogate.jax_step``).
 """
 
 from __future__ import annotations
@@ -16,6 +18,7 @@ from collections.abc import Callable
 import numpy as np
 
 from sdrl_bench.envs.base import EnvSpec, Policy, StepOne, TestSetRecipe
+from sdrl_bench.envs.functional import array_namespace, uniform
 from sdrl_bench.envs.task import Task
 
 MIN_POSITION, MAX_POSITION, MAX_SPEED = -1.2, 0.6, 0.07
@@ -61,35 +64,40 @@ class MountainCarSpec(EnvSpec):
         The model predicts x' = x + v'_unclipped; when the real env clips v' it moves x by the
         clipped velocity, so the excess is taken off x' before x' itself is clipped.
         """
-        pred = np.asarray(predicted_targets, dtype=float)
+        xp = array_namespace(predicted_targets)  # numpy, or jax.numpy in a compiled step
+        pred = xp.asarray(predicted_targets, dtype=float)
         x_pred, v_pred = pred[:, 0], pred[:, 1]
-        v = np.clip(v_pred, -MAX_SPEED, MAX_SPEED)
-        x = np.clip(x_pred - (v_pred - v), MIN_POSITION, MAX_POSITION)
-        v = np.where((x <= MIN_POSITION) & (v < 0), 0.0, v)
-        return self.round_obs(np.stack([x, v], axis=1))
+        v = xp.clip(v_pred, -MAX_SPEED, MAX_SPEED)
+        x = xp.clip(x_pred - (v_pred - v), MIN_POSITION, MAX_POSITION)
+        v = xp.where((x <= MIN_POSITION) & (v < 0), 0.0, v)
+        return self.round_obs(xp.stack([x, v], axis=1))
 
     def encode_actions(self, actions: np.ndarray) -> np.ndarray:
         """The force the real env applies: the action clipped to [-1, 1]."""
-        return np.clip(super().encode_actions(actions), -1.0, 1.0)
+        enc = super().encode_actions(actions)
+        return array_namespace(enc).clip(enc, -1.0, 1.0)
 
     # ------------------------------------------------------------------ the task
     def reward_terminated(self, states, actions, next_states) -> tuple[np.ndarray, np.ndarray]:
         """100 on reaching the goal, minus 0.1 a^2 of the *unclipped* action (the env's order of
         operations, so the values are bit-identical)."""
-        a = np.asarray(actions, dtype=float).reshape(len(states), -1)[:, 0]
+        xp = array_namespace(states, actions, next_states)
+        a = xp.asarray(actions, dtype=float).reshape(len(states), -1)[:, 0]
         terminated = self.terminated(states, actions, next_states)
         return 100.0 * terminated - a * a * 0.1, terminated
 
     def terminated(self, states: np.ndarray, actions: np.ndarray, next_states: np.ndarray) -> np.ndarray:
         """x' >= 0.45 and v' >= 0, compared in float32 as the real env compares its state."""
-        ns = np.asarray(next_states, dtype=float)
+        ns = array_namespace(next_states).asarray(next_states, dtype=float)
         return (ns[:, 0] >= _GOAL_F32) & (ns[:, 1] >= 0.0)
 
     def initial_states(self, rng: np.random.Generator, n: int) -> np.ndarray:
         """x ~ U[-0.6, -0.4], v = 0, drawn exactly as the real env draws them: with the same
-        generator and seed, the same (float64, not yet rounded) start."""
-        x = rng.uniform(low=-0.6, high=-0.4, size=n)
-        return np.stack([x, np.zeros(n)], axis=1)
+        generator and seed, the same (float64, not yet rounded) start (a jax PRNG key: the same
+        distribution)."""
+        x = uniform(rng, -0.6, -0.4, n)
+        xp = array_namespace(x)
+        return xp.stack([x, xp.zeros(n)], axis=1)
 
     def make_step_one(self, predictor: Callable[..., Callable], obs_low=None, obs_high=None) -> StepOne:
         """``apply_bounds``, ``terminated`` and the reward for one state, in the real env's own

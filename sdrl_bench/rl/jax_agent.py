@@ -1,0 +1,332 @@
+"""The compiled PPO (``rl.jax_ppo``) behind stable-baselines3's interface: ``agent=ppo_jax``.
+
+``JaxPPO(policy="MlpPolicy", env=..., seed=..., **ppo_kwargs)`` takes SB3's PPO keyword arguments
+(``n_steps``, ``batch_size``, ``n_epochs``, ``gamma``, ``use_sde``, ``policy_kwargs.log_std_init``,
+...; ``rl.jax_ppo.PPOConfig.from_kwargs`` refuses the rest in one line) and offers what the harness
+calls on an SB3 agent: ``learn(total_timesteps, callback, progress_bar, reset_num_timesteps)``,
+``predict``, ``save`` / ``load``, ``get_env``, ``set_logger``, ``num_timesteps``. So every
+runner that builds an agent with ``rl.agents.make_agent`` (a transfer run's arms, Dyna, the real
+env's control) trains this PPO when the config says ``agent=ppo_jax``, and its evaluations, counts
+and records are the ones SB3's agents get.
+
+Where it steps:
+
+* **compiled** (the surrogate arm): when the vector env is the harness's surrogate
+  (``surrogate.vec.SurrogateVecEnv``, maybe inside ``VecNormalize``) and ``surrogate.jax_step``
+  covers its ``ModelEnv``, each rollout is one compiled call (``jax_ppo.make_rollout``: the
+  surrogate's step, resets, gSDE noise and the reward scaling inside it; the vector env itself is
+  not stepped) and each update another. A Dyna refit (``SurrogateVecEnv.swap_model``) is seen at
+  the next ``learn`` and the rollout compiled again for the new model; the episodes under way go
+  on. ``compile_seconds`` sums the compile times (ahead-of-time, timed apart; they are inside the
+  training wall the callbacks see).
+* **Python** (the real env's control, or a surrogate ``jax_step`` does not cover): the rollout
+  steps the vector env in Python as SB3's ``collect_rollouts`` does (the sampled action stored
+  unclipped and stepped clipped; the timeout bootstrap from ``terminal_observation``;
+  ``VecNormalize``'s own reward scaling); the update is the same compiled one.
+
+Callbacks (``rl.agents.RealEvalCallback``) are SB3's: in the Python path ``on_step`` follows
+every vector step, as in SB3; in the compiled path once per rollout, after it and before the
+update (where SB3's last ``on_step`` of a rollout falls), with ``num_timesteps`` advanced by the
+whole rollout. An evaluation cadence that is a multiple of ``n_envs x n_steps`` therefore sees
+the same policies in both. ``on_rollout_start`` / ``on_rollout_end`` bracket each rollout.
+
+Hand-written, and why: SB3's ``BaseAlgorithm`` ties its policy to torch modules and its rollout to
+a ``VecEnv``; sbx (SB3's JAX port) keeps the VecEnv outside the compiled code. The harness needs
+the rollout inside the compiled program (``jax_ppo``) behind the interface its runners use, which
+is this class; SB3's callback classes are used as they are.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+import warnings
+import zipfile
+from dataclasses import asdict, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sdrl_bench import ConfigError
+from sdrl_bench.rl import jax_ppo
+from sdrl_bench.rl.jax_ppo import PPOConfig
+
+FORMAT = "sdrl-bench-jax-ppo-v1"
+
+
+def _surrogate_of(env: Any) -> tuple[Any, Any]:
+    """(the ModelEnv under ``env`` or None, the VecNormalize around it or None)."""
+    from stable_baselines3.common.vec_env import VecNormalize  # noqa: PLC0415
+
+    norm = env if isinstance(env, VecNormalize) else None
+    inner = env.venv if norm is not None else env
+    return getattr(inner, "surrogate", None), norm
+
+
+class JaxPPO:
+    """PPO with the rollout and the update compiled by jax, behind SB3's interface (module
+    docstring)."""
+
+    def __init__(self, policy: str = "MlpPolicy", env: Any = None, seed: int | None = None, verbose: int = 0,
+                 device: Any = None, **kwargs: Any):
+        if policy != "MlpPolicy":
+            raise ConfigError(f"agent.algo.policy: JaxPPO has MlpPolicy only, got {policy!r}")
+        self._kwargs = dict(kwargs)
+        self.env = env
+        self.seed = int(seed or 0)
+        self.verbose = verbose
+        self.num_timesteps = 0
+        self.compile_seconds = 0.0
+        """Seconds spent compiling (rollout and update; counted inside ``learn``'s wall)."""
+        self.rollout_compiles = 0
+        """Rollouts compiled: one per surrogate model trained in (a Dyna refit compiles again)."""
+        self.diverged_episodes = 0
+        """Surrogate episodes ended by the model's divergence guard in compiled rollouts."""
+        self.rollout_backend: str | None = None
+        """"compiled" or "python": where the last ``learn`` stepped."""
+        self.logger: Any = None
+        self._jax, self._jnp, _ = jax_ppo._modules()
+        self._key = self._jax.random.key(self.seed)
+        self.cfg: PPOConfig | None = None
+        self.net: dict | None = None
+        self._opt = None
+        self._compiled: tuple | None = None  # (model, spec, compiled rollout, surrogate)
+        self._cenv = self._cobs = None  # the compiled loop's env state and observations
+        self._last_obs = None  # the Python loop's
+        self._act = self._value = None
+        self._bounds: tuple[np.ndarray, np.ndarray] | None = None
+        if env is not None:
+            self._setup(env)
+            env.seed(self.seed)
+
+    # ------------------------------------------------------------------ set-up
+    def _split(self) -> Any:
+        self._key, k = self._jax.random.split(self._key)
+        return k
+
+    def _setup(self, env: Any) -> None:
+        """The config (the env's copy count, VecNormalize's scaling), the networks, the
+        optimiser and the compiled update, once."""
+        space = env.action_space
+        if not hasattr(space, "low"):
+            raise ConfigError(f"agent=ppo_jax: the compiled PPO has a Gaussian policy for Box actions; the env's actions "
+                              f"are {type(space).__name__}")
+        _, norm = _surrogate_of(env)
+        cfg = PPOConfig.from_kwargs(self._kwargs, env.num_envs, norm is not None and bool(norm.norm_reward), "agent.algo")
+        if norm is not None:
+            cfg = replace(cfg, clip_reward=float(norm.clip_reward))
+        n_obs = int(np.prod(env.observation_space.shape))
+        self._init(cfg, n_obs, int(np.prod(space.shape)), np.asarray(space.low, np.float32),
+                   np.asarray(space.high, np.float32))
+
+    def _init(self, cfg: PPOConfig, n_obs: int, n_act: int, low: np.ndarray, high: np.ndarray) -> None:
+        jax, jnp = self._jax, self._jnp
+        self.cfg, self._bounds, self._n_obs = cfg, (low, high), n_obs
+        self.net = jax_ppo.init_net(self._split(), n_obs, n_act, cfg)
+        self._opt = jax_ppo.optimizer(cfg).init(self.net)
+        update = jax_ppo.make_update(cfg)
+
+        def learn_step(net, opt, traj, last_value, key):
+            return update(net, opt, jax_ppo.make_batch(cfg, traj, last_value), key)
+
+        self._update_fn = jax.jit(learn_step)
+        self._updates: dict[str, Any] = {}
+
+        def act(net, obs, key, explore):
+            action, logp, _ = jax_ppo.sample_action(net, obs, key, explore)
+            return action, logp, jax_ppo.value(net, obs)
+
+        self._act = jax.jit(act)
+        self._value = jax.jit(jax_ppo.value)
+        lo, hi = jnp.asarray(low), jnp.asarray(high)
+        self._mean = jax.jit(lambda net, obs: jnp.clip(jax_ppo.action_mean(net, obs), lo, hi))
+        self._explore = jax.jit(lambda net, key: jax_ppo.exploration_matrices(net, key, cfg.n_envs))
+
+    def _timed_compile(self, fn: Any, *args: Any) -> Any:
+        t0 = time.perf_counter()
+        out = fn.lower(*args).compile()
+        self.compile_seconds += time.perf_counter() - t0
+        return out
+
+    # ------------------------------------------------------------------ SB3's interface
+    def get_env(self) -> Any:
+        return self.env
+
+    def set_logger(self, logger: Any) -> None:
+        self.logger = logger
+
+    def _logger(self) -> Any:
+        if self.logger is None:
+            from stable_baselines3.common.logger import Logger  # noqa: PLC0415
+
+            self.logger = Logger(folder=None, output_formats=[])
+        return self.logger
+
+    def learn(self, total_timesteps: int, callback: Any = None, log_interval: int = 1, tb_log_name: str = "JaxPPO",
+              reset_num_timesteps: bool = True, progress_bar: bool = False) -> JaxPPO:
+        """Train for at least ``total_timesteps`` more env steps (whole rollouts), as SB3's
+        ``learn``: a callback returning False from ``on_step`` ends it."""
+        from stable_baselines3.common.callbacks import CallbackList, ConvertCallback, ProgressBarCallback  # noqa: PLC0415
+
+        if self.env is None:
+            raise ValueError("JaxPPO.learn: no env (load(path, env=...) to train on)")
+        if reset_num_timesteps:
+            self.num_timesteps = 0
+            self._cenv = self._last_obs = None
+        if isinstance(callback, list):
+            callback = CallbackList(callback)
+        if not hasattr(callback, "init_callback"):
+            callback = ConvertCallback(callback)
+        if progress_bar:
+            callback = CallbackList([callback, ProgressBarCallback()])
+        callback.init_callback(self)
+        target = self.num_timesteps + int(total_timesteps)
+        callback.on_training_start(locals(), globals())
+        menv, _ = _surrogate_of(self.env)
+        compiled = menv is not None and self._compile_for(menv)
+        self.rollout_backend = "compiled" if compiled else "python"
+        while self.num_timesteps < target:
+            got = self._rollout_compiled(callback) if compiled else self._rollout_python(callback)
+            if got is None:
+                break
+            traj, last_value, episodes = got
+            args = (self.net, self._opt, traj, last_value, self._split())
+            update = self._updates.get(self.rollout_backend)
+            if update is None:  # compiled ahead of time, once per rollout layout, and timed
+                update = self._updates[self.rollout_backend] = self._timed_compile(self._update_fn, *args)
+            self.net, self._opt, stats = update(*args)
+            log = self._logger()
+            if episodes:
+                log.record("rollout/ep_rew_mean", float(np.mean(episodes)))
+            for k, v in stats.items():
+                log.record(f"train/{k}", float(v))
+            log.dump(step=self.num_timesteps)
+        callback.on_training_end()
+        return self
+
+    def _compile_for(self, menv: Any) -> bool:
+        """Whether the rollout runs compiled in ``menv`` (built, and compiled ahead of time, for
+        its current model); a surrogate ``jax_step`` does not cover steps in Python, warned once."""
+        from sdrl_bench.surrogate.jax_step import unsupported  # noqa: PLC0415
+
+        if self._compiled is not None and self._compiled[0] is menv.model and self._compiled[1] is menv.spec:
+            return True
+        try:
+            missing = unsupported(menv)
+            sur = jax_ppo.surrogate(menv) if not missing else None
+        except NotImplementedError as exc:
+            missing = [str(exc)]
+        if missing:
+            warnings.warn(f"agent=ppo_jax: the surrogate of env '{menv.spec.name}' steps in Python, not compiled: "
+                          f"{'; '.join(missing)}", stacklevel=3)
+            return False
+        cfg = self.cfg
+        if self._cenv is None:
+            self._cenv, self._cobs = jax_ppo.init_env(sur, self._split(), cfg.n_envs, cfg)
+        rollout = self._jax.jit(jax_ppo.make_rollout(sur, cfg))
+        self._compiled = (menv.model, menv.spec, self._timed_compile(rollout, self.net, self._cenv, self._cobs, self._split()))
+        self.rollout_compiles += 1
+        return True
+
+    def _rollout_compiled(self, callback: Any) -> tuple | None:
+        callback.on_rollout_start()
+        env, obs, traj, last_value = self._compiled[2](self.net, self._cenv, self._cobs, self._split())
+        self._jax.block_until_ready(last_value)
+        self._cenv, self._cobs = env, obs
+        self.num_timesteps += self.cfg.rollout_size
+        self.diverged_episodes += int(np.asarray(traj.diverged).sum())
+        if not callback.on_step():
+            return None
+        callback.on_rollout_end()
+        done = np.asarray(traj.done)
+        return traj, last_value, np.asarray(traj.episode_return)[done].tolist()
+
+    def _rollout_python(self, callback: Any) -> tuple | None:
+        """One rollout stepped in the vector env, as SB3's ``collect_rollouts``."""
+        env, cfg, gamma = self.env, self.cfg, self.cfg.gamma
+        low, high = self._bounds
+        n = cfg.n_envs
+        if self._last_obs is None:
+            self._last_obs = env.reset()
+        explore = self._explore(self.net, self._split())
+        obs_b, act_b, logp_b, val_b, rew_b, done_b, episodes = [], [], [], [], [], [], []
+        callback.on_rollout_start()
+        for _ in range(cfg.n_steps):
+            obs = np.asarray(self._last_obs, np.float32).reshape(n, -1)
+            action, logp, v = (np.asarray(x) for x in self._act(self.net, obs, self._split(), explore))
+            new_obs, rewards, dones, infos = env.step(np.clip(action, low, high))
+            self.num_timesteps += n
+            if not callback.on_step():
+                return None
+            rewards = np.asarray(rewards, np.float32).copy()
+            for i, done in enumerate(dones):
+                info = infos[i]
+                if "episode" in info:
+                    episodes.append(float(info["episode"]["r"]))
+                if done and info.get("terminal_observation") is not None and info.get("TimeLimit.truncated", False):
+                    term_obs = np.asarray(info["terminal_observation"], np.float32).reshape(1, -1)
+                    rewards[i] += gamma * float(np.asarray(self._value(self.net, term_obs))[0])
+            obs_b.append(obs), act_b.append(action), logp_b.append(logp), val_b.append(v)
+            rew_b.append(rewards), done_b.append(np.asarray(dones, bool))
+            self._last_obs = new_obs
+        last_value = self._value(self.net, np.asarray(self._last_obs, np.float32).reshape(n, -1))
+        callback.on_rollout_end()
+        stack = np.stack
+        traj = jax_ppo.Transition(stack(obs_b), stack(act_b), stack(logp_b), stack(val_b), stack(rew_b), stack(done_b),
+                                  *([None] * 8))
+        return traj, last_value, episodes
+
+    def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
+                deterministic: bool = False) -> tuple[np.ndarray, None]:
+        """The action for one observation or a batch, clipped to the action space: the mean
+        (``deterministic``) or a sample (plain Gaussian noise; gSDE draws fresh matrices)."""
+        obs = np.asarray(observation, np.float32)
+        single = obs.ndim == 1
+        batch = obs.reshape(1 if single else obs.shape[0], -1)
+        if deterministic:
+            out = np.asarray(self._mean(self.net, batch))
+        else:
+            explore = jax_ppo.exploration_matrices(self.net, self._split(), batch.shape[0])
+            action, _, _ = jax_ppo.sample_action(self.net, batch, self._split(), explore)
+            out = np.clip(np.asarray(action), *self._bounds)
+        return (out[0] if single else out), None
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | Path) -> None:
+        """A zip: ``config.json`` (the PPO config, sizes, action bounds, steps) and
+        ``params.npz`` (the networks' arrays in pytree order)."""
+        leaves = self._jax.tree_util.tree_leaves(self.net)
+        low, high = self._bounds
+        meta = {"format": FORMAT, "config": asdict(self.cfg), "n_obs": self._n_obs, "n_act": int(low.size),
+                "action_low": low.tolist(), "action_high": high.tolist(), "num_timesteps": int(self.num_timesteps),
+                "seed": self.seed}
+        buf = io.BytesIO()
+        np.savez(buf, *[np.asarray(x) for x in leaves])
+        with zipfile.ZipFile(path, "w") as zf:
+            zf.writestr("config.json", json.dumps(meta, indent=1))
+            zf.writestr("params.npz", buf.getvalue())
+
+    @classmethod
+    def load(cls, path: str | Path, env: Any = None, device: Any = None, **_: Any) -> JaxPPO:
+        """An agent ``save`` wrote (``env``: to train on; its copy count must be the saved one)."""
+        with zipfile.ZipFile(path) as zf:
+            meta = json.loads(zf.read("config.json"))
+            arrays = np.load(io.BytesIO(zf.read("params.npz")))
+            leaves = [arrays[f"arr_{i}"] for i in range(len(arrays.files))]
+        if meta.get("format") != FORMAT:
+            raise ValueError(f"{path}: not a JaxPPO agent ({meta.get('format')!r})")
+        agent = cls(seed=meta["seed"])
+        cfg = PPOConfig(**meta["config"])
+        agent._init(cfg, meta["n_obs"], meta["n_act"], np.asarray(meta["action_low"], np.float32),
+                    np.asarray(meta["action_high"], np.float32))
+        treedef = agent._jax.tree_util.tree_structure(agent.net)
+        agent.net = agent._jax.tree_util.tree_unflatten(treedef, [agent._jnp.asarray(x) for x in leaves])
+        agent._opt = jax_ppo.optimizer(cfg).init(agent.net)
+        agent.num_timesteps = int(meta["num_timesteps"])
+        if env is not None:
+            if env.num_envs != cfg.n_envs:
+                raise ConfigError(f"JaxPPO.load: {path} was trained with {cfg.n_envs} env copies, the env has {env.num_envs}")
+            agent.env = env
+        return agent

@@ -1,0 +1,116 @@
+"""agent=ppo_jax (rl/jax_agent.py): the compiled PPO behind SB3's interface, on MountainCar. In
+the surrogate it trains compiled (the vector env is never stepped) and the harness's callback
+sees whole rollouts; in real envs it steps in Python and every real step is counted; a saved
+agent loads and acts the same; the CLI runs both arms with it and records its compile time;
+Dyna's refits are compiled again and trained on."""
+
+from __future__ import annotations
+
+from collections import Counter
+
+import numpy as np
+import pytest
+
+jax = pytest.importorskip("jax")
+pytest.importorskip("optax")
+pytestmark = pytest.mark.jax
+
+from helpers import compose_cfg, run_cli, search  # noqa: E402
+from sdrl_bench.cli.build import build_dyna_job, build_fit_job, instantiate_key  # noqa: E402
+from sdrl_bench.pipeline import fit_dynamics  # noqa: E402
+from sdrl_bench.rl.agents import RealEvalCallback, make_agent, real_vec_env, train  # noqa: E402
+from sdrl_bench.rl.jax_agent import JaxPPO  # noqa: E402
+from sdrl_bench.rl.transfer import surrogate_vec_env  # noqa: E402
+
+SMALL = ["experiment=fast_mountain_car", "agent=ppo_jax", "agent.n_envs=16", "agent.algo.n_steps=32",
+         "agent.algo.batch_size=128", "collector=heuristic", "n_transitions=75"]
+"""The fast MountainCar pack with the compiled PPO, 16 copies x 32 steps (512 a rollout)."""
+
+
+@pytest.fixture(scope="module")
+def fitted():
+    cfg = compose_cfg(*SMALL)
+    res = fit_dynamics(build_fit_job(cfg))
+    return cfg, res.model, res.spec
+
+
+def test_in_the_surrogate_it_trains_compiled_and_the_callback_sees_whole_rollouts(fitted):
+    cfg, model, spec = fitted
+    agent = instantiate_key(cfg.agent, "agent")
+    venv = surrogate_vec_env(model, spec, agent.n_envs, seed=0)
+    counts = Counter()
+    callback = RealEvalCallback(spec, every=1024, episodes=1, seed=1000, counts=counts)
+    res = train(agent, venv, 2048, seed=0, callback=callback, env_seed=0)
+    ppo = res.model
+    assert isinstance(ppo, JaxPPO) and ppo.rollout_backend == "compiled" and ppo.rollout_compiles == 1
+    assert ppo.compile_seconds > 0 and ppo.num_timesteps == 2048
+    assert res.curve.steps == [0, 1024, 2048]  # the start, then after every second rollout of 512
+    assert counts["train"] == 0 and counts["evaluate"] > 0 and counts["resets/evaluate"] == 3  # one episode a point
+    assert venv.surrogate.real_resets == 0 and not np.any(venv.n_diverged)
+    c = ppo.cfg  # the pack's recipe: gSDE from log-std -1, rewards scaled by the VecNormalize make_agent puts around
+    assert c.use_sde and c.log_std_init == -1.0 and c.normalize_reward and c.learning_rate == 3e-3
+    assert ppo.net["log_std"].shape == (64, 1)
+    before = np.asarray(ppo.net["actor"][0][0]).copy()
+    ppo.learn(512, reset_num_timesteps=False)  # trains on: one more rollout and update
+    assert ppo.num_timesteps == 2560 and ppo.rollout_compiles == 1 and not np.array_equal(before, ppo.net["actor"][0][0])
+
+
+def test_in_real_envs_it_steps_in_python_and_every_step_is_counted(fitted):
+    cfg, _, spec = fitted
+    agent = instantiate_key(cfg.agent, "agent")
+    counts = Counter()
+    ppo = make_agent(agent, real_vec_env(spec, agent.n_envs, 5, counts), seed=0, env_seed=5)
+    ppo.learn(1024)
+    assert ppo.rollout_backend == "python" and ppo.rollout_compiles == 0
+    assert counts["train"] == ppo.num_timesteps == 1024 and counts["resets/train"] == agent.n_envs
+
+
+def test_a_saved_agent_loads_and_acts_the_same(fitted, tmp_path):
+    cfg, model, spec = fitted
+    agent = instantiate_key(cfg.agent, "agent")
+    ppo = make_agent(agent, surrogate_vec_env(model, spec, agent.n_envs, seed=0), seed=3)
+    ppo.learn(1024)
+    ppo.save(tmp_path / "a.zip")
+    again = JaxPPO.load(tmp_path / "a.zip", device="cpu")
+    obs = np.random.default_rng(0).uniform([-1.2, -0.07], [0.6, 0.07], size=(50, 2)).astype(np.float32)
+    a, _ = ppo.predict(obs, deterministic=True)
+    assert np.array_equal(a, again.predict(obs, deterministic=True)[0]) and again.num_timesteps == 1024
+    assert again.cfg == ppo.cfg and np.abs(a).max() <= 1.0
+    one, _ = again.predict(obs[0], deterministic=True)
+    assert one.shape == (1,) and np.allclose(one, a[0], rtol=0, atol=1e-6)  # a batch of one: rounding apart
+    sampled, _ = again.predict(obs, deterministic=False)
+    assert sampled.shape == a.shape and not np.array_equal(sampled, a) and np.abs(sampled).max() <= 1.0
+
+
+def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path):
+    res = run_cli(*SMALL, "rl.surrogate_steps=1024", "rl.real_steps=1024", "rl.eval_every=1024", "rl.eval_episodes=1",
+                  "rl.final_episodes=1", "rl.stop_when_solved=false", "seed=0", "progress_bar=false",
+                  f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert "tpu" not in (res.stdout + res.stderr).lower()  # jax's backend probe stays quiet
+    run = search(store, filter_string="tags.`sdrl.kind` = 'transfer'").iloc[0]
+    assert run["tags.agent"] == "ppo_jax" and run["status"] == "FINISHED"
+    for arm in ("surrogate", "real"):
+        assert 0 < run[f"metrics.{arm}/compile_wall_seconds"] < run[f"metrics.{arm}/train_wall_seconds"]
+        assert run[f"metrics.{arm}/sb3/train/value_loss"] >= 0
+    assert run["metrics.real/real_transitions_train"] == 1024
+    from mlflow.tracking import MlflowClient
+
+    path = MlflowClient(store).download_artifacts(run["run_id"], "agents/surrogate.zip", str(tmp_path))
+    assert JaxPPO.load(path).num_timesteps == 1024
+
+
+def test_dyna_refits_are_compiled_again_and_trained_on(store):
+    from sdrl_bench.rl.dyna import run_dyna
+
+    cfg = compose_cfg("experiment=dyna_mountain_car", "agent=ppo_jax", "agent.n_envs=16", "agent.algo.n_steps=32",
+                      "agent.algo.batch_size=128", "n_transitions=30", "rl.dyna.collect_per_round=20",
+                      "rl.dyna.first_round_steps=512", "rl.dyna.surrogate_steps_per_round=512", "rl.dyna.max_rounds=2",
+                      "rl.dyna.eval_episodes=1", "rl.dyna.final_episodes=1", "rl.dyna.audit_episodes=0",
+                      "rl.dyna.max_real_transitions=100000", "progress_bar=false", f"tracking.uri={store}")
+    job = build_dyna_job(cfg, build_fit_job(cfg))
+    outcome = run_dyna(job, job.check(), None)
+    ppo = outcome.agent
+    assert isinstance(ppo, JaxPPO) and ppo.rollout_backend == "compiled"
+    assert [r.surrogate_steps for r in outcome.rounds] == [0, 512, 1024] and ppo.num_timesteps == 1024
+    assert outcome.rounds[1].refit and ppo.rollout_compiles == 2  # round 2 trained in round 1's refit
