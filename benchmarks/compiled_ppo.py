@@ -1,7 +1,9 @@
 """PPO compiled with the surrogate's step against stable-baselines3's PPO in the same surrogate.
 
-On the cartpole swing-up's SINDy surrogate (fitted from 8,000 uniform-random real steps, as
-``sdrl-bench env=cartpole_swingup collector=random`` fits it), measured side by side in one run:
+On an env's SINDy surrogate (``--env``; default the cartpole swing-up, fitted from 8,000
+uniform-random real steps as ``sdrl-bench env=cartpole_swingup collector=random`` fits it; MountainCar
+and LunarLander from their fast packs' data, the env's heuristic in place of the pack's expert),
+measured side by side in one run:
 
   (a) SB3's PPO training in the surrogate vector env, as the harness builds both
       (``rl.transfer.surrogate_vec_env``, ``rl.agents.make_agent``: the recipe's VecNormalize
@@ -9,9 +11,11 @@ On the cartpole swing-up's SINDy surrogate (fitted from 8,000 uniform-random rea
   (b) the compiled PPO (``rl.jax_ppo``): rollout in the jax surrogate step and update in one
       ``jax.jit`` + ``lax.scan`` (no reward normalisation, see its docstring);
 
-each with the same settings, for two recipes: the swing-up Dyna pack's (``experiment=
-dyna_cartpole_swingup``: 64 envs x 256 steps, batch 1024, 4 epochs, gamma 0.995) and ``agent=
-ppo_fast`` (128 envs x 32 steps, batch 1024, 4 epochs, gamma 0.99). For a fixed number of env
+each with the same settings (gSDE and reward scaling included where a recipe sets them), for the
+env's recipes (``ENVS``): on the swing-up its Dyna pack's (``experiment=dyna_cartpole_swingup``: 64
+envs x 256 steps, batch 1024, 4 epochs, gamma 0.995) and ``agent=ppo_fast`` (128 envs x 32 steps,
+batch 1024, 4 epochs, gamma 0.99); on MountainCar and LunarLander their fast packs
+(``experiment=fast_<env>``). For a fixed number of env
 steps (``--steps``, rounded up to whole rollouts as SB3's ``learn`` does), repeated ``--repeats``
 times: median steps per second of training (rollout + update), the ratio (b)/(a), the share of
 the time in rollouts, each update's seconds and its achieved GFLOP/s (the FLOPs of the actor's and
@@ -25,7 +29,7 @@ a later call with another seed (run only). Beside them: float32 and float64 matm
 GFLOP/s); (a)'s are split by SB3's rollout callbacks. Wall-clock seconds: run it on a quiet
 machine (other load slows both arms, not necessarily alike).
 
-    .venv/bin/python benchmarks/compiled_ppo.py [--steps 131072] [--repeats 3] [--quick]
+    .venv/bin/python benchmarks/compiled_ppo.py [--env mountain_car] [--steps 131072] [--repeats 3] [--quick]
 """
 
 from __future__ import annotations
@@ -44,9 +48,18 @@ from sdrl_bench.rl.agents import make_agent
 from sdrl_bench.rl.transfer import surrogate_vec_env
 from sdrl_bench.surrogate.model_env import ModelEnv
 
-ENV = "cartpole_swingup"
-RECIPES = {"dyna pack": ["experiment=dyna_cartpole_swingup"], "ppo_fast": [f"env={ENV}", "agent=ppo_fast"]}
-"""The two recipes, as config overrides (their ``agent`` node is the SB3 recipe)."""
+ENVS = {
+    "cartpole_swingup": {"fit": ["env=cartpole_swingup", "collector=random"],
+                         "recipes": {"dyna pack": ["experiment=dyna_cartpole_swingup"],
+                                     "ppo_fast": ["env=cartpole_swingup", "agent=ppo_fast"]}},
+    "mountain_car": {"fit": ["experiment=fast_mountain_car", "collector=heuristic"],
+                     "recipes": {"fast pack": ["experiment=fast_mountain_car"]}},
+    "lunar_lander": {"fit": ["experiment=fast_lunar_lander", "collector=heuristic"],
+                     "recipes": {"fast pack": ["experiment=fast_lunar_lander"]}},
+}
+"""Per env: the surrogate's fit (its pack's model data, from the env's heuristic where the pack
+trains an expert first) and the recipes, as config overrides (their ``agent`` node is the SB3
+recipe)."""
 
 
 class RolloutClock(BaseCallback):
@@ -136,8 +149,8 @@ def compiled_parts(menv: ModelEnv, cfg: jax_ppo.PPOConfig, repeats: int) -> tupl
     import jax
 
     sur = jax_ppo.surrogate(menv)
-    net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act)
-    env, obs = jax_ppo.init_env(sur, jax.random.key(1), cfg.n_envs)
+    net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act, cfg, sur.discrete)
+    env, obs = jax_ppo.init_env(sur, jax.random.key(1), cfg.n_envs, cfg)
     rollout = jax.jit(jax_ppo.make_rollout(sur, cfg))
     _, _, traj, last = rollout(net, env, obs, jax.random.key(2))
     batch = jax.jit(lambda tr, lv: jax_ppo.make_batch(cfg, tr, lv))(traj, last)
@@ -147,15 +160,15 @@ def compiled_parts(menv: ModelEnv, cfg: jax_ppo.PPOConfig, repeats: int) -> tupl
             timed(lambda: update(net, opt, batch, jax.random.key(4))[0], repeats=repeats))
 
 
-def run_recipe(name: str, model, spec, steps: int, repeats: int, eval_episodes: int) -> dict:
+def run_recipe(env: str, name: str, model, spec, steps: int, repeats: int, eval_episodes: int) -> dict:
     import jax
 
-    agent = instantiate_key(compose(RECIPES[name]).agent, "agent")
+    agent = instantiate_key(compose(ENVS[env]["recipes"][name]).agent, "agent")
     cfg = jax_ppo.PPOConfig.from_agent(agent)
     menv = ModelEnv(model, spec, seed=0)
     iters = jax_ppo.n_iterations(cfg, steps)
     n_steps = iters * cfg.rollout_size
-    flops = update_flops(cfg, len(spec.obs_names), spec.raw_action_width)
+    flops = update_flops(cfg, len(spec.obs_names), spec.n_discrete_actions or spec.raw_action_width)
     print(f"\n{name}: {cfg}\n  {n_steps:,} steps = {iters} iterations of {cfg.rollout_size:,}; "
           f"update {flops / 1e9:.2f} GFLOP (matmuls, forward + backward)", flush=True)
 
@@ -194,7 +207,8 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=2**17, help="env steps per training run (rounded up to whole rollouts)")
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--eval-episodes", type=int, default=10)
-    ap.add_argument("--recipes", nargs="+", default=list(RECIPES), choices=list(RECIPES))
+    ap.add_argument("--env", default="cartpole_swingup", choices=list(ENVS))
+    ap.add_argument("--recipes", nargs="+", default=None, help="default: all of the env's (ENVS)")
     ap.add_argument("--cores", type=int, default=None, help="pin this process to its first N cores (both arms; "
                     "e.g. 1 for a per-core comparison); default: all it may use")
     ap.add_argument("--quick", action="store_true", help="a smoke run: 2^14 steps, 1 repeat, 2 eval episodes")
@@ -209,13 +223,17 @@ def main() -> None:
     from sdrl_bench.models.jax_eval import jax_modules
 
     jax, _ = jax_modules("benchmarks/compiled_ppo.py")  # float64 on before any jax array (the surrogate's step)
-    cfg = compose([f"env={ENV}", "collector=random"])
+    env = ENVS[args.env]
+    recipes = args.recipes or list(env["recipes"])
+    cfg = compose(env["fit"])
     torch.set_num_threads(int(cfg.torch_threads))  # as the harness trains SB3 (cli.train.prepare)
     t = time.perf_counter()
     fit = fit_dynamics(build_fit_job(cfg))
-    print(f"fit: {ENV} SINDy model from {len(fit.data.states):,} random transitions in {time.perf_counter() - t:.1f} s")
+    print(f"fit: {args.env} SINDy model from {len(fit.data.states):,} transitions ({' '.join(env['fit'])}) "
+          f"in {time.perf_counter() - t:.1f} s")
     peaks = {d: matmul_peak(d) for d in ("float32", "float64")}
-    rows = [run_recipe(name, fit.model, fit.spec, args.steps, args.repeats, args.eval_episodes) for name in args.recipes]
+    rows = [run_recipe(args.env, name, fit.model, fit.spec, args.steps, args.repeats, args.eval_episodes)
+            for name in recipes]
 
     load = os.getloadavg()
     print(f"\nmedian of {args.repeats} interleaved runs; load average {load[0]:.1f} (a busy machine makes these noisy); "

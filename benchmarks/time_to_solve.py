@@ -84,13 +84,13 @@ def cli(workdir: Path, overrides: list[str], multirun: bool = True) -> None:
 
 def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int, rerun: bool = False) -> list[str]:
     recipe, where = ARMS[arm]
-    out = [f"experiment={PACKS[env][recipe]}", f"rl.arms=[{where}]", f"seed={','.join(map(str, seeds))}",
+    pack = PACKS[env]["fast" if recipe == "jax" else recipe]  # the compiled arms run the fast pack
+    out = [f"experiment={pack}", f"rl.arms=[{where}]", f"seed={','.join(map(str, seeds))}",
            "rl.stop_when_solved=true", "rl.reuse_real_arm=false", f"rl.eval_episodes={EVAL_EPISODES}",
            f"tracking.uri={uri}", f"hydra.launcher.n_jobs={jobs}", *(["resume=false"] if rerun else [])]
     if recipe == "zoo":
         out.append(f"rl.eval_every={ZOO_EVAL_EVERY[env]}")
     if recipe == "jax":
-        out[0] = f"experiment={PACKS[env]['fast']}"
         out.append(f"agent={AGENTS[env]['jax']}")
     if arm in COLLECTOR:
         out.append(f"collector={COLLECTOR[arm]}")

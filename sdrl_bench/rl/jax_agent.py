@@ -110,21 +110,26 @@ class JaxPPO:
         """The config (the env's copy count, VecNormalize's scaling), the networks, the
         optimiser and the compiled update, once."""
         space = env.action_space
-        if not hasattr(space, "low"):
-            raise ConfigError(f"agent=ppo_jax: the compiled PPO has a Gaussian policy for Box actions; the env's actions "
-                              f"are {type(space).__name__}")
+        discrete = hasattr(space, "n") and not hasattr(space, "low")
+        if not discrete and not hasattr(space, "low"):
+            raise ConfigError(f"agent=ppo_jax: the compiled PPO acts in Box or Discrete spaces, not {type(space).__name__}")
         _, norm = _surrogate_of(env)
         cfg = PPOConfig.from_kwargs(self._kwargs, env.num_envs, norm is not None and bool(norm.norm_reward), "agent.algo")
         if norm is not None:
             cfg = replace(cfg, clip_reward=float(norm.clip_reward))
         n_obs = int(np.prod(env.observation_space.shape))
-        self._init(cfg, n_obs, int(np.prod(space.shape)), np.asarray(space.low, np.float32),
-                   np.asarray(space.high, np.float32))
+        if discrete:
+            self._init(cfg, n_obs, int(space.n), None, None)
+        else:
+            self._init(cfg, n_obs, int(np.prod(space.shape)), np.asarray(space.low, np.float32),
+                       np.asarray(space.high, np.float32))
 
-    def _init(self, cfg: PPOConfig, n_obs: int, n_act: int, low: np.ndarray, high: np.ndarray) -> None:
+    def _init(self, cfg: PPOConfig, n_obs: int, n_act: int, low: np.ndarray | None, high: np.ndarray | None) -> None:
+        """Networks (a categorical policy when ``low`` is None), optimiser, compiled functions."""
         jax, jnp = self._jax, self._jnp
-        self.cfg, self._bounds, self._n_obs = cfg, (low, high), n_obs
-        self.net = jax_ppo.init_net(self._split(), n_obs, n_act, cfg)
+        self.cfg, self._bounds, self._n_obs, self._n_act = cfg, (low, high), n_obs, n_act
+        self.discrete = low is None
+        self.net = jax_ppo.init_net(self._split(), n_obs, n_act, cfg, self.discrete)
         self._opt = jax_ppo.optimizer(cfg).init(self.net)
         update = jax_ppo.make_update(cfg)
 
@@ -140,8 +145,8 @@ class JaxPPO:
 
         self._act = jax.jit(act)
         self._value = jax.jit(jax_ppo.value)
-        lo, hi = jnp.asarray(low), jnp.asarray(high)
-        self._mean = jax.jit(lambda net, obs: jnp.clip(jax_ppo.action_mean(net, obs), lo, hi))
+        lo, hi = (None, None) if self.discrete else (jnp.asarray(low), jnp.asarray(high))
+        self._mean = jax.jit(lambda net, obs: jax_ppo.deterministic_action(net, obs, lo, hi))
         self._explore = jax.jit(lambda net, key: jax_ppo.exploration_matrices(net, key, cfg.n_envs))
 
     def _timed_compile(self, fn: Any, *args: Any) -> Any:
@@ -256,7 +261,7 @@ class JaxPPO:
         for _ in range(cfg.n_steps):
             obs = np.asarray(self._last_obs, np.float32).reshape(n, -1)
             action, logp, v = (np.asarray(x) for x in self._act(self.net, obs, self._split(), explore))
-            new_obs, rewards, dones, infos = env.step(np.clip(action, low, high))
+            new_obs, rewards, dones, infos = env.step(action if self.discrete else np.clip(action, low, high))
             self.num_timesteps += n
             if not callback.on_step():
                 return None
@@ -280,8 +285,9 @@ class JaxPPO:
 
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool = False) -> tuple[np.ndarray, None]:
-        """The action for one observation or a batch, clipped to the action space: the mean
-        (``deterministic``) or a sample (plain Gaussian noise; gSDE draws fresh matrices)."""
+        """The action for one observation or a batch: the mean clipped to the action space or
+        the most probable index (``deterministic``), or a sample (plain Gaussian noise; gSDE draws
+        fresh matrices; categorical draws), clipped."""
         obs = np.asarray(observation, np.float32)
         single = obs.ndim == 1
         batch = obs.reshape(1 if single else obs.shape[0], -1)
@@ -290,7 +296,7 @@ class JaxPPO:
         else:
             explore = jax_ppo.exploration_matrices(self.net, self._split(), batch.shape[0])
             action, _, _ = jax_ppo.sample_action(self.net, batch, self._split(), explore)
-            out = np.clip(np.asarray(action), *self._bounds)
+            out = np.asarray(action) if self.discrete else np.clip(np.asarray(action), *self._bounds)
         return (out[0] if single else out), None
 
     # ------------------------------------------------------------------ files
@@ -299,9 +305,9 @@ class JaxPPO:
         ``params.npz`` (the networks' arrays in pytree order)."""
         leaves = self._jax.tree_util.tree_leaves(self.net)
         low, high = self._bounds
-        meta = {"format": FORMAT, "config": asdict(self.cfg), "n_obs": self._n_obs, "n_act": int(low.size),
-                "action_low": low.tolist(), "action_high": high.tolist(), "num_timesteps": int(self.num_timesteps),
-                "seed": self.seed}
+        meta = {"format": FORMAT, "config": asdict(self.cfg), "n_obs": self._n_obs, "n_act": self._n_act,
+                "action_low": None if low is None else low.tolist(), "action_high": None if high is None else high.tolist(),
+                "num_timesteps": int(self.num_timesteps), "seed": self.seed}
         buf = io.BytesIO()
         np.savez(buf, *[np.asarray(x) for x in leaves])
         with zipfile.ZipFile(path, "w") as zf:
@@ -319,8 +325,8 @@ class JaxPPO:
             raise ValueError(f"{path}: not a JaxPPO agent ({meta.get('format')!r})")
         agent = cls(seed=meta["seed"])
         cfg = PPOConfig(**meta["config"])
-        agent._init(cfg, meta["n_obs"], meta["n_act"], np.asarray(meta["action_low"], np.float32),
-                    np.asarray(meta["action_high"], np.float32))
+        bounds = [None if meta[k] is None else np.asarray(meta[k], np.float32) for k in ("action_low", "action_high")]
+        agent._init(cfg, meta["n_obs"], meta["n_act"], *bounds)
         treedef = agent._jax.tree_util.tree_structure(agent.net)
         agent.net = agent._jax.tree_util.tree_unflatten(treedef, [agent._jnp.asarray(x) for x in leaves])
         agent._opt = jax_ppo.optimizer(cfg).init(agent.net)

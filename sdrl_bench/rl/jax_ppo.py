@@ -45,10 +45,11 @@ and a second parameter format beside SB3's. optax provides the optimiser (Adam, 
 clipping); the PPO loop itself is what no installed library offers over the harness's surrogate
 step (rejax and PureJaxRL expect their own env API).
 
-Covered: the surrogates ``jax_step`` covers (Pendulum, MountainCar, CartPole, the swing-up), with
-continuous (Box) actions and no step noise (``jax_step``'s ``noise`` stays None; a ModelEnv that adds noise is
-refused, as are discrete actions: no categorical policy yet). jax and optax are the optional
-``jax`` extra (``pip install 'sdrl-bench[jax]'``), imported on first use.
+Covered: the surrogates ``jax_step`` covers (Pendulum, MountainCar, CartPole, the swing-up)
+without step noise (``jax_step``'s ``noise`` stays None; a ModelEnv that adds noise is refused).
+Box actions get the Gaussian above; discrete actions a categorical policy over the actor's logits
+(SB3's ``CategoricalDistribution``). jax and optax are the optional ``jax`` extra (``pip install
+'sdrl-bench[jax]'``), imported on first use.
 """
 
 from __future__ import annotations
@@ -163,11 +164,12 @@ def mlp_layers(n_obs: int, n_act: int) -> dict[str, list[tuple[int, int]]]:
     return {"actor": [*hidden, (HIDDEN[-1], n_act)], "critic": [*hidden, (HIDDEN[-1], 1)]}
 
 
-def init_net(key: Any, n_obs: int, n_act: int, cfg: PPOConfig | None = None) -> dict[str, Any]:
+def init_net(key: Any, n_obs: int, n_act: int, cfg: PPOConfig | None = None, discrete: bool = False) -> dict[str, Any]:
     """The actor, critic and log-std, initialised as SB3's MlpPolicy (``ortho_init``): orthogonal
-    weights with gain sqrt(2) in hidden layers, 0.01 for the action mean, 1 for the value; zero
-    biases; log-std ``cfg.log_std_init`` (one per action, or with gSDE one per (latent feature,
-    action), SB3's ``full_std``). float32."""
+    weights with gain sqrt(2) in hidden layers, 0.01 for the action mean (or the logits), 1 for
+    the value; zero biases; log-std ``cfg.log_std_init`` (one per action, or with gSDE one per
+    (latent feature, action), SB3's ``full_std``). float32. ``discrete``: a categorical policy
+    over ``n_act`` actions (the actor's outputs are its logits; no log-std)."""
     jax, jnp, _ = _modules()
     cfg = cfg or PPOConfig()
     net: dict[str, Any] = {}
@@ -180,9 +182,18 @@ def init_net(key: Any, n_obs: int, n_act: int, cfg: PPOConfig | None = None) -> 
             w = jax.nn.initializers.orthogonal(scale=gain)(next(keys), (n_in, n_out), jnp.float32)
             out.append((w, jnp.zeros(n_out, jnp.float32)))
         net[name] = out
+    if discrete:
+        if cfg.use_sde:
+            raise ConfigError("PPOConfig.use_sde: gSDE needs continuous (Box) actions")
+        return net
     shape = (HIDDEN[-1], n_act) if cfg.use_sde else (n_act,)
     net["log_std"] = jnp.full(shape, cfg.log_std_init, jnp.float32)
     return net
+
+
+def is_discrete(net: dict) -> bool:
+    """Whether ``net`` is a categorical policy (``init_net(discrete=True)``: no log-std)."""
+    return "log_std" not in net
 
 
 def _hidden(layers: list, x: Any) -> Any:
@@ -237,24 +248,54 @@ def exploration_matrices(net: dict, key: Any, n: int) -> Any:
     import jax  # noqa: PLC0415
     import jax.numpy as jnp  # noqa: PLC0415
 
-    log_std = net["log_std"]
-    if log_std.ndim == 1:
+    log_std = net.get("log_std")
+    if log_std is None or log_std.ndim == 1:
         return None
     return jnp.exp(log_std) * jax.random.normal(key, (n, *log_std.shape), jnp.float32)
 
 
 def sample_action(net: dict, obs: Any, key: Any, explore: Any = None) -> tuple[Any, Any, Any]:
-    """(action (N, n_act), its log-probability (N,), mean): plain, mean + std x N(0, 1); gSDE
-    (``explore``: ``exploration_matrices``), mean + latent @ E_i for copy i, as SB3 samples."""
+    """(action, its log-probability (N,), the deterministic action): plain Gaussian, mean + std x
+    N(0, 1); gSDE (``explore``: ``exploration_matrices``), mean + latent @ E_i for copy i, as SB3
+    samples (actions (N, n_act) float32); categorical, an index (N,) int32 drawn from the logits."""
     import jax  # noqa: PLC0415
     import jax.numpy as jnp  # noqa: PLC0415
 
+    if is_discrete(net):
+        logits = action_mean(net, obs)
+        action = jax.random.categorical(key, logits).astype(jnp.int32)
+        logp = jnp.take_along_axis(jax.nn.log_softmax(logits), action[:, None], axis=1)[:, 0]
+        return action, logp, jnp.argmax(logits, axis=-1).astype(jnp.int32)
     mean, std, latent = policy(net, obs)
     if explore is None:
         action = mean + std * jax.random.normal(key, mean.shape, jnp.float32)
     else:
         action = mean + jnp.einsum("ni,nij->nj", latent, explore)
     return action, log_prob(action, mean, std), mean
+
+
+def log_prob_entropy(net: dict, obs: Any, actions: Any) -> tuple[Any, Any]:
+    """(log-probability (N,), entropy (N,)) of stored ``actions`` under the current policy."""
+    import jax  # noqa: PLC0415
+    import jax.numpy as jnp  # noqa: PLC0415
+
+    if is_discrete(net):
+        logp_all = jax.nn.log_softmax(action_mean(net, obs))
+        logp = jnp.take_along_axis(logp_all, actions.astype(jnp.int32)[:, None], axis=1)[:, 0]
+        return logp, -jnp.sum(jnp.exp(logp_all) * logp_all, axis=-1)
+    mean, std, _ = policy(net, obs)
+    return log_prob(actions, mean, std), entropy(std)
+
+
+def deterministic_action(net: dict, obs: Any, low: Any = None, high: Any = None) -> Any:
+    """The policy's deterministic action: the most probable index (categorical; (N,) int32) or
+    the Gaussian's mean clipped to [low, high] (N, n_act)."""
+    import jax.numpy as jnp  # noqa: PLC0415
+
+    out = action_mean(net, obs)
+    if is_discrete(net):
+        return jnp.argmax(out, axis=-1).astype(jnp.int32)
+    return jnp.clip(out, low, high)
 
 
 def log_prob(actions: Any, mean: Any, std: Any) -> Any:
@@ -354,24 +395,27 @@ class Surrogate(NamedTuple):
     reset: Callable
     n_obs: int
     n_act: int
-    action_low: np.ndarray
-    action_high: np.ndarray
+    """Action dimensions (Box) or the number of discrete actions."""
+    action_low: np.ndarray | None
+    action_high: np.ndarray | None
+    """The Box's bounds (None for discrete actions)."""
     max_steps: int
+    discrete: bool = False
 
 
 def surrogate(model_env: Any) -> Surrogate:
     """``model_env`` as the compiled loop steps it; refuses (in one line) what it does not cover:
-    discrete actions, step noise, and whatever ``jax_step`` refuses."""
+    step noise, and whatever ``jax_step`` refuses."""
     _modules()
     spec = model_env.spec
-    if spec.n_discrete_actions:
-        raise NotImplementedError(f"jax_ppo: env '{spec.name}' has discrete actions; the compiled PPO has a Gaussian "
-                                  "policy for Box actions only")
     if has_step_noise(model_env):
         raise NotImplementedError(f"jax_ppo: the surrogate of env '{spec.name}' adds step noise (its model's residual "
                                   "covariance or its own draws); the compiled loop steps without noise: build the "
                                   "ModelEnv with noise=False to train on its mean")
     space = model_env.action_space
+    if spec.n_discrete_actions:
+        return Surrogate(jax_step(model_env), jax_observe(model_env), jax_reset(model_env), len(spec.obs_names),
+                         int(spec.n_discrete_actions), None, None, int(spec.max_episode_steps), True)
     return Surrogate(jax_step(model_env), jax_observe(model_env), jax_reset(model_env), len(spec.obs_names),
                      spec.raw_action_width, np.asarray(space.low, np.float32), np.asarray(space.high, np.float32),
                      int(spec.max_episode_steps))
@@ -390,7 +434,7 @@ def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
     """``rollout(net, env, obs, key) -> (env, obs, transitions, last value)``: ``cfg.n_steps``
     steps of the ``cfg.n_envs`` copies (pure; jit it, or call it inside a compiled loop)."""
     jax, jnp, _ = _modules()
-    low, high = jnp.asarray(sur.action_low), jnp.asarray(sur.action_high)
+    low, high = (None, None) if sur.discrete else (jnp.asarray(sur.action_low), jnp.asarray(sur.action_high))
     n, gamma = cfg.n_envs, cfg.gamma
 
     def one_step(net, explore, carry, key):
@@ -398,7 +442,7 @@ def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
         k_act, k_reset = jax.random.split(key)
         action, logp, _ = sample_action(net, obs, k_act, explore)
         v = value(net, obs)
-        env_action = jnp.clip(action, low, high).astype(jnp.float64)
+        env_action = action[:, None] if sur.discrete else jnp.clip(action, low, high).astype(jnp.float64)
         nxt, reward, terminated, diverged = sur.step(env.states, env_action)
         t = env.t + 1
         truncated = (t >= sur.max_steps) | diverged
@@ -461,14 +505,13 @@ def make_update(cfg: PPOConfig) -> Callable:
 
     def loss_fn(net, b):
         obs, act, old_logp, adv, ret = b
-        mean, std, _ = policy(net, obs)
-        logp = log_prob(act, mean, std)
+        logp, ent_rows = log_prob_entropy(net, obs, act)
         adv = (adv - adv.mean()) / (jnp.std(adv, ddof=1) + 1e-8)
         log_ratio = logp - old_logp
         ratio = jnp.exp(log_ratio)
         pg_loss = -jnp.mean(jnp.minimum(adv * ratio, adv * jnp.clip(ratio, 1.0 - c, 1.0 + c)))
         value_loss = jnp.mean((ret - value(net, obs)) ** 2)
-        ent = jnp.mean(entropy(std))
+        ent = jnp.mean(ent_rows)
         loss = pg_loss - cfg.ent_coef * ent + cfg.vf_coef * value_loss
         return loss, {"pg_loss": pg_loss, "value_loss": value_loss, "entropy": ent,
                       "approx_kl": jnp.mean((ratio - 1.0) - log_ratio), "clip_fraction": jnp.mean(jnp.abs(ratio - 1.0) > c)}
@@ -530,7 +573,7 @@ def make_train(model_env: Any, cfg: PPOConfig, total_steps: int) -> Callable:
 
     def train_fn(key):
         k_net, k_env, k_loop = jax.random.split(key, 3)
-        net = init_net(k_net, sur.n_obs, sur.n_act, cfg)
+        net = init_net(k_net, sur.n_obs, sur.n_act, cfg, sur.discrete)
         env, obs = init_env(sur, k_env, cfg.n_envs, cfg)
         (net, _, _, _), stats = jax.lax.scan(iteration, (net, tx.init(net), env, obs), jax.random.split(k_loop, iters))
         return net, stats
@@ -539,8 +582,11 @@ def make_train(model_env: Any, cfg: PPOConfig, total_steps: int) -> Callable:
 
 
 def as_params(net: Any, model_env: Any) -> dict[str, Any]:
-    """``train``'s params: the trained networks (``net``) and the action space's bounds."""
+    """``train``'s params: the trained networks (``net``) and the action space's bounds (None
+    for discrete actions)."""
     space = model_env.action_space
+    if not hasattr(space, "low"):
+        return {"net": net, "action_low": None, "action_high": None}
     return {"net": net, "action_low": np.asarray(space.low, np.float32), "action_high": np.asarray(space.high, np.float32)}
 
 
@@ -560,15 +606,15 @@ def train(model_env: Any, cfg: PPOConfig, total_steps: int, seed: int = 0) -> tu
 
 class JaxPolicy:
     """The trained policy's deterministic action: the Gaussian's mean, clipped to the action
-    space. ``policy(obs)`` for one observation (n_obs,) or a batch (N, n_obs) (numpy in, numpy
-    float32 out); ``predict(obs, deterministic=True)`` as SB3's, so ``rl.agents.evaluate_real``
-    plays it in the real env."""
+    space, or the most probable discrete action. ``policy(obs)`` for one observation (n_obs,) or
+    a batch (N, n_obs) (numpy in, numpy out); ``predict(obs, deterministic=True)`` as SB3's, so
+    ``rl.agents.evaluate_real`` plays it in the real env."""
 
     def __init__(self, params: dict[str, Any]):
         jax, jnp, _ = _modules()
         self.params = params
         low, high = params["action_low"], params["action_high"]
-        self._act = jax.jit(lambda net, obs: jnp.clip(action_mean(net, obs), low, high))
+        self._act = jax.jit(lambda net, obs: deterministic_action(net, obs, low, high))
 
     def __call__(self, obs: Any) -> np.ndarray:
         obs = np.asarray(obs, dtype=np.float32)
@@ -594,12 +640,13 @@ def evaluate_surrogate(model_env: Any, params: dict[str, Any], n_episodes: int, 
     ``spec.max_episode_steps`` steps or its end (termination, divergence)."""
     jax, jnp, _ = _modules()
     sur = surrogate(model_env)
-    low, high = jnp.asarray(params["action_low"]), jnp.asarray(params["action_high"])
+    low, high = params["action_low"], params["action_high"]
 
     def run(net, key):
         def body(carry, _):
             states, ret, live = carry
-            a = jnp.clip(action_mean(net, sur.observe(states).astype(jnp.float32)), low, high).astype(jnp.float64)
+            a = deterministic_action(net, sur.observe(states).astype(jnp.float32), low, high)
+            a = a[:, None] if sur.discrete else a.astype(jnp.float64)
             nxt, r, term, div = sur.step(states, a)
             return (nxt, ret + jnp.where(live, r, 0.0), live & ~term & ~div), None
 

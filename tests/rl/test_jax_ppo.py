@@ -152,36 +152,51 @@ def test_what_it_does_not_cover_is_refused_and_a_recipe_maps_onto_its_config(pen
         jax_ppo.PPOConfig.from_kwargs({"sde_sample_freq": 4, "policy_kwargs": {"net_arch": [32]}}, 8)
 
 
-@pytest.mark.parametrize("use_sde", [False, True])
-def test_the_policy_is_sb3s_policy_given_its_weights(pendulum, use_sde):
-    """SB3's PPO policy (plain and gSDE) with its weights copied in: the same values, mean,
-    log-probabilities and entropies, and with gSDE the same action for the same exploration
-    matrices; the log-std has SB3's shape and initial value."""
+@pytest.mark.parametrize("kind", ["gaussian", "gsde", "categorical"])
+def test_the_policy_is_sb3s_policy_given_its_weights(pendulum, kind):
+    """SB3's PPO policy (Gaussian, gSDE on Pendulum; categorical on CartPole) with its weights
+    copied in: the same values, log-probabilities and entropies, and with gSDE the same action
+    for the same exploration matrices; the log-std has SB3's shape and initial value."""
+    import gymnasium as gym
     import torch as th
     from stable_baselines3 import PPO
 
-    spec = pendulum[1]
-    sb3 = PPO("MlpPolicy", spec.make_env(), use_sde=use_sde, policy_kwargs={"log_std_init": -0.5}, seed=0, device="cpu")
+    use_sde, discrete = kind == "gsde", kind == "categorical"
+    env = gym.make("CartPole-v1") if discrete else pendulum[1].make_env()
+    kwargs = {} if discrete else {"use_sde": use_sde, "policy_kwargs": {"log_std_init": -0.5}}
+    sb3 = PPO("MlpPolicy", env, seed=0, device="cpu", **kwargs)
     pol = sb3.policy
+    n_obs, n_act = (4, 2) if discrete else (3, 1)
     cfg = jax_ppo.PPOConfig(use_sde=use_sde, log_std_init=-0.5)
-    net = jax_ppo.init_net(jax.random.key(0), 3, 1, cfg)
-    assert net["log_std"].shape == tuple(pol.log_std.shape) and np.all(np.asarray(net["log_std"]) == np.float32(-0.5))
+    net = jax_ppo.init_net(jax.random.key(0), n_obs, n_act, cfg, discrete)
+    assert jax_ppo.is_discrete(net) == discrete
     rng = np.random.default_rng(0)
-    with th.no_grad():
-        pol.log_std.copy_(th.as_tensor(rng.normal(-0.5, 0.4, size=tuple(pol.log_std.shape)), dtype=th.float32))
+    if not discrete:
+        assert net["log_std"].shape == tuple(pol.log_std.shape) and np.all(np.asarray(net["log_std"]) == np.float32(-0.5))
+        with th.no_grad():
+            pol.log_std.copy_(th.as_tensor(rng.normal(-0.5, 0.4, size=tuple(pol.log_std.shape)), dtype=th.float32))
     lin = lambda seq: [m for m in seq if isinstance(m, th.nn.Linear)]  # noqa: E731
     as_layers = lambda ms: [(jnp.asarray(m.weight.detach().numpy().T), jnp.asarray(m.bias.detach().numpy())) for m in ms]  # noqa: E731
     net["actor"] = as_layers([*lin(pol.mlp_extractor.policy_net), pol.action_net])
     net["critic"] = as_layers([*lin(pol.mlp_extractor.value_net), pol.value_net])
-    net["log_std"] = jnp.asarray(pol.log_std.detach().numpy())
-    obs = rng.uniform(-1, 1, size=(64, 3)).astype(np.float32) * np.array([1, 1, 8], np.float32)
-    actions = rng.normal(0, 1.5, size=(64, 1)).astype(np.float32)
+    obs = rng.uniform(-1, 1, size=(64, n_obs)).astype(np.float32) * np.float32(2.0)
+    if discrete:
+        actions = rng.integers(0, 2, size=64)
+    else:
+        net["log_std"] = jnp.asarray(pol.log_std.detach().numpy())
+        actions = rng.normal(0, 1.5, size=(64, 1)).astype(np.float32)
     with th.no_grad():
         v_sb3, logp_sb3, ent_sb3 = (x.numpy() for x in pol.evaluate_actions(th.as_tensor(obs), th.as_tensor(actions)))
-    mean, std, latent = jax_ppo.policy(net, jnp.asarray(obs))
+    logp, ent = jax_ppo.log_prob_entropy(net, jnp.asarray(obs), jnp.asarray(actions))
     assert np.allclose(np.asarray(jax_ppo.value(net, jnp.asarray(obs))), v_sb3[:, 0], rtol=1e-5, atol=1e-5)
-    assert np.allclose(np.asarray(jax_ppo.log_prob(jnp.asarray(actions), mean, std)), logp_sb3, rtol=1e-5, atol=1e-5)
-    assert np.allclose(np.asarray(jax_ppo.entropy(std)), ent_sb3, rtol=1e-5, atol=1e-5)
+    assert np.allclose(np.asarray(logp), logp_sb3, rtol=1e-5, atol=1e-5)
+    assert np.allclose(np.asarray(ent), ent_sb3, rtol=1e-5, atol=1e-5)
+    if discrete:
+        with th.no_grad():
+            best = pol.predict(obs, deterministic=True)[0]
+        assert np.array_equal(np.asarray(jax_ppo.deterministic_action(net, jnp.asarray(obs))), best)
+        return
+    mean, std, _ = jax_ppo.policy(net, jnp.asarray(obs))
     if use_sde:
         assert np.ptp(np.asarray(std)) > 0.1  # state-dependent
         explore = jax_ppo.exploration_matrices(net, jax.random.key(3), 64)
