@@ -490,9 +490,12 @@ def gae(cfg: PPOConfig, values: Any, rewards: Any, dones: Any, last_value: Any) 
 
 
 def optimizer(cfg: PPOConfig) -> Any:
-    """The gradient's global norm clipped, then Adam (eps 1e-5), as SB3's PPO steps."""
+    """The gradient's global norm clipped, then Adam (eps 1e-5), as SB3's PPO steps; on the
+    parameters flattened into one vector (``optax.flatten``: the same elementwise Adam in a few
+    large ops instead of a few per array; measured 12.5 -> 11.6 ms per fast-pack update)."""
     _, _, optax = _modules()
-    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm), optax.adam(cfg.learning_rate, eps=ADAM_EPS))
+    return optax.flatten(optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
+                                     optax.adam(cfg.learning_rate, eps=ADAM_EPS)))
 
 
 def make_update(cfg: PPOConfig) -> Callable:

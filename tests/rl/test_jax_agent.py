@@ -94,6 +94,7 @@ def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path)
         assert 0 < run[f"metrics.{arm}/compile_wall_seconds"] < run[f"metrics.{arm}/train_wall_seconds"]
         assert run[f"metrics.{arm}/sb3/train/value_loss"] >= 0
     assert run["metrics.real/real_transitions_train"] == 1024
+    assert any((tmp_path / "mlruns" / "jax_cache").iterdir())  # jax_cache_dir: the compiled programs, for the next run
     from mlflow.tracking import MlflowClient
 
     path = MlflowClient(store).download_artifacts(run["run_id"], "agents/surrogate.zip", str(tmp_path))
