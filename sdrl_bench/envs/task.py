@@ -20,6 +20,9 @@ Signatures (batched: states and next states (N, n_state) in ``state_names`` orde
   penalty applies; None: every row;
 * ``step_one`` / ``step_batch``: compiled or plain-Python kernels of the step after the
   prediction (``surrogate.model_env`` documents their contract); None: the numpy composition;
+* ``array_step``: the same step as ``step_batch`` (and ``regime_dynamics``) written once for
+  numpy and jax arrays, with its per-row memory passed in and out (``ArrayStep``), for a jax step
+  (``surrogate.jax_step``); None: no such form (a jax step refuses ``step_batch`` then);
 * ``termination_causes(s, a, s') -> {cause: (N,) bool}`` and ``observed_causes(rewards,
   terminated) -> {cause: (N,) bool}``: why the surrogate's rules and the real env ended a
   transition (fidelity metrics per cause);
@@ -159,6 +162,29 @@ class Event:
 
 
 @dataclass(frozen=True)
+class ArrayStep:
+    """A task's kernels as array functions (``envs.functional.array_namespace``: numpy or jax),
+    for a step compiled by jax (``surrogate.jax_step``). Predictions are (N, n_target) here (the
+    jax step's layout); the per-row memory a compiled kernel keeps between calls (``step_batch``:
+    a counter per row) is ``aux`` (N,), passed in and out, fresh per episode (``init_aux``)."""
+
+    step: Callable[..., Callable]
+    """``step(limit, obs_low, obs_high) -> f(s, a, predicted, aux) -> (s', reward (N,),
+    terminated (N,) bool, diverged (N,) bool, aux)``: ``step_batch``'s step for predictions with
+    ``regime_dynamics`` applied (a diverged row keeps its state and memory, reward 0)."""
+    init_aux: Callable[[int], np.ndarray]
+    """``init_aux(n) -> (n,)``: the memory of n fresh episodes."""
+    regime_dynamics: Callable[..., Any] | None = None
+    """``(s, a, predicted (N, n_target)) -> (N, n_target)``: ``Task.regime_dynamics``; None: the model everywhere."""
+
+    def __post_init__(self) -> None:
+        for key in ("step", "init_aux", "regime_dynamics"):
+            fn = getattr(self, key)
+            if not callable(fn) and not (fn is None and key == "regime_dynamics"):
+                raise ConfigError(f"env task: array_step.{key} must be a function, got {type(fn).__name__}")
+
+
+@dataclass(frozen=True)
 class Task:
     """An env's task for a surrogate (see the module docstring); checked at construction."""
 
@@ -171,6 +197,8 @@ class Task:
     """``step_one(predictor, obs_low, obs_high) -> one-state step or None`` (see ``surrogate.model_env``)."""
     step_batch: Callable[..., Any] | None = None
     """``step_batch(limit, obs_low, obs_high, rng) -> batched step or None``."""
+    array_step: ArrayStep | None = None
+    """``step_batch`` and ``regime_dynamics`` for numpy and jax arrays (``ArrayStep``), or None."""
     termination_causes: Transition | None = None
     observed_causes: Callable[[np.ndarray, np.ndarray], dict] | None = None
     crash_reward: float | None = None
@@ -185,6 +213,8 @@ class Task:
                 raise ConfigError(f"env task: {key} must be a function, got {type(fn).__name__}")
         if self.reward_terminated is None:
             raise ConfigError("env task: reward_terminated is required")
+        if self.array_step is not None and not isinstance(self.array_step, ArrayStep):
+            raise ConfigError(f"env task: array_step must be an ArrayStep, got {type(self.array_step).__name__}")
         if self.uncertainty is not None and math.isfinite(self.uncertainty.limit) and self.crash_reward is None:
             raise ConfigError("env.spec.crash_reward: required with a finite env.spec.uncertainty.limit "
                               "(the reward of a step the limit ends)")

@@ -45,9 +45,10 @@ and a second parameter format beside SB3's. optax provides the optimiser (Adam, 
 clipping); the PPO loop itself is what no installed library offers over the harness's surrogate
 step (rejax and PureJaxRL expect their own env API).
 
-Covered: the surrogates ``jax_step`` covers (Pendulum, MountainCar, CartPole, the swing-up)
-without step noise (``jax_step``'s ``noise`` stays None; a ModelEnv that adds noise is refused).
-Box actions get the Gaussian above; discrete actions a categorical policy over the actor's logits
+Covered: the surrogates ``jax_step.jax_stepper`` covers (Pendulum, MountainCar, CartPole, the
+swing-up, LunarLander's flat world), with their step noise, pessimism, learned events and per-row
+memory, the noise and event draws made from jax keys inside the loop (the same distributions as
+``ModelEnv``'s, other draws). Box actions get the Gaussian above; discrete actions a categorical policy over the actor's logits
 (SB3's ``CategoricalDistribution``). jax and optax are the optional ``jax`` extra (``pip install
 'sdrl-bench[jax]'``), imported on first use.
 """
@@ -62,7 +63,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from sdrl_bench import ConfigError
-from sdrl_bench.surrogate.jax_step import has_step_noise, jax_observe, jax_reset, jax_step
+from sdrl_bench.surrogate.jax_step import jax_observe, jax_reset, jax_stepper, step_noise
 
 HIDDEN = (64, 64)
 """SB3's default ``net_arch`` for PPO's MlpPolicy: separate actor and critic MLPs."""
@@ -357,6 +358,8 @@ class EnvState(NamedTuple):
     """(n_envs,) float64 return of each episode so far (the task's rewards)."""
     norm: Any = None
     """``RewardNorm`` when the config normalizes rewards, else None."""
+    aux: Any = None
+    """(n_envs,) the task's per-row memory (``surrogate.jax_step.JaxStepper``; None: fresh)."""
 
 
 class Transition(NamedTuple):
@@ -391,6 +394,8 @@ class Surrogate(NamedTuple):
     """The surrogate's pieces as jax functions, with its sizes and bounds."""
 
     step: Callable
+    """``step(states, actions, aux, key) -> (next states, rewards, terminated, diverged, aux)``:
+    ``jax_stepper``'s step with its step noise and learned-event draws drawn from ``key``."""
     observe: Callable
     reset: Callable
     n_obs: int
@@ -401,24 +406,35 @@ class Surrogate(NamedTuple):
     """The Box's bounds (None for discrete actions)."""
     max_steps: int
     discrete: bool = False
+    init_aux: Callable | None = None
+    """``init_aux(n)``: the task's memory of n fresh episodes."""
 
 
 def surrogate(model_env: Any) -> Surrogate:
-    """``model_env`` as the compiled loop steps it; refuses (in one line) what it does not cover:
-    step noise, and whatever ``jax_step`` refuses."""
-    _modules()
+    """``model_env`` as the compiled loop steps it: ``surrogate.jax_step.jax_stepper``'s step,
+    with the ModelEnv's step noise (``step_noise`` of standard-normal draws: the same
+    distribution as ModelEnv's, not its draws) and one uniform per row and learned event drawn
+    from the step's key; refuses (in one line) what ``jax_stepper`` does not cover."""
+    jax, jnp, _ = _modules()
     spec = model_env.spec
-    if has_step_noise(model_env):
-        raise NotImplementedError(f"jax_ppo: the surrogate of env '{spec.name}' adds step noise (its model's residual "
-                                  "covariance or its own draws); the compiled loop steps without noise: build the "
-                                  "ModelEnv with noise=False to train on its mean")
+    stepper = jax_stepper(model_env)
+    noisy = model_env._chol is not None
+    m, k = len(spec.target_names), stepper.n_event_draws
+
+    def step(states, actions, aux, key):
+        k_noise, k_event = jax.random.split(key)
+        n = states.shape[0]
+        noise = step_noise(model_env, actions, jax.random.normal(k_noise, (n, m), jnp.float64)) if noisy else None
+        event_u = jax.random.uniform(k_event, (n, k), jnp.float64) if k else None
+        return stepper.step(states, actions, aux, noise, event_u)
+
     space = model_env.action_space
+    pieces = (step, jax_observe(model_env), jax_reset(model_env), len(spec.obs_names))
     if spec.n_discrete_actions:
-        return Surrogate(jax_step(model_env), jax_observe(model_env), jax_reset(model_env), len(spec.obs_names),
-                         int(spec.n_discrete_actions), None, None, int(spec.max_episode_steps), True)
-    return Surrogate(jax_step(model_env), jax_observe(model_env), jax_reset(model_env), len(spec.obs_names),
-                     spec.raw_action_width, np.asarray(space.low, np.float32), np.asarray(space.high, np.float32),
-                     int(spec.max_episode_steps))
+        return Surrogate(*pieces, int(spec.n_discrete_actions), None, None, int(spec.max_episode_steps), True,
+                         stepper.init_aux)
+    return Surrogate(*pieces, spec.raw_action_width, np.asarray(space.low, np.float32),
+                     np.asarray(space.high, np.float32), int(spec.max_episode_steps), False, stepper.init_aux)
 
 
 def init_env(sur: Surrogate, key: Any, n_envs: int, cfg: PPOConfig | None = None) -> tuple[EnvState, Any]:
@@ -426,7 +442,7 @@ def init_env(sur: Surrogate, key: Any, n_envs: int, cfg: PPOConfig | None = None
     _, jnp, _ = _modules()
     states = sur.reset(key, n_envs)
     norm = RewardNorm.init(n_envs) if cfg is not None and cfg.normalize_reward else None
-    env = EnvState(states, jnp.zeros(n_envs, jnp.int32), jnp.zeros(n_envs, jnp.float64), norm)
+    env = EnvState(states, jnp.zeros(n_envs, jnp.int32), jnp.zeros(n_envs, jnp.float64), norm, sur.init_aux(n_envs))
     return env, sur.observe(states).astype(jnp.float32)
 
 
@@ -439,11 +455,11 @@ def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
 
     def one_step(net, explore, carry, key):
         env, obs = carry
-        k_act, k_reset = jax.random.split(key)
+        k_act, k_reset, k_step = jax.random.split(key, 3)
         action, logp, _ = sample_action(net, obs, k_act, explore)
         v = value(net, obs)
         env_action = action[:, None] if sur.discrete else jnp.clip(action, low, high).astype(jnp.float64)
-        nxt, reward, terminated, diverged = sur.step(env.states, env_action)
+        nxt, reward, terminated, diverged, aux = sur.step(env.states, env_action, env.aux, k_step)
         t = env.t + 1
         truncated = (t >= sur.max_steps) | diverged
         done = terminated | truncated
@@ -457,12 +473,15 @@ def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
         fresh = sur.reset(k_reset, n)
         states = jnp.where(done[:, None], fresh, nxt)
         new_obs = jnp.where(done[:, None], sur.observe(fresh).astype(jnp.float32), final_obs)
-        new_env = EnvState(states, jnp.where(done, 0, t), jnp.where(done, 0.0, ep_return), norm)
+        new_env = EnvState(states, jnp.where(done, 0, t), jnp.where(done, 0.0, ep_return), norm,
+                           jnp.where(done, sur.init_aux(n), aux))
         tr = Transition(obs, action, logp, v, learn_reward, done, env.states, env_action, nxt, reward, terminated,
                         diverged, t, jnp.where(done, ep_return, 0.0))
         return (new_env, new_obs), tr
 
     def rollout(net, env, obs, key):
+        if env.aux is None:  # a state built without the task's memory: fresh episodes
+            env = env._replace(aux=sur.init_aux(n))
         k_explore, k_steps = jax.random.split(key)
         explore = exploration_matrices(net, k_explore, n)  # gSDE: drawn once per rollout (sde_sample_freq=-1)
         (env, obs), traj = jax.lax.scan(lambda c, k: one_step(net, explore, c, k), (env, obs),
@@ -646,15 +665,17 @@ def evaluate_surrogate(model_env: Any, params: dict[str, Any], n_episodes: int, 
     low, high = params["action_low"], params["action_high"]
 
     def run(net, key):
-        def body(carry, _):
-            states, ret, live = carry
+        def body(carry, k):
+            states, aux, ret, live = carry
             a = deterministic_action(net, sur.observe(states).astype(jnp.float32), low, high)
             a = a[:, None] if sur.discrete else a.astype(jnp.float64)
-            nxt, r, term, div = sur.step(states, a)
-            return (nxt, ret + jnp.where(live, r, 0.0), live & ~term & ~div), None
+            nxt, r, term, div, aux = sur.step(states, a, aux, k)
+            return (nxt, aux, ret + jnp.where(live, r, 0.0), live & ~term & ~div), None
 
-        init = (sur.reset(key, n_episodes), jnp.zeros(n_episodes), jnp.ones(n_episodes, bool))
-        (_, ret, _), _ = jax.lax.scan(body, init, None, length=sur.max_steps)
+        k_reset, k_steps = jax.random.split(key)
+        init = (sur.reset(k_reset, n_episodes), sur.init_aux(n_episodes), jnp.zeros(n_episodes),
+                jnp.ones(n_episodes, bool))
+        (_, _, ret, _), _ = jax.lax.scan(body, init, jax.random.split(k_steps, sur.max_steps))
         return ret
 
     return np.asarray(jax.jit(run)(params["net"], jax.random.key(int(seed))))

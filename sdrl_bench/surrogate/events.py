@@ -13,7 +13,9 @@ optional prior rule). This module, which knows no env, does the rest:
   ``min_events`` or with one outcome only (the task's own rules then decide alone);
 * ``score_events``: the run's event predictor (the prior where it decides, else the learned
   model, else the default outcome) on held-out real events: accuracy, log loss, counts;
-* ``EventModel.draw``: the surrogate's draw of an outcome per triggered row (``model_env``).
+* ``EventModel.draw``: the surrogate's draw of an outcome per triggered row (``model_env``);
+  ``logistic_numbers``, ``outcome_probabilities`` and ``draw_outcomes``: the same on numpy or jax
+  arrays with given uniforms (``jax_step``).
 
 A dynamics model fitted on one regime says nothing about what happens at such an event; a Dyna
 loop brings back the agent's own events, and the surrogate then ends them as the real env did
@@ -27,6 +29,7 @@ from typing import Any
 
 import numpy as np
 
+from sdrl_bench.envs.functional import array_namespace
 from sdrl_bench.envs.task import Event, Task
 
 
@@ -115,8 +118,7 @@ class EventModel:
     def draw(self, features: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """An outcome index per row, drawn from ``probabilities`` with one uniform per row."""
         p = self.probabilities(features)
-        u = rng.random(len(p))
-        return np.minimum((u[:, None] >= np.cumsum(p, axis=1)[:, :-1]).sum(axis=1), len(self.outcome_names) - 1)
+        return draw_outcomes(p, rng.random(len(p)))
 
     def metrics(self) -> dict[str, float]:
         return {"n_events": float(self.n_events), **{f"n_{k}": float(v) for k, v in self.counts.items()},
@@ -130,6 +132,53 @@ class EventModel:
                 "classes": [int(c) for c in self.classifier.classes_], "features": list(self.feature_names),
                 "mean": scaler.mean_.tolist(), "scale": scaler.scale_.tolist(), "coef": logit.coef_.tolist(),
                 "intercept": logit.intercept_.tolist(), **self.metrics()}
+
+
+def draw_outcomes(p: Any, u: Any) -> Any:
+    """(N,) outcome indices for probabilities ``p`` (N, n_outcomes) and uniforms ``u`` (N,) in
+    [0, 1): the first outcome whose cumulative probability exceeds u (``EventModel.draw``'s rule;
+    numpy or jax arrays)."""
+    xp = array_namespace(p, u)
+    return xp.minimum((u[:, None] >= xp.cumsum(p, axis=1)[:, :-1]).sum(axis=1), p.shape[1] - 1)
+
+
+def logistic_numbers(model: EventModel) -> tuple[np.ndarray, ...] | None:
+    """(mean, scale, coef, intercept, classes) of a model whose classifier is a fitted
+    standard scaler + logistic regression (what ``fit_event_model`` makes), as float arrays
+    (classes: int); None for any other classifier. ``outcome_probabilities`` evaluates them."""
+    steps = getattr(model.classifier, "steps", None)
+    if not steps or len(steps) != 2:
+        return None
+    scaler, logit = steps[0][1], steps[1][1]
+    if not all(hasattr(scaler, a) for a in ("mean_", "scale_")) or not all(
+            hasattr(logit, a) for a in ("coef_", "intercept_", "classes_", "predict_proba")):
+        return None
+    coef = np.asarray(logit.coef_, dtype=float)
+    n_features = coef.shape[1]
+    mean = np.zeros(n_features) if scaler.mean_ is None else np.asarray(scaler.mean_, dtype=float)
+    scale = np.ones(n_features) if scaler.scale_ is None else np.asarray(scaler.scale_, dtype=float)
+    return mean, scale, coef, np.asarray(logit.intercept_, dtype=float), np.asarray(logit.classes_, dtype=int)
+
+
+def outcome_probabilities(numbers: tuple, features: Any, n_outcomes: int) -> Any:
+    """(N, n_outcomes) ``EventModel.probabilities`` from ``logistic_numbers``, as scikit-learn
+    computes them (standardize; two classes: [1 - sigmoid, sigmoid] of the decision; more: its
+    softmax), 0 for outcomes never seen in training; numpy or jax arrays (equal to rounding; jax
+    in float64 once ``models.jax_eval.jax_modules`` turned it on, as ``jax_step`` does)."""
+    mean, scale, coef, intercept, classes = numbers
+    xp = array_namespace(features)
+    x = (xp.asarray(features, dtype=xp.float64) - mean) / scale
+    d = x @ coef.T + intercept
+    if len(classes) <= 2:
+        with np.errstate(over="ignore"):  # exp(-d) = inf far on the first class's side: p1 = 0
+            p1 = 1.0 / (1.0 + xp.exp(-d[:, 0]))
+        p = xp.stack([1.0 - p1, p1], axis=1)
+    else:
+        e = xp.exp(d - xp.max(d, axis=1, keepdims=True))
+        p = e / xp.sum(e, axis=1, keepdims=True)
+    col = {int(c): j for j, c in enumerate(classes)}
+    zero = xp.zeros(x.shape[0])
+    return xp.stack([p[:, col[k]] if k in col else zero for k in range(n_outcomes)], axis=1)
 
 
 def _training_set(event: Event, events: EventData) -> EventData:

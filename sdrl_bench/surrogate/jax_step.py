@@ -1,42 +1,66 @@
 """The surrogate's step as one pure JAX function (issue 31, second block), for tasks written for jax too.
 
-``jax_step(model_env)`` returns ``step(states, actions, noise=None) -> (next_states, rewards,
-terminated, diverged)``: ``ModelEnv.step`` (``surrogate.model_env``, its steps 1, 3, 4 and 5) as
-one pure float64 jax.numpy function, jit-able, for the model and task the ModelEnv holds now
-(build it again after ``ModelEnv.swap``). Nothing is drawn inside: the step noise ModelEnv draws
-from its ``noise`` stream is an input.
+``jax_stepper(model_env)`` returns a ``JaxStepper(step, init_aux, n_event_draws)`` whose
+``step(states, actions, aux, noise=None, event_u=None) -> (next_states, rewards, terminated,
+diverged, aux)`` is ``ModelEnv.step`` (``surrogate.model_env``, its steps 1 to 7) as one pure
+float64 jax.numpy function, jit-able, for the model, task and learned events the ModelEnv holds
+now (build it again after ``ModelEnv.swap``). Nothing is drawn and nothing is remembered inside:
+the step noise, the events' uniforms and the task's per-row memory are inputs.
+``jax_step(model_env)`` is the same without memory or events, ``step(states, actions,
+noise=None) -> (next_states, rewards, terminated, diverged)`` (refused, pointing here, for a
+task with memory or learned events).
 
 Layout (N rows, batched; numpy or jax arrays in, jax arrays out):
 
 * ``states`` (N, n_state), in the spec's ``state_names`` order (what ``ModelEnv.step`` takes);
 * ``actions``: the raw actions (N, raw width), as ``ModelEnv.step`` takes them (discrete: the
   action indices, integers or integral floats); the task's functions see them as given;
+* ``aux`` (N,) int64: the task's per-row memory (``task.array_step``: e.g. a sleep counter that
+  the compiled kernel keeps per row between calls); ``init_aux(n)`` is that of n fresh episodes
+  (zeros; zeros throughout for a task without memory). Pass the returned ``aux`` to the next
+  step and reset the rows whose episode ends: ``jnp.where(done, init_aux(n), aux)``. ModelEnv's
+  kernel does this itself (a row whose state is not the one it returned last counts from 0);
 * ``noise``: None (no step noise) or (N, n_targets), the already-scaled noise added to the
   model's prediction of the regressed states (``spec.target_names`` order), i.e. the transpose of
   what ``ModelEnv._add_noise`` adds to its rows. ``step_noise(model_env, actions)`` gives exactly
   what ModelEnv would add (drawn from its ``noise`` stream, advancing it as ``ModelEnv.step``
   does), or, for given standard-normal draws ``eps`` (N, n_targets), the noise ModelEnv makes of
   them (numpy draws: bit for bit; jax draws: a traceable einsum, equal to rounding);
+* ``event_u``: None (the learned events are not drawn: the task's rules alone) or (N,
+  ``n_event_draws``) uniforms in [0, 1), one per row and learned event, in the task's event
+  order; ModelEnv draws one from its ``events`` stream per row an event triggers on;
 * out: next states (N, n_state) float64, rewards (N,) float64, terminated (N,) bool, diverged
-  (N,) bool. A diverged row keeps its state, gets reward 0 and terminated False.
+  (N,) bool, aux (N,) int64. A diverged row keeps its state and memory, gets reward 0 and
+  terminated False.
 
-The steps, each as ModelEnv does it: the model's inputs (the regressed states, then the actions
-encoded by ``spec.action_encoding``: raw, clip, one_hot, index or values); the prediction
-(``models.jax_eval.jax_predictor``) plus the noise; the divergence guard (a non-finite value, or
-one beyond ``spec.divergence_limit()``, keeps the state; the rules below see the current state in
-its place, as ModelEnv's placeholders); the spec's bounds (``EnvSpec.apply_bounds``: the box
-clip, each ``circle_pairs`` pair projected back onto the unit circle, rounding to ``obs_dtype``);
-clipping to the real env's observation space where ModelEnv clips (``ModelEnv._clip``); angles
-wrapped to [-pi, pi); the task's reward and termination called on jax arrays: the spec's plain
-functions (``env.spec.reward_fn`` / ``termination_fn``), or the ``task.reward_terminated`` of a task
-an env class builds (``build_task``). Each must be written with ``envs.functional.array_namespace``
-(checked when the step is built: one line naming the key or the function), as must the spec's
-``apply_bounds`` and ``encode_actions`` when a class overrides them.
+The steps, each as ModelEnv does it: the model's inputs (the regressed states, the exogenous
+states, then the actions encoded by ``spec.action_encoding``: raw, clip, one_hot, index or
+values); the prediction (``models.jax_eval.jax_predictor``) plus the noise; the task's regime
+dynamics (``task.array_step.regime_dynamics``). Then, with the task's kernels (``task.step_batch``,
+ModelEnv's fused path), their array form ``task.array_step.step`` (the divergence guard and all
+the task's rules, memory in and out); else ModelEnv's composition: the divergence guard (a
+non-finite value, or one beyond ``spec.divergence_limit()``, keeps the state; the rules below see
+the current state in its place, as ModelEnv's placeholders); the spec's bounds
+(``EnvSpec.apply_bounds``: the box clip, each ``circle_pairs`` pair projected back onto the unit
+circle, rounding to ``obs_dtype``); clipping to the real env's observation space where ModelEnv
+clips (``ModelEnv._clip``); angles wrapped to [-pi, pi); the task's reward and termination called
+on jax arrays: the spec's plain functions (``env.spec.reward_fn`` / ``termination_fn``), or the
+``task.reward_terminated`` of a task an env class builds (``build_task``). Then the pessimism
+(``ModelEnv._pessimism``: the members' standard deviation, ddof 0, over ``model.members_``' jax
+predictors, in units of the task's scale, largest over states; penalty, free band, limit and
+crash reward; in ``task.model_regime``) and the learned events (``ModelEnv._draw_events``: on rows
+the trigger fires, not ended, open to the prior when the event learns on those, an outcome drawn
+by ``surrogate.events.draw_outcomes`` from the model's probabilities, ``outcome_probabilities``;
+an outcome that ends sets terminated and its reward). Every task function the step calls must be
+written with ``envs.functional.array_namespace`` (checked when the step is built: one line naming
+the key or the function), as must the spec's ``apply_bounds`` and ``encode_actions`` when a class
+overrides them.
 
 Rounding: ModelEnv evaluates the model with ``models.fast.batch_predictor`` and numpy's libm
 (hypot, exp, cos); jax sums the model's terms in the one-state evaluator's order and has its own
 transcendental functions, so the two agree to rounding (tested: <= 1e-12 on 10,000 states spanning
 and beyond the data, diverging rows included); jit fuses a*b + c into FMAs (again to rounding).
+Comparisons on rounded values (a threshold hit to the last bit) could then go either way.
 
 Around the step, for a loop compiled with it (``rl.jax_ppo``): ``jax_observe(model_env)``, the
 observations ``ModelEnv.observation`` emits (the spec's observation map in jax: each angle's cos and
@@ -45,18 +69,18 @@ states drawn from a jax PRNG key (the spec's ``initial_state_fn`` or the task's 
 or the ModelEnv's reset pool);
 ``has_step_noise(model_env)``, whether its step adds noise (a loop that feeds none must refuse it).
 
-Not covered (refused when the step is built, one line naming each): the task's compiled kernels
-(``task.step_batch``), exogenous states, regime dynamics, learned events, pessimism (build the
-ModelEnv with ``penalty=False``), a sampling model's own draws (``noise=False`` steps its mean).
-A task's one-state kernel (``task.step_one``) is no obstacle: ``ModelEnv.step`` composes the batched
-step with numpy, which this mirrors. Models without term tables (``nn``, ``pe``):
-``jax_predictor``'s error.
+Not covered (``unsupported``; refused when the step is built, one line naming each): models
+without term tables (``nn``, ``pe``), a sampling model's own draws (``noise=False`` steps its
+mean), compiled kernels without an array form (``task.array_step`` None),
+exogenous states or regime dynamics outside one, pessimism without ``members_``, learned events
+whose model is not a standard scaler + logistic regression. A task's one-state kernel
+(``task.step_one``) is no obstacle: it is the batched step for one state.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -64,24 +88,33 @@ from sdrl_bench import ConfigError
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.envs.functional import array_namespace, one_line, resolve, wrap_angle
 from sdrl_bench.models.jax_eval import jax_modules, jax_predictor
+from sdrl_bench.surrogate.events import draw_outcomes, logistic_numbers, outcome_probabilities
 
 JaxStep = Callable[..., tuple[Any, Any, Any, Any]]
 
 
 def unsupported(model_env: Any) -> list[str]:
-    """What of ``model_env``'s step ``jax_step`` does not cover yet (empty: all of it)."""
-    spec, task = model_env.spec, model_env.task
+    """What of ``model_env``'s step ``jax_stepper`` does not cover (empty: all of it)."""
+    spec, task, model = model_env.spec, model_env.task, model_env.model
     out = []
-    if task.step_batch is not None:
-        out.append("compiled kernels (task.step_batch)")
-    if spec.exogenous_names or task.exogenous is not None:
-        out.append("exogenous states (env.spec.exogenous_names)")
-    if task.regime_dynamics is not None:
-        out.append("regime dynamics (task.regime_dynamics)")
-    if model_env._learned:
-        out.append(f"learned events ({', '.join(e.name for e, _ in model_env._learned)})")
-    if model_env._members is not None:
-        out.append("pessimism (task.uncertainty; ModelEnv(penalty=False) steps without)")
+    if getattr(model, "terms_", None) is None or getattr(model, "coef_", None) is None:
+        kind = getattr(model, "kind", None) or type(model).__name__
+        out.append(f"a model without term tables ({kind}; jax_predictor evaluates the sparse models)")
+    array = task.array_step
+    lacking = [(what, key) for what, key, used, given in (
+        ("compiled kernels", "task.step_batch", model_env._step_batch is not None, array is not None),
+        ("regime dynamics", "task.regime_dynamics", task.regime_dynamics is not None,
+         array is not None and array.regime_dynamics is not None)) if used and not given]
+    if lacking:
+        out.append(f"{' and '.join(w for w, _ in lacking)} without an array form "
+                   f"({', '.join(k for _, k in lacking)}; no task.array_step)")
+    if model_env._step_batch is None and (spec.exogenous_names or task.exogenous is not None):
+        out.append("exogenous states outside the task's kernels (env.spec.exogenous_names)")
+    if model_env._members is not None and len(getattr(model, "members_", None) or []) < 2:
+        out.append("pessimism from a model without members_ (ModelEnv(penalty=False) steps without)")
+    bad = [e.name for e, m in model_env._learned if logistic_numbers(m) is None]
+    if bad:
+        out.append(f"learned events whose model is not a scaler + logistic regression ({', '.join(bad)})")
     if model_env._sample is not None:
         out.append("a sampling model's own draws (ModelEnv(noise=False) steps its mean)")
     return out
@@ -160,15 +193,23 @@ def _reward_terminated(spec: EnvSpec, task: Any, jax: Any, jnp: Any) -> Callable
     return reward_terminated
 
 
-def jax_step(model_env: Any) -> JaxStep:
-    """``step(states, actions, noise=None) -> (next_states, rewards, terminated, diverged)``:
-    ``model_env.step`` as a pure jax function (see the module docstring for the layout)."""
-    missing = unsupported(model_env)
+class JaxStepper(NamedTuple):
+    """``model_env``'s step as a pure jax function with its per-row memory and event draws as
+    inputs (see the module docstring)."""
+
+    step: Callable[..., tuple[Any, Any, Any, Any, Any]]
+    """``step(states, actions, aux, noise=None, event_u=None) -> (next_states, rewards,
+    terminated, diverged, aux)``."""
+    init_aux: Callable[[int], Any]
+    """``init_aux(n) -> (n,)`` int64: the memory of n fresh episodes (zeros for a task without)."""
+    n_event_draws: int
+    """Columns of ``event_u``: one uniform per row and learned event."""
+
+
+def _composed(model_env: Any, jax: Any, jnp: Any) -> Callable:
+    """``f(states, actions, rows, aux) -> (next_states, rewards, terminated, diverged, aux)``:
+    ModelEnv's numpy composition (``ModelEnv._compose``) after the prediction; no memory."""
     spec = model_env.spec
-    if missing:
-        raise NotImplementedError(f"jax_step: env '{spec.name}': not covered yet: {'; '.join(missing)}")
-    predict = jax_predictor(model_env.model)  # refuses a model without term tables
-    jax, jnp = jax_modules("sdrl_bench.surrogate.jax_step")
     targets = np.asarray(spec.target_index, dtype=int)
     all_targets = np.array_equal(targets, np.arange(len(spec.state_names)))
     limit = np.asarray(model_env.limit, dtype=float)
@@ -179,13 +220,8 @@ def jax_step(model_env: Any) -> JaxStep:
     angles = None if model_env._angles is None else np.asarray(model_env._angles, dtype=int)
     reward_terminated = _reward_terminated(spec, model_env.task, jax, jnp)
 
-    def step(states, actions, noise=None):
-        states = jnp.asarray(states, dtype=jnp.float64)
-        actions = jnp.asarray(actions)
+    def composed(states, actions, rows, aux):
         cur = states if all_targets else states[:, targets]
-        rows = predict(jnp.concatenate([cur, spec.encode_actions(actions)], axis=1))  # (N, n_targets)
-        if noise is not None:
-            rows = rows + jnp.asarray(noise, dtype=jnp.float64)
         ok = jnp.all(jnp.abs(rows) <= limit, axis=1)  # False for NaN and inf
         pred = jnp.where(ok[:, None], rows, cur)  # placeholders: the rules see finite values
         bounded = spec.apply_bounds(states, pred)  # written once for numpy and jax
@@ -196,7 +232,151 @@ def jax_step(model_env: Any) -> JaxStep:
             nxt = nxt.at[:, angles].set(wrap_angle(nxt[:, angles]))
         rewards, terminated = reward_terminated(states, actions, nxt)
         nxt = jnp.where(ok[:, None], nxt, states)
-        return nxt, jnp.where(ok, rewards, 0.0), terminated & ok, ~ok
+        return nxt, jnp.where(ok, rewards, 0.0), terminated & ok, ~ok, aux
+
+    return composed
+
+
+def _kernel(model_env: Any, jnp: Any) -> Callable:
+    """The task's kernels in their array form (``task.array_step``) for the ModelEnv's
+    divergence limit and observation bounds, outputs as jax arrays of fixed dtypes."""
+    fn = model_env.task.array_step.step(model_env.limit, model_env.obs_low, model_env.obs_high)
+
+    def kernel(states, actions, rows, aux):
+        nxt, rewards, terminated, diverged, aux = fn(states, actions, rows, aux)
+        return (jnp.asarray(nxt, dtype=jnp.float64), jnp.asarray(rewards, dtype=jnp.float64),
+                jnp.asarray(terminated, dtype=bool), jnp.asarray(diverged, dtype=bool), jnp.asarray(aux, dtype=jnp.int64))
+
+    return kernel
+
+
+def _state_fn(jax: Any, fn: Callable, key: str, n_state: int, width: int | None = None) -> None:
+    """``fn(states)`` traced on two abstract rows: (2,) values (``width`` None) or (2, width)."""
+    who = f"jax_step: {key} ({_describe(fn)})"
+    out = _traced(jax, fn, (jax.ShapeDtypeStruct((2, n_state), np.float64),), who)
+    want = (2,) if width is None else (2, width)
+    if tuple(getattr(out, "shape", ())) != want:
+        raise ConfigError(f"{who} returned shape {getattr(out, 'shape', None)} for 2 states; expected {want}")
+
+
+def _pessimism(model_env: Any, jax: Any, jnp: Any) -> Callable | None:
+    """``f(states, z, rewards, terminated, diverged) -> (rewards, terminated)``:
+    ``ModelEnv._pessimism`` with the members' jax predictors; None without pessimism."""
+    if model_env._members is None:
+        return None
+    task, model = model_env.task, model_env.model
+    members = [jax_predictor(model, coef=c) for c in model.members_]
+    unc = task.uncertainty
+    scale = np.asarray(unc.scale, dtype=float)
+    regime = task.model_regime
+    if regime is not None:
+        _state_fn(jax, regime, "task.model_regime", len(model_env.spec.state_names))
+    penalty, free, limit = float(unc.penalty), float(unc.free), float(unc.limit)
+    crash = float(task.crash_reward) if task.crash_reward is not None else 0.0
+
+    def pessimism(states, z, rewards, terminated, diverged):
+        u = (jnp.stack([m(z) for m in members]).std(axis=0) / scale).max(axis=1)  # (N,), as disagreement()
+        live = ~diverged & ~terminated
+        if regime is not None:
+            live = live & jnp.asarray(regime(states), dtype=bool).reshape(-1)
+        rewards = jnp.where(live, rewards - penalty * jnp.maximum(u - free, 0.0), rewards)
+        if np.isfinite(limit):
+            over = live & (u > limit)
+            rewards, terminated = jnp.where(over, crash, rewards), terminated | over
+        return rewards, terminated
+
+    return pessimism
+
+
+def _event_draws(model_env: Any, jax: Any, jnp: Any) -> list[Callable]:
+    """Per learned event, ``f(states, actions, nxt, rewards, terminated, diverged, u) ->
+    (rewards, terminated)``: ``ModelEnv._draw_events`` for uniforms ``u`` (N,), the event's
+    functions traced (each checked on jax arrays: one line naming it)."""
+    spec = model_env.spec
+    n_state = len(spec.state_names)
+    s = jax.ShapeDtypeStruct((2, n_state), np.float64)
+    action = jax.ShapeDtypeStruct((2, spec.raw_action_width), np.int64 if spec.n_discrete_actions else np.float64)
+    draws = []
+    for event, em in model_env._learned:
+        numbers = logistic_numbers(em)
+        key = f"env.spec.events ({event.name})"
+        out = _traced(jax, event.trigger, (s, action, s), f"jax_step: {key}.trigger ({_describe(event.trigger)})")
+        if _size(out) != 2:
+            raise ConfigError(f"jax_step: {key}.trigger returned shape {getattr(out, 'shape', None)} for 2 states")
+        _state_fn(jax, event.features, f"{key}.features", n_state, numbers[2].shape[1])
+        prior = event.prior if event.prior is not None and event.learn_on == "open" else None
+        if prior is not None:  # the prior's decided rows stay the task's
+            _state_fn(jax, prior, f"{key}.prior", n_state)
+        n_out = len(event.outcomes)
+        ends = jnp.asarray([o.ends for o in event.outcomes])
+        sets = ends & jnp.asarray([o.reward is not None for o in event.outcomes])
+        value = jnp.asarray([o.reward if o.reward is not None else 0.0 for o in event.outcomes], dtype=jnp.float64)
+
+        def draw(states, actions, nxt, rewards, terminated, diverged, u, event=event, numbers=numbers, prior=prior,
+                 n_out=n_out, ends=ends, sets=sets, value=value):
+            rows = jnp.asarray(event.trigger(states, actions, nxt), dtype=bool).reshape(-1) & ~terminated & ~diverged
+            if prior is not None:
+                rows = rows & (jnp.asarray(prior(states)).reshape(-1) == 0)
+            k = draw_outcomes(outcome_probabilities(numbers, event.features(states), n_out), u)
+            rewards = jnp.where(rows & sets[k], value[k], rewards)
+            return rewards, terminated | (rows & ends[k])
+
+        draws.append(draw)
+    return draws
+
+
+def jax_stepper(model_env: Any) -> JaxStepper:
+    """``model_env.step`` as a pure jax function with its memory and draws as inputs: a
+    ``JaxStepper`` (see the module docstring); refuses what it does not cover in one line."""
+    missing = unsupported(model_env)
+    spec, task = model_env.spec, model_env.task
+    if missing:
+        raise NotImplementedError(f"jax_step: env '{spec.name}': not covered yet: {'; '.join(missing)}")
+    predict = jax_predictor(model_env.model)
+    jax, jnp = jax_modules("sdrl_bench.surrogate.jax_step")
+    inputs = np.concatenate([spec.target_index, spec.exogenous_index]).astype(int)  # ModelEnv.model_inputs
+    kernel = model_env._step_batch is not None
+    after = _kernel(model_env, jnp) if kernel else _composed(model_env, jax, jnp)
+    regime = task.array_step.regime_dynamics if task.regime_dynamics is not None else None
+    fresh = task.array_step.init_aux if kernel else (lambda n: np.zeros(n, dtype=np.int64))
+    pessimism = _pessimism(model_env, jax, jnp)
+    draws = _event_draws(model_env, jax, jnp)
+
+    def step(states, actions, aux, noise=None, event_u=None):
+        states = jnp.asarray(states, dtype=jnp.float64)
+        actions = jnp.asarray(actions)
+        z = jnp.concatenate([states[:, inputs], spec.encode_actions(actions)], axis=1)
+        rows = predict(z)  # (N, n_targets)
+        if noise is not None:
+            rows = rows + jnp.asarray(noise, dtype=jnp.float64)
+        if regime is not None:
+            rows = jnp.asarray(regime(states, actions, rows), dtype=jnp.float64)
+        nxt, rewards, terminated, diverged, aux = after(states, actions, rows, jnp.asarray(aux))
+        if pessimism is not None:
+            rewards, terminated = pessimism(states, z, rewards, terminated, diverged)
+        if draws and event_u is not None:
+            u = jnp.asarray(event_u, dtype=jnp.float64).reshape(states.shape[0], len(draws))
+            for j, draw in enumerate(draws):
+                rewards, terminated = draw(states, actions, nxt, rewards, terminated, diverged, u[:, j])
+        return nxt, rewards, terminated, diverged, aux
+
+    return JaxStepper(step, lambda n: jnp.asarray(fresh(n), dtype=jnp.int64), len(draws))
+
+
+def jax_step(model_env: Any) -> JaxStep:
+    """``step(states, actions, noise=None) -> (next_states, rewards, terminated, diverged)``:
+    ``model_env.step`` as a pure jax function, for a step without per-row memory or learned
+    events (else ``jax_stepper``; see the module docstring)."""
+    stepper = jax_stepper(model_env)
+    if model_env._step_batch is not None or stepper.n_event_draws:
+        raise NotImplementedError(f"jax_step: env '{model_env.spec.name}': its step keeps per-row memory "
+                                  "(task.array_step) or draws learned events: use jax_stepper")
+    _, jnp = jax_modules("sdrl_bench.surrogate.jax_step")
+
+    def step(states, actions, noise=None):
+        nxt, rewards, terminated, diverged, _ = stepper.step(states, actions, jnp.zeros(jnp.shape(states)[0], jnp.int64),
+                                                             noise)
+        return nxt, rewards, terminated, diverged
 
     return step
 

@@ -127,8 +127,8 @@ def test_the_policy_acts_in_the_real_env(trained):
 
 def test_what_it_does_not_cover_is_refused_and_a_recipe_maps_onto_its_config(pendulum):
     menv = ModelEnv(*pendulum, seed=0)
-    menv._chol = np.ones((1, 2, 2))  # as if its model had step noise
-    with pytest.raises(NotImplementedError, match=r"^jax_ppo: the surrogate of env 'pendulum' adds step noise") as err:
+    menv._sample = lambda z: z  # as if its model drew its own steps (a probabilistic ensemble)
+    with pytest.raises(NotImplementedError, match=r"^jax_step: env 'pendulum': not covered yet: a sampling model") as err:
         jax_ppo.surrogate(menv)
     assert "\n" not in str(err.value)
     pool = np.array([[0.1, 0.2], [0.3, 0.4], [-1.0, 2.0]])  # a ModelEnv given its reset states resets from them

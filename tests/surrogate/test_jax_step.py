@@ -132,18 +132,35 @@ def test_the_jax_step_is_the_model_envs_step(env):
 
 
 def test_step_noise_is_the_model_envs_draw_and_unsupported_tasks_are_refused():
-    """A task with compiled kernels, exogenous states, regime dynamics and pessimism: one line
-    naming each (a task its spec class builds is no reason in itself). Its step noise (residual covariance per one-hot action): ``step_noise`` gives
-    ModelEnv's draws bit for bit and advances the noise stream as a step does."""
+    """LunarLander (tests/surrogate/test_jax_step_lunar.py): ``jax_step`` refuses its per-row
+    memory and learned events in one line (``jax_stepper`` steps them); composed without its
+    kernels (exogenous states) and with an event model that is not a logistic regression,
+    ``jax_stepper`` refuses in one line naming each.
+    Its step noise (residual covariance per one-hot action): ``step_noise`` gives ModelEnv's
+    draws bit for bit and advances the noise stream as a step does."""
+    from sklearn.dummy import DummyClassifier  # noqa: PLC0415
+    from sklearn.pipeline import make_pipeline  # noqa: PLC0415
+    from sklearn.preprocessing import StandardScaler  # noqa: PLC0415
+
+    from sdrl_bench.surrogate.events import EventModel  # noqa: PLC0415
+    from sdrl_bench.surrogate.jax_step import jax_stepper  # noqa: PLC0415
+
     res = fit_dynamics(build_fit_job(compose_cfg("env=lunar_lander", "collector=random", "n_transitions=300")))
     a_env, b_env = (ModelEnv(res.model, res.job.spec, seed=0) for _ in range(2))
     with pytest.raises(NotImplementedError) as err:
         jax_step(a_env)
-    msg = str(err.value)
-    assert "\n" not in msg and msg.startswith("jax_step: env 'lunar_lander': not covered yet: ")
-    for what in ("task.step_batch", "exogenous states", "regime dynamics", "pessimism"):
-        assert what in msg, (what, msg)
-    assert "build_task" not in msg
+    assert str(err.value) == ("jax_step: env 'lunar_lander': its step keeps per-row memory (task.array_step) or draws "
+                              "learned events: use jax_stepper")
+    event = res.job.spec.task.events[0]
+    dummy = make_pipeline(StandardScaler(), DummyClassifier(strategy="prior")).fit(np.zeros((2, 11)), [0, 1])
+    coin = EventModel(event.name, event.outcome_names, event.feature_names, dummy, 2, {}, 0.5, 0.69)
+    for menv, what in ((ModelEnv(res.model, res.job.spec, fused=False, seed=0), "exogenous states"),
+                       (ModelEnv(res.model, res.job.spec, events={event.name: coin}, seed=0),
+                        f"learned events whose model is not a scaler + logistic regression ({event.name})")):
+        with pytest.raises(NotImplementedError) as err:
+            jax_stepper(menv)
+        msg = str(err.value)
+        assert "\n" not in msg and msg.startswith("jax_step: env 'lunar_lander': not covered yet: ") and what in msg, msg
 
     n, m = 500, len(res.job.spec.target_names)
     actions = np.random.default_rng(0).integers(res.job.spec.n_discrete_actions, size=(n, 1))

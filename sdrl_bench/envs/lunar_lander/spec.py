@@ -11,6 +11,7 @@ prediction has a noise floor no deterministic model beats (measured by replay: R
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 from collections.abc import Callable
 
@@ -19,10 +20,11 @@ from gymnasium.envs.box2d.lunar_lander import heuristic
 
 from sdrl_bench import ConfigError
 from sdrl_bench.envs.base import EnvSpec, Policy, StepOne, TestSetRecipe
-from sdrl_bench.envs.lunar_lander import task
+from sdrl_bench.envs.functional import array_namespace
+from sdrl_bench.envs.lunar_lander import array_rules, task
 from sdrl_bench.envs.lunar_lander.events import in_flight
 from sdrl_bench.envs.lunar_lander.task import LanderRules
-from sdrl_bench.envs.task import Task, parse_uncertainty
+from sdrl_bench.envs.task import ArrayStep, Task, parse_uncertainty
 
 STATE_NAMES = ("x", "y", "vx", "vy", "angle", "angvel", "leg_left", "leg_right")
 LEGS = ("leg_left", "leg_right")
@@ -89,7 +91,16 @@ class LunarLanderSpec(EnvSpec):
             termination_causes=self.termination_causes, observed_causes=self.observed_termination_causes,
             crash_reward=self.crash_reward,
             uncertainty=parse_uncertainty(self.uncertainty, np.sqrt(np.array(FLIGHT_NOISE_FLOOR)).tolist()),
-            events=self._events)
+            events=self._events, array_step=self.array_step())
+
+    def array_step(self) -> ArrayStep | None:
+        """The kernels' step and the settle step as array functions (``array_rules``: numpy or
+        jax), for a jax step; None with terrain (its per-episode ground lives in the compiled step)."""
+        if self.terrain:
+            return None
+        discrete = bool(self.n_discrete_actions)
+        return ArrayStep(step=partial(array_rules.make_step, self.rules, discrete), init_aux=array_rules.init_aux,
+                         regime_dynamics=partial(array_rules.regime_dynamics, self.rules, discrete))
 
     def learned_constants(self, data) -> tuple[dict, dict[str, float]]:
         """The contact rules the run's own transitions identify (``own_data.learn_rules``): the
@@ -210,5 +221,6 @@ class LunarLanderContinuousSpec(LunarLanderSpec):
     gym_kwargs: dict = field(default_factory=lambda: {"continuous": True})
 
     def encode_actions(self, actions: np.ndarray) -> np.ndarray:
-        """Throttles as the real env uses them: clipped to [-1, 1]."""
-        return np.clip(super().encode_actions(actions), -1.0, 1.0)
+        """Throttles as the real env uses them: clipped to [-1, 1] (numpy or jax arrays)."""
+        enc = super().encode_actions(actions)
+        return array_namespace(enc).clip(enc, -1.0, 1.0)

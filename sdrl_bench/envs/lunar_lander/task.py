@@ -62,6 +62,8 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
+from sdrl_bench.envs.functional import array_namespace
+
 # Observation units per SI unit, from the real env's observation formula (VIEWPORT_W = 600,
 # VIEWPORT_H = 400, SCALE = 30, FPS = 50): vx = 0.2 v_x, vy = (2/15) v_y, angvel = 0.4 omega.
 _VX_PER_MPS, _VY_PER_MPS, _W_PER_RADPS = 0.2, 2.0 / 15.0, 0.4
@@ -120,14 +122,16 @@ _DISCRETE_POWER = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [
 
 def engine_powers(actions: np.ndarray, discrete: bool) -> np.ndarray:
     """(N, 3) engine powers (left, main, right) as the real env computes them from the raw action
-    (continuous: main 0.5..1 when a0 > 0, a side engine 0.5..1 when |a1| > 0.5)."""
-    a = np.asarray(actions)
+    (continuous: main 0.5..1 when a0 > 0, a side engine 0.5..1 when |a1| > 0.5). numpy or jax
+    arrays (``array_rules``)."""
+    xp = array_namespace(actions)
+    a = xp.asarray(actions)
     if discrete:
-        return _DISCRETE_POWER[a.reshape(len(a), -1)[:, 0].astype(np.intp)]
-    a = np.clip(a.astype(float).reshape(len(a), -1), -1.0, 1.0)
-    main = np.where(a[:, 0] > 0.0, (np.clip(a[:, 0], 0.0, 1.0) + 1.0) * 0.5, 0.0)
-    side = np.where(np.abs(a[:, 1]) > 0.5, np.clip(np.abs(a[:, 1]), 0.5, 1.0), 0.0)
-    return np.column_stack([np.where(a[:, 1] < 0, side, 0.0), main, np.where(a[:, 1] > 0, side, 0.0)])
+        return xp.asarray(_DISCRETE_POWER)[a.reshape(a.shape[0], -1)[:, 0].astype(np.intp)]
+    a = xp.clip(a.astype(float).reshape(a.shape[0], -1), -1.0, 1.0)
+    main = xp.where(a[:, 0] > 0.0, (xp.clip(a[:, 0], 0.0, 1.0) + 1.0) * 0.5, 0.0)
+    side = xp.where(xp.abs(a[:, 1]) > 0.5, xp.clip(xp.abs(a[:, 1]), 0.5, 1.0), 0.0)
+    return xp.stack([xp.where(a[:, 1] < 0, side, 0.0), main, xp.where(a[:, 1] > 0, side, 0.0)], axis=1)
 
 
 def engine_cost(actions: np.ndarray, discrete: bool) -> np.ndarray:

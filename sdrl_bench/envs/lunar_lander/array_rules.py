@@ -1,0 +1,148 @@
+"""LunarLander's surrogate step after the prediction as array functions, for numpy and jax alike.
+
+The compiled loops of ``kernels`` (numba) walk the rows one by one and keep each row's sleep
+count in the step's own memory; a jax step (``surrogate.jax_step``) needs the same rules as
+whole-array operations with the memory passed in and out. These are those rules, written once with
+``envs.functional.array_namespace`` (numpy arrays in: numpy; jax arrays or tracers in: jax.numpy),
+in the kernels' operations and order (``kernels.settle``, ``_legs``, ``_quiet``, ``_outcome``,
+``_reward``, ``step``), the flat world only (terrain lives in the compiled step):
+
+* ``regime_dynamics(rules, discrete, states, actions, pred)``: the settle step on the legs,
+  predictions in the jax step's layout (N, 6);
+* ``make_step(rules, discrete, limit, obs_low, obs_high)`` -> ``step(states, actions, pred, aux)``
+  -> (next states (N, 8), rewards, terminated, diverged, aux): the divergence guard, float32
+  rounding, leg flags with hysteresis, the touchdown prior, clipping, the sleep count, crash,
+  out of bounds, rest and the shaped reward. ``aux`` (N,) int is each row's sleep count (0 for a
+  fresh episode: ``init_aux``); the kernel's ``last``/``count`` memory made explicit, so the
+  caller resets it where an episode ends.
+
+Branches become ``where``; the float32 observation is ``astype(float32).astype(float64)``. The
+constants are ``task.rules_vector``'s, indexed by the kernels' names. The tests check these against
+the kernels on random states (tests/surrogate/test_jax_step_lunar.py).
+"""
+
+from __future__ import annotations
+
+from functools import cache
+from typing import Any
+
+import numpy as np
+
+from sdrl_bench.envs.functional import array_namespace
+from sdrl_bench.envs.lunar_lander import kernels as kn
+from sdrl_bench.envs.lunar_lander import task
+from sdrl_bench.envs.lunar_lander.task import LanderRules
+
+REST_REWARD, CRASH_REWARD = 100.0, -100.0
+"""The real env's rewards of a body at rest and of a crash (or |x| >= 1): the kernels' ``_reward``."""
+
+
+@cache
+def _constants(rules: LanderRules) -> dict[str, Any]:
+    """The rules vector's values by the kernels' names (the same floats the kernels read)."""
+    k = task.rules_vector(rules)
+    names = ("TILT", "TOUCH", "RELEASE", "FLOOR", "V_FREE", "TIP", "REST_V2", "REST_W", "INV_VX", "INV_VY",
+             "INV_W", "FRAMES", "COULOMB", "STICK")
+    out: dict[str, Any] = {n: float(k[getattr(kn, n)]) for n in names}
+    out["SETTLE"] = tuple(float(v) for v in k[kn.SETTLE:])
+    return out
+
+
+def touchdown_crash(vy: Any, angle: Any, rules: LanderRules) -> Any:
+    """The touchdown prior on pre-impact columns (``kernels.touchdown_crash``): the downward
+    speed beyond ``touchdown_speed`` or the lander on its side."""
+    c = _constants(rules)
+    xp = array_namespace(vy, angle)
+    return (-vy * c["INV_VY"] > c["V_FREE"]) | (xp.abs(angle) > c["TIP"])
+
+
+def _sign(xp: Any, v: Any) -> Any:
+    """``kernels._sign``: 0 for 0 and NaN (``xp.sign`` gives NaN there)."""
+    return xp.where(v > 0.0, 1.0, xp.where(v < 0.0, -1.0, 0.0))
+
+
+def settle(c: dict, x, y, vx, vy, an, w, left, main, right) -> tuple:
+    """``kernels.settle`` on columns: the settle model, Coulomb friction with the main engine off,
+    stiction on idle steps, the floor."""
+    xp = array_namespace(x, y, vx, vy, an, w, left, main, right)
+    k = c["SETTLE"]
+    sx = _sign(xp, vx)
+    nvx = vx + k[0] * vx + k[1] * sx + k[2] * left + k[3] * right + k[4] * xp.sin(an) * main
+    nvy = vy + k[5] * vy + k[6] * main
+    nw = w + k[7] * w + k[8] * an + k[9] * left + k[10] * right
+    if c["COULOMB"] > 0.0:  # a constant: the kernel's branch on it is fixed per rules
+        nvx = xp.where(main == 0.0, vx - sx * xp.minimum(xp.abs(vx), c["COULOMB"]), nvx)
+    idle = (left == 0.0) & (main == 0.0) & (right == 0.0)
+    stick = c["STICK"]
+    nvx = xp.where(idle & ((nvx * vx < 0.0) | (xp.abs(nvx) < stick)), 0.0, nvx)
+    nvy = xp.where(idle & ((nvy * vy < 0.0) | (xp.abs(nvy) < stick)), 0.0, nvy)
+    nw = xp.where(idle & ((nw * w < 0.0) | (xp.abs(nw) < 2.0 * stick)), 0.0, nw)
+    ny = xp.maximum(y + k[12] * nvy, c["FLOOR"])
+    return x + k[11] * nvx, ny, nvx, nvy, an + k[13] * nw, nw
+
+
+def on_legs(states: Any) -> Any:
+    """(N,) bool: a leg flag set in s (the contact regime)."""
+    return (states[:, 6] > 0.5) | (states[:, 7] > 0.5)
+
+
+def regime_dynamics(rules: LanderRules, discrete: bool, states: Any, actions: Any, pred: Any) -> Any:
+    """Predictions (N, 6) with the rows of landers on their legs replaced by the settle step
+    (``task.regime_dynamics``, whose predictions are (6, N))."""
+    xp = array_namespace(states, actions, pred)
+    s = xp.asarray(states, dtype=xp.float64)
+    p = task.engine_powers(actions, discrete)
+    cols = settle(_constants(rules), *(s[:, j] for j in range(6)), p[:, 0], p[:, 1], p[:, 2])
+    return xp.where(on_legs(s)[:, None], xp.stack(cols, axis=1), xp.asarray(pred, dtype=xp.float64))
+
+
+def _phi(x, y, vx, vy, an, ll, lr, xp: Any) -> Any:
+    """``kernels._phi``: the real env's shaping potential, in its order of operations."""
+    return (-100.0 * xp.sqrt(x * x + y * y) - 100.0 * xp.sqrt(vx * vx + vy * vy)
+            - 100.0 * xp.abs(an) + 10.0 * ll + 10.0 * lr)
+
+
+def init_aux(n: int) -> np.ndarray:
+    """(n,) int64: the sleep count of fresh episodes (0)."""
+    return np.zeros(n, dtype=np.int64)
+
+
+def make_step(rules: LanderRules, discrete: bool, limit: Any, obs_low: Any, obs_high: Any):
+    """``step(states, actions, pred, aux) -> (next states, rewards, terminated, diverged, aux)``:
+    ``kernels.step`` in the flat world for predictions ``pred`` (N, 6; ``regime_dynamics``
+    applied), with the sleep count ``aux`` (N,) in and out. Diverged rows keep their state and
+    count, reward 0, not terminated."""
+    c = _constants(rules)
+    limit = np.asarray(limit, dtype=float)
+    low, high = np.asarray(obs_low, dtype=float), np.asarray(obs_high, dtype=float)
+
+    def step(states, actions, pred, aux):
+        xp = array_namespace(states, actions, pred, aux)
+        s = xp.asarray(states, dtype=xp.float64)
+        pred = xp.asarray(pred, dtype=xp.float64)
+        ok = xp.all(xp.abs(pred) <= limit, axis=1)  # False for NaN
+        # placeholders for diverged rows (their state is kept): no overflow in the float32 cast
+        obs = xp.where(ok[:, None], pred, 0.0).astype(np.float32).astype(xp.float64)
+        x, y, vx, vy, an, w = (obs[:, j] for j in range(6))
+        t = c["TILT"] * xp.sin(an)
+        hl, hr = y + t, y - t
+        ll = xp.where((hl <= c["TOUCH"]) | ((s[:, 6] > 0.5) & (hl <= c["RELEASE"])), 1.0, 0.0)
+        lr = xp.where((hr <= c["TOUCH"]) | ((s[:, 7] > 0.5) & (hr <= c["RELEASE"])), 1.0, 0.0)
+        down = ~on_legs(s) & ((ll > 0.5) | (lr > 0.5))
+        x, y, vx, vy, an, w, ll, lr = (xp.minimum(xp.maximum(v, low[j]), high[j])
+                                       for j, v in enumerate((x, y, vx, vy, an, w, ll, lr)))
+        legs = (ll > 0.5) | (lr > 0.5)
+        cost = task.engine_cost(actions, discrete)
+        rvx, rvy = vx * c["INV_VX"], vy * c["INV_VY"]
+        quiet = legs & (cost == 0.0) & (rvx * rvx + rvy * rvy <= c["REST_V2"]) & (xp.abs(w * c["INV_W"]) <= c["REST_W"])
+        crash = xp.where(down, touchdown_crash(s[:, 3], s[:, 4], rules), legs & (xp.abs(an) > c["TIP"]))
+        out = xp.abs(x) >= 1.0
+        count = xp.where(quiet, xp.asarray(aux) + 1, 0)
+        rest = count >= c["FRAMES"]
+        shaped = _phi(x, y, vx, vy, an, ll, lr, xp) - _phi(*(s[:, j] for j in (0, 1, 2, 3, 4, 6, 7)), xp) - cost
+        reward = xp.where(rest, REST_REWARD, xp.where(crash | out, CRASH_REWARD, shaped))
+        nxt = xp.stack([x, y, vx, vy, an, w, ll, lr], axis=1)
+        return (xp.where(ok[:, None], nxt, s), xp.where(ok, reward, 0.0), (crash | out | rest) & ok, ~ok,
+                xp.where(ok, count, aux).astype(np.int64))
+
+    return step
