@@ -107,6 +107,25 @@ def matmul_peak(dtype: str, n: int = 1024, repeats: int = 5) -> float:
     return 2 * n**3 / best / 1e9
 
 
+def layer_peak(batch: int = 1024, width: int = 64, reps: int = 200) -> float:
+    """GFLOP/s of the networks' own shape: ``reps`` chained (batch x width) @ (width x width)
+    matmuls, each followed by tanh, in one jitted loop (best of 5): what XLA reaches on PPO's
+    layers, well below the large-matmul peak."""
+    import jax
+    import jax.numpy as jnp
+
+    a = jax.random.normal(jax.random.key(0), (batch, width), jnp.float32)
+    w = jax.random.normal(jax.random.key(1), (width, width), jnp.float32) / jnp.float32(np.sqrt(width))
+    f = jax.jit(lambda a, w: jax.lax.fori_loop(0, reps, lambda i, x: jnp.tanh(x @ w), a))
+    f(a, w).block_until_ready()
+    best = np.inf
+    for _ in range(5):
+        t = time.perf_counter()
+        f(a, w).block_until_ready()
+        best = min(best, time.perf_counter() - t)
+    return 2 * batch * width * width * reps / best / 1e9
+
+
 def timed(fn, *args, repeats: int = 3) -> float:
     """Median wall seconds of ``fn(*args)`` (jax results waited for), after one warm-up call."""
     import jax
@@ -197,7 +216,8 @@ def run_recipe(env: str, name: str, model, spec, steps: int, repeats: int, eval_
     b_wall = float(np.median(jx))
     a_ret = sb3_surrogate_returns(algo, menv, eval_episodes, seed=123)
     b_ret = jax_ppo.evaluate_surrogate(menv, jax_ppo.as_params(net, menv), eval_episodes, seed=123)
-    return {"name": name, "steps": n_steps, "flops": flops, "first": first, "later": b_wall,
+    return {"name": name, "steps": n_steps, "flops": flops, "first": first, "later": b_wall, "rollout_size": cfg.rollout_size,
+            "roll_s": roll_s,
             "a": {"rate": n_steps / a_wall, "roll": a_roll, "upd": a_upd, "ret": float(np.mean(a_ret))},
             "b": {"rate": n_steps / b_wall, "roll": roll_s / (roll_s + upd_s), "upd": upd_s, "ret": float(np.mean(b_ret))}}
 
@@ -232,6 +252,7 @@ def main() -> None:
     print(f"fit: {args.env} SINDy model from {len(fit.data.states):,} transitions ({' '.join(env['fit'])}) "
           f"in {time.perf_counter() - t:.1f} s")
     peaks = {d: matmul_peak(d) for d in ("float32", "float64")}
+    peaks["layer"] = layer_peak()
     rows = [run_recipe(args.env, name, fit.model, fit.spec, args.steps, args.repeats, args.eval_episodes)
             for name in recipes]
 
@@ -239,7 +260,8 @@ def main() -> None:
     print(f"\nmedian of {args.repeats} interleaved runs; load average {load[0]:.1f} (a busy machine makes these noisy); "
           f"(a): torch {torch.get_num_threads()} thread(s) (the harness's torch_threads); (b): jax {jax.__version__} on "
           f"{jax.devices()[0].platform}, {len(os.sched_getaffinity(0))} core(s) for XLA's thread pool")
-    print(f"matmul peak (jax, 1024 x 1024): float32 {peaks['float32']:.1f} GFLOP/s, float64 {peaks['float64']:.1f} GFLOP/s")
+    print(f"matmul peak (jax, 1024 x 1024): float32 {peaks['float32']:.1f} GFLOP/s, float64 {peaks['float64']:.1f} GFLOP/s; "
+          f"the layers' shape (1024 x 64 @ 64 x 64 + tanh, chained): {peaks['layer']:.1f} GFLOP/s")
     head = (f"{'recipe':<10} {'arm':<26} {'steps':>8} {'steps/s':>10} {'(b)/(a)':>8} {'rollout':>8} "
             f"{'update s':>9} {'upd GFLOP/s':>11} {'% f32 peak':>10} {'sur. return':>11}")
     print(head)
@@ -255,6 +277,9 @@ def main() -> None:
                                         f"compile ~ {r['first'] - r['later']:.1f} s" for r in rows))
     print("(b) with its compile (first call): " + "; ".join(
         f"{r['name']}: {r['steps'] / r['first']:,.0f} steps/s, {r['steps'] / r['first'] / r['a']['rate']:.1f}x (a)" for r in rows))
+    print("ceiling, were the update at the layers' shape rate (its matmul FLOPs / that rate, plus (b)'s rollout): " + "; ".join(
+        f"{r['name']}: {r['rollout_size'] / (r['flops'] / (peaks['layer'] * 1e9) + r['roll_s']):,.0f} steps/s, "
+        f"{r['rollout_size'] / (r['flops'] / (peaks['layer'] * 1e9) + r['roll_s']) / r['a']['rate']:.1f}x (a)" for r in rows))
     print("rollout: share of training wall time in rollouts ((b): its rollout and update jitted and timed apart); "
           "update s: one iteration's update; sur. return: mean deterministic return in the surrogate after training")
 
