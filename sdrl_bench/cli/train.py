@@ -48,11 +48,11 @@ def prepare(cfg: DictConfig, job):
     import torch
 
     torch.set_num_threads(int(cfg.torch_threads))
+    checked = job.check()
     if cfg.get("jax_cache_dir") and getattr(getattr(job.agent.algo, "func", None), "__name__", None) == "JaxPPO":
         from sdrl_bench.rl.jax_agent import use_compilation_cache
 
         use_compilation_cache(cfg.jax_cache_dir)
-    checked = job.check()
     uri = tracking.resolve_uri(cfg.tracking.uri)
     tracking.check_writable(uri)
     return job, checked, uri

@@ -114,6 +114,17 @@ class JaxPPO:
             self._setup(env)
             env.seed(self.seed)
 
+    @staticmethod
+    def check_config(kwargs: dict[str, Any], n_envs: int) -> None:
+        """Config-time validation (``rl.agents.AgentConfig.check``, before any env step): the
+        optional extra is installed and the recipe's keyword arguments are ones this PPO has,
+        each failure one line naming the key."""
+        try:
+            jax_ppo._modules()
+        except ImportError as exc:
+            raise ConfigError(f"agent.algo: {exc}") from None
+        PPOConfig.from_kwargs(dict(kwargs), n_envs, False, "agent.algo")
+
     # ------------------------------------------------------------------ set-up
     def _split(self) -> Any:
         self._key, k = self._jax.random.split(self._key)

@@ -101,6 +101,14 @@ def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path)
     assert JaxPPO.load(path).num_timesteps == 1024
 
 
+def test_a_setting_the_compiled_ppo_lacks_is_one_line_before_any_run(store, tmp_path):
+    res = run_cli(*SMALL, "task=train", "+agent.algo.target_kl=0.01", f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode == 2, res.stderr[-2000:]
+    err = res.stderr.strip().splitlines()
+    assert len(err) == 1 and "agent.algo sets ['target_kl']" in err[0]
+    assert not (tmp_path / "mlruns" / "mlflow.db").exists() or search(store).empty  # no run was started
+
+
 def test_dyna_refits_are_compiled_again_and_trained_on(store):
     from sdrl_bench.rl.dyna import run_dyna
 

@@ -226,20 +226,23 @@ def test_reward_scaling_is_vecnormalizes():
     venv.close()
 
 
-def test_gae_and_one_update_are_sb3s_given_its_rollout_and_weights():
-    """SB3's PPO collects one rollout (8 LunarLander copies x 64 steps) and trains on it (one epoch,
-    one minibatch: no shuffling to tell apart); the compiled GAE on its buffer's values, rewards
-    and episode starts gives its advantages and returns, and the compiled update from its weights
-    lands on its weights after ``train()`` (loss, advantage normalisation, clipping, the gradient
-    clip and Adam)."""
+@pytest.mark.parametrize("env_id", ["LunarLander-v3", "Pendulum-v1"])
+def test_gae_and_one_update_are_sb3s_given_its_rollout_and_weights(env_id):
+    """SB3's PPO collects one rollout (8 copies x 64 steps of LunarLander, discrete, or Pendulum,
+    continuous, past episode ends) and trains on it (one epoch, one minibatch: no shuffling to tell
+    apart); the compiled GAE on its buffer's values, rewards and episode starts gives its
+    advantages and returns, and the compiled update from its weights lands on its weights after
+    ``train()`` (loss, advantage normalisation, clipping, the gradient clip and Adam)."""
     import torch as th
     from stable_baselines3 import PPO
     from stable_baselines3.common.env_util import make_vec_env
 
-    n_envs, n_steps = 8, 64
+    discrete = env_id.startswith("Lunar")
+    n_envs, n_steps = 8, 64 if discrete else 128
     kw = dict(n_steps=n_steps, batch_size=n_envs * n_steps, n_epochs=1, gamma=0.999, gae_lambda=0.98, ent_coef=0.01,
               learning_rate=5e-4)
-    sb3 = PPO("MlpPolicy", make_vec_env("LunarLander-v3", n_envs=n_envs, seed=0), seed=0, device="cpu", **kw)
+    venv = make_vec_env(env_id, n_envs=n_envs, seed=0, env_kwargs=None if discrete else {"max_episode_steps": 100})
+    sb3 = PPO("MlpPolicy", venv, seed=0, device="cpu", **kw)
     _, callback = sb3._setup_learn(n_envs * n_steps, None, True, "test", False)
     callback.on_training_start(locals(), globals())
     sb3.collect_rollouts(sb3.env, callback, sb3.rollout_buffer, n_rollout_steps=n_steps)
@@ -254,6 +257,8 @@ def test_gae_and_one_update_are_sb3s_given_its_rollout_and_weights():
                 "critic": layers([*pol.mlp_extractor.value_net, pol.value_net])}
 
     net, cfg = weights(), jax_ppo.PPOConfig(n_envs=n_envs, **kw)
+    if not discrete:
+        net["log_std"] = jnp.asarray(pol.log_std.detach().numpy().copy())
     done = np.concatenate([buf.episode_starts[1:], sb3._last_episode_starts[None]], axis=0) > 0.5
     assert done.any()  # episodes end inside the rollout
     with th.no_grad():
@@ -264,8 +269,8 @@ def test_gae_and_one_update_are_sb3s_given_its_rollout_and_weights():
     assert np.abs(np.asarray(ret) - buf.returns).max() <= 1e-6 * np.abs(buf.returns).max()
 
     flat = lambda x: jnp.asarray(x.reshape(-1, *x.shape[2:]))  # noqa: E731
-    batch = (flat(buf.observations), flat(buf.actions[..., 0]).astype(jnp.int32), flat(buf.log_probs),
-             flat(buf.advantages), flat(buf.returns))
+    actions = flat(buf.actions[..., 0]).astype(jnp.int32) if discrete else flat(buf.actions)
+    batch = (flat(buf.observations), actions, flat(buf.log_probs), flat(buf.advantages), flat(buf.returns))
     new, _, _ = jax.jit(jax_ppo.make_update(cfg))(net, jax_ppo.optimizer(cfg).init(net), batch, jax.random.key(0))
     sb3.train()
     after = weights()
@@ -275,3 +280,5 @@ def test_gae_and_one_update_are_sb3s_given_its_rollout_and_weights():
             assert moved > 1e-6  # the step is visible
             assert np.abs(np.asarray(w) - np.asarray(w1)).max() <= 1e-3 * moved
             assert np.abs(np.asarray(b) - np.asarray(b1)).max() <= 1e-6
+    if not discrete:
+        assert np.allclose(np.asarray(new["log_std"]), pol.log_std.detach().numpy(), rtol=0, atol=1e-6)

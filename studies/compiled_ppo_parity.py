@@ -1,0 +1,77 @@
+"""Does the compiled PPO (``agent=ppo_jax``) learn as SB3's PPO does, over many seeds?
+
+The tests check the pieces against SB3 (the policy, the reward scaling, GAE and one update on SB3's
+own rollout and weights). This checks the whole loop: for each seed, SB3's PPO (``rl.agents.make_agent``
+around the surrogate vector env, as the harness trains it) and ``rl.jax_agent.JaxPPO`` (its rollouts
+compiled in the same surrogate) train ``--steps`` steps with the same recipe (the env's fast pack)
+in the same SINDy surrogate (fitted once, from the env's heuristic), and each trained policy plays
+``--episodes`` deterministic episodes in that surrogate (``ModelEnv.step``, numpy, the same reset
+draws for every policy). Printed: per seed, both returns; their medians, IQMs and a Mann-Whitney
+test (``scipy.stats``).
+
+    .venv/bin/python studies/compiled_ppo_parity.py [--env lunar_lander] [--seeds 0-15] [--steps 262144]
+
+Measured (LunarLander, seeds 0-15, 262,144 steps, 20 episodes; about 4 min on this 2-core
+machine): SB3 median 236.9, IQM 233.1; compiled median 229.9, IQM 227.8; Mann-Whitney p = 0.27.
+The compiled arm's two lowest seeds (97.5, 116.7) lie below SB3's lowest (173.2).
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+import torch
+from scipy import stats
+
+from sdrl_bench.cli.build import build_fit_job, compose, instantiate_key
+from sdrl_bench.pipeline import fit_dynamics
+from sdrl_bench.rl.agents import make_agent
+from sdrl_bench.rl.transfer import surrogate_vec_env
+from sdrl_bench.surrogate.model_env import ModelEnv
+
+
+def surrogate_return(policy, menv: ModelEnv, episodes: int, seed: int) -> float:
+    """Mean return of ``policy.predict`` (deterministic) over ``episodes`` episodes side by side in
+    ``menv`` (resets drawn with ``seed``)."""
+    states = menv.initial_states(episodes, np.random.default_rng(seed))
+    ret, live = np.zeros(episodes), np.ones(episodes, bool)
+    for _ in range(menv.spec.max_episode_steps):
+        actions, _ = policy.predict(menv.observation(states), deterministic=True)
+        states, r, term, div = menv.step(states, np.asarray(actions))
+        ret += np.where(live, r, 0.0)
+        live &= ~term & ~div
+        if not live.any():
+            break
+    return float(ret.mean())
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--env", default="lunar_lander", choices=["lunar_lander", "mountain_car"])
+    ap.add_argument("--seeds", default="0-15")
+    ap.add_argument("--steps", type=int, default=262_144)
+    ap.add_argument("--episodes", type=int, default=20)
+    args = ap.parse_args()
+    lo, _, hi = args.seeds.partition("-")
+    seeds = list(range(int(lo), int(hi or lo) + 1))
+    pack = [f"experiment=fast_{args.env}", "collector=heuristic"]
+    cfg = compose(pack)
+    torch.set_num_threads(int(cfg.torch_threads))  # as the harness trains SB3 (cli.train.prepare)
+    fit = fit_dynamics(build_fit_job(cfg))
+    menv = ModelEnv(fit.model, fit.spec, seed=0)
+    out: dict[str, list[float]] = {"SB3 PPO": [], "compiled (ppo_jax)": []}
+    for seed in seeds:
+        for name, extra in (("SB3 PPO", []), ("compiled (ppo_jax)", ["agent=ppo_jax"])):
+            agent = instantiate_key(compose([*pack, *extra]).agent, "agent")
+            model = make_agent(agent, surrogate_vec_env(fit.model, fit.spec, agent.n_envs, seed), seed)
+            model.learn(args.steps)
+            out[name].append(surrogate_return(model, menv, args.episodes, seed=123))
+        print(f"seed {seed}: " + ", ".join(f"{k} {v[-1]:.1f}" for k, v in out.items()), flush=True)
+    for name, v in out.items():
+        print(f"{name}: median {np.median(v):.1f}, IQM {stats.trim_mean(v, 0.25):.1f}, min {min(v):.1f}")
+    print(f"Mann-Whitney U: p = {stats.mannwhitneyu(*out.values()).pvalue:.2f}")
+
+
+if __name__ == "__main__":
+    main()
