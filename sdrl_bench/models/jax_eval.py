@@ -155,3 +155,54 @@ def jax_predictor(model: Any, coef: Any = None) -> JaxPredict:
         return jnp.stack(out, axis=-1)
 
     return predict
+
+
+def linear_predictor(model: Any) -> tuple[Callable, tuple, np.ndarray]:
+    """``(predict(z, coef) -> (..., n_states), key, order)``: the model's prediction with its
+    coefficients an *argument* (``coef`` (n_states, n_terms) with its columns in ``order``,
+    ``model.coef_[:, order]``; traced under ``jit``), so that a
+    compiled program serves every model of the same structure: a Dyna refit or an ensemble member
+    steps through it without compiling again. Every term of the model's table is evaluated (the
+    generated source of ``scalar_source`` over an identity matrix, per stage for a staged model as
+    in ``jax_predictor``), and each output sums coefficient x term over the terms whose
+    coefficient is not 0: a term a refit dropped adds exactly 0, even where it is not finite, as
+    in the numpy evaluators, which never compute it. ``key``: the structure (term table, stages,
+    input count): models with equal keys share the compiled program, whatever their sparsity
+    (the terms are put in one canonical order, ``order``, since a fit lists them as it found them).
+    Equal to ``jax_predictor`` to rounding (the terms are summed in another order)."""
+    terms, coef, stages, n_inputs = _check(model, None)
+    order = np.array(sorted(range(len(terms)), key=lambda k: repr(terms[k])), dtype=int)
+    terms = [terms[k] for k in order]
+    _, jnp = jax_modules()
+    namespace = jax_namespace(jnp)
+    m, n_terms = coef.shape
+    if stages is None:
+        layout = [(list(range(m)), n_inputs, [])]
+    else:
+        n_ext = n_inputs + sum(len(st["clips"]) for st in stages["stages"])
+        layout = [(list(st["rows"]), n_ext, [(int(r), int(col), float(lo), float(hi)) for r, col, lo, hi in st["clips"]])
+                  for st in stages["stages"]]
+    n_cols = max(n for _, n, _ in layout)
+    parts = [(rows, _compile(terms, np.eye(n_terms), n_ext, namespace), clips) for rows, n_ext, clips in layout]
+
+    def predict(z, c):
+        z = jnp.asarray(z, dtype=jnp.float64)
+        c = jnp.asarray(c, dtype=jnp.float64)
+        if z.ndim < 1 or z.shape[-1] != n_inputs:
+            raise ValueError(f"linear_predictor: inputs of shape {z.shape}, expected (..., {n_inputs})")
+        if c.shape != (m, n_terms):
+            raise ValueError(f"linear_predictor: coefficients of shape {c.shape}, expected {(m, n_terms)}")
+        cols = [z[..., j] for j in range(n_inputs)] + [jnp.zeros(z.shape[:-1], dtype=jnp.float64)] * (n_cols - n_inputs)
+        out: list[Any] = [None] * m
+        for rows, fn, clips in parts:
+            feats = jnp.stack([jnp.broadcast_to(jnp.asarray(v, dtype=jnp.float64), z.shape[:-1]) for v in fn(cols)],
+                              axis=-1)[..., None, :]  # (..., 1, n_terms)
+            cs = c[jnp.asarray(rows)]  # (len(rows), n_terms)
+            vals = jnp.sum(jnp.where(cs != 0, cs * feats, 0.0), axis=-1)  # (..., len(rows))
+            for i, r in enumerate(rows):
+                out[r] = vals[..., i]
+            for r, col, lo, hi in clips:
+                cols[col] = jnp.clip(out[r], lo, hi)
+        return jnp.stack(out, axis=-1)
+
+    return predict, (repr(terms), repr(stages), n_inputs, (m, n_terms)), order

@@ -15,9 +15,11 @@ Where it steps:
   (``surrogate.vec.SurrogateVecEnv``, maybe inside ``VecNormalize``) and ``surrogate.jax_step``
   covers its ``ModelEnv``, each rollout is one compiled call (``jax_ppo.make_rollout``: the
   surrogate's step, resets, gSDE noise and the reward scaling inside it; the vector env itself is
-  not stepped) and each update another. A Dyna refit (``SurrogateVecEnv.swap_model``) is seen at
-  the next ``learn`` and the rollout compiled again for the new model; the episodes under way go
-  on. ``compile_seconds`` sums the compile times (ahead-of-time, timed apart; they are inside the
+  not stepped) and each update another. The surrogate model's numbers are an argument of the
+  compiled rollout: a Dyna refit (``SurrogateVecEnv.swap_model``) of the same structure (term
+  table, terms used, members, noise, events: ``JaxStepper.key``) steps through the same program
+  (``rollout_swaps``), another structure compiles again (``rollout_compiles``); the episodes
+  under way go on. ``compile_seconds`` sums the compile times (ahead-of-time, timed apart; they are inside the
   training wall the callbacks see).
 * **Python** (the real env's control, or a surrogate ``jax_step`` does not cover): the rollout
   steps the vector env in Python as SB3's ``collect_rollouts`` does (the sampled action stored
@@ -94,7 +96,10 @@ class JaxPPO:
         self.compile_seconds = 0.0
         """Seconds spent compiling (rollout and update; counted inside ``learn``'s wall)."""
         self.rollout_compiles = 0
-        """Rollouts compiled: one per surrogate model trained in (a Dyna refit compiles again)."""
+        """Rollouts compiled: one per surrogate structure trained in."""
+        self.rollout_swaps = 0
+        """Surrogate models (a Dyna refit) stepped by a rollout compiled before: the same
+        structure (``JaxStepper.key``) and spec, new numbers, no compile."""
         self.diverged_episodes = 0
         """Surrogate episodes ended by the model's divergence guard in compiled rollouts."""
         self.rollout_backend: str | None = None
@@ -105,7 +110,8 @@ class JaxPPO:
         self.cfg: PPOConfig | None = None
         self.net: dict | None = None
         self._opt = None
-        self._compiled: tuple | None = None  # (model, spec, compiled rollout, surrogate)
+        self._compiled: tuple | None = None  # (model, spec, compiled rollout, the surrogate's key)
+        self._params: Any = None  # the current surrogate model's numbers (the rollout's argument)
         self._cenv = self._cobs = None  # the compiled loop's env state and observations
         self._last_obs = None  # the Python loop's
         self._act = self._value = None
@@ -254,14 +260,20 @@ class JaxPPO:
         cfg = self.cfg
         if self._cenv is None:
             self._cenv, self._cobs = jax_ppo.init_env(sur, self._split(), cfg.n_envs, cfg)
+        self._params = sur.params
+        if self._compiled is not None and self._compiled[1] is menv.spec and self._compiled[3] == sur.key:
+            self._compiled = (menv.model, menv.spec, self._compiled[2], sur.key)  # a refit: new numbers, same program
+            self.rollout_swaps += 1
+            return True
         rollout = self._jax.jit(jax_ppo.make_rollout(sur, cfg))
-        self._compiled = (menv.model, menv.spec, self._timed_compile(rollout, self.net, self._cenv, self._cobs, self._split()))
+        exe = self._timed_compile(rollout, self.net, self._cenv, self._cobs, self._split(), sur.params)
+        self._compiled = (menv.model, menv.spec, exe, sur.key)
         self.rollout_compiles += 1
         return True
 
     def _rollout_compiled(self, callback: Any) -> tuple | None:
         callback.on_rollout_start()
-        env, obs, traj, last_value = self._compiled[2](self.net, self._cenv, self._cobs, self._split())
+        env, obs, traj, last_value = self._compiled[2](self.net, self._cenv, self._cobs, self._split(), self._params)
         self._jax.block_until_ready(last_value)
         self._cenv, self._cobs = env, obs
         self.num_timesteps += self.cfg.rollout_size

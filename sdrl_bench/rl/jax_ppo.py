@@ -63,7 +63,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from sdrl_bench import ConfigError
-from sdrl_bench.surrogate.jax_step import jax_observe, jax_reset, jax_stepper, step_noise
+from sdrl_bench.surrogate.jax_step import jax_observe, jax_reset, jax_stepper, noise_of
 
 HIDDEN = (64, 64)
 """SB3's default ``net_arch`` for PPO's MlpPolicy: separate actor and critic MLPs."""
@@ -394,8 +394,9 @@ class Surrogate(NamedTuple):
     """The surrogate's pieces as jax functions, with its sizes and bounds."""
 
     step: Callable
-    """``step(states, actions, aux, key) -> (next states, rewards, terminated, diverged, aux)``:
-    ``jax_stepper``'s step with its step noise and learned-event draws drawn from ``key``."""
+    """``step(states, actions, aux, key, params) -> (next states, rewards, terminated, diverged,
+    aux)``: ``jax_stepper``'s step with its step noise and learned-event draws drawn from ``key``
+    and the model's numbers ``params`` (``JaxStepper.params``)."""
     observe: Callable
     reset: Callable
     n_obs: int
@@ -408,6 +409,10 @@ class Surrogate(NamedTuple):
     discrete: bool = False
     init_aux: Callable | None = None
     """``init_aux(n)``: the task's memory of n fresh episodes."""
+    params: Any = None
+    """The ModelEnv's model as numbers (``JaxStepper.params``): an argument of the compiled rollout."""
+    key: tuple = ()
+    """``JaxStepper.key``: surrogates of equal keys (and spec) share a compiled rollout."""
 
 
 def surrogate(model_env: Any) -> Surrogate:
@@ -418,23 +423,24 @@ def surrogate(model_env: Any) -> Surrogate:
     jax, jnp, _ = _modules()
     spec = model_env.spec
     stepper = jax_stepper(model_env)
-    noisy = model_env._chol is not None
+    noisy = stepper.params["chol"] is not None
     m, k = len(spec.target_names), stepper.n_event_draws
 
-    def step(states, actions, aux, key):
+    def step(states, actions, aux, key, params):
         k_noise, k_event = jax.random.split(key)
         n = states.shape[0]
-        noise = step_noise(model_env, actions, jax.random.normal(k_noise, (n, m), jnp.float64)) if noisy else None
+        noise = noise_of(params["chol"], actions, jax.random.normal(k_noise, (n, m), jnp.float64)) if noisy else None
         event_u = jax.random.uniform(k_event, (n, k), jnp.float64) if k else None
-        return stepper.step(states, actions, aux, noise, event_u)
+        return stepper.step(states, actions, aux, noise, event_u, params)
 
     space = model_env.action_space
     pieces = (step, jax_observe(model_env), jax_reset(model_env), len(spec.obs_names))
     if spec.n_discrete_actions:
         return Surrogate(*pieces, int(spec.n_discrete_actions), None, None, int(spec.max_episode_steps), True,
-                         stepper.init_aux)
+                         stepper.init_aux, stepper.params, stepper.key)
     return Surrogate(*pieces, spec.raw_action_width, np.asarray(space.low, np.float32),
-                     np.asarray(space.high, np.float32), int(spec.max_episode_steps), False, stepper.init_aux)
+                     np.asarray(space.high, np.float32), int(spec.max_episode_steps), False, stepper.init_aux,
+                     stepper.params, stepper.key)
 
 
 def init_env(sur: Surrogate, key: Any, n_envs: int, cfg: PPOConfig | None = None) -> tuple[EnvState, Any]:
@@ -447,19 +453,21 @@ def init_env(sur: Surrogate, key: Any, n_envs: int, cfg: PPOConfig | None = None
 
 
 def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
-    """``rollout(net, env, obs, key) -> (env, obs, transitions, last value)``: ``cfg.n_steps``
-    steps of the ``cfg.n_envs`` copies (pure; jit it, or call it inside a compiled loop)."""
+    """``rollout(net, env, obs, key, params=None) -> (env, obs, transitions, last value)``:
+    ``cfg.n_steps`` steps of the ``cfg.n_envs`` copies (pure; jit it, or call it inside a compiled
+    loop). ``params``: the surrogate model's numbers (default ``sur.params``); compiled with them
+    as an argument, the rollout steps any surrogate of the same ``key`` without compiling again."""
     jax, jnp, _ = _modules()
     low, high = (None, None) if sur.discrete else (jnp.asarray(sur.action_low), jnp.asarray(sur.action_high))
     n, gamma = cfg.n_envs, cfg.gamma
 
-    def one_step(net, explore, carry, key):
+    def one_step(net, explore, params, carry, key):
         env, obs = carry
         k_act, k_reset, k_step = jax.random.split(key, 3)
         action, logp, _ = sample_action(net, obs, k_act, explore)
         v = value(net, obs)
         env_action = action[:, None] if sur.discrete else jnp.clip(action, low, high).astype(jnp.float64)
-        nxt, reward, terminated, diverged, aux = sur.step(env.states, env_action, env.aux, k_step)
+        nxt, reward, terminated, diverged, aux = sur.step(env.states, env_action, env.aux, k_step, params)
         t = env.t + 1
         truncated = (t >= sur.max_steps) | diverged
         done = terminated | truncated
@@ -479,12 +487,13 @@ def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
                         diverged, t, jnp.where(done, ep_return, 0.0))
         return (new_env, new_obs), tr
 
-    def rollout(net, env, obs, key):
+    def rollout(net, env, obs, key, params=None):
+        params = sur.params if params is None else params
         if env.aux is None:  # a state built without the task's memory: fresh episodes
             env = env._replace(aux=sur.init_aux(n))
         k_explore, k_steps = jax.random.split(key)
         explore = exploration_matrices(net, k_explore, n)  # gSDE: drawn once per rollout (sde_sample_freq=-1)
-        (env, obs), traj = jax.lax.scan(lambda c, k: one_step(net, explore, c, k), (env, obs),
+        (env, obs), traj = jax.lax.scan(lambda c, k: one_step(net, explore, params, c, k), (env, obs),
                                         jax.random.split(k_steps, cfg.n_steps))
         return env, obs, traj, value(net, obs)
 
@@ -669,7 +678,7 @@ def evaluate_surrogate(model_env: Any, params: dict[str, Any], n_episodes: int, 
             states, aux, ret, live = carry
             a = deterministic_action(net, sur.observe(states).astype(jnp.float32), low, high)
             a = a[:, None] if sur.discrete else a.astype(jnp.float64)
-            nxt, r, term, div, aux = sur.step(states, a, aux, k)
+            nxt, r, term, div, aux = sur.step(states, a, aux, k, sur.params)
             return (nxt, aux, ret + jnp.where(live, r, 0.0), live & ~term & ~div), None
 
         k_reset, k_steps = jax.random.split(key)

@@ -35,7 +35,7 @@ Layout (N rows, batched; numpy or jax arrays in, jax arrays out):
 
 The steps, each as ModelEnv does it: the model's inputs (the regressed states, the exogenous
 states, then the actions encoded by ``spec.action_encoding``: raw, clip, one_hot, index or
-values); the prediction (``models.jax_eval.jax_predictor``) plus the noise; the task's regime
+values); the prediction (``models.jax_eval.linear_predictor``: the coefficients an argument) plus the noise; the task's regime
 dynamics (``task.array_step.regime_dynamics``). Then, with the task's kernels (``task.step_batch``,
 ModelEnv's fused path), their array form ``task.array_step.step`` (the divergence guard and all
 the task's rules, memory in and out); else ModelEnv's composition: the divergence guard (a
@@ -87,7 +87,7 @@ import numpy as np
 from sdrl_bench import ConfigError
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.envs.functional import array_namespace, one_line, resolve, wrap_angle
-from sdrl_bench.models.jax_eval import jax_modules, jax_predictor
+from sdrl_bench.models.jax_eval import jax_modules, linear_predictor
 from sdrl_bench.surrogate.events import draw_outcomes, logistic_numbers, outcome_probabilities
 
 JaxStep = Callable[..., tuple[Any, Any, Any, Any]]
@@ -198,12 +198,23 @@ class JaxStepper(NamedTuple):
     inputs (see the module docstring)."""
 
     step: Callable[..., tuple[Any, Any, Any, Any, Any]]
-    """``step(states, actions, aux, noise=None, event_u=None) -> (next_states, rewards,
-    terminated, diverged, aux)``."""
+    """``step(states, actions, aux, noise=None, event_u=None, params=None) -> (next_states,
+    rewards, terminated, diverged, aux)``; ``params`` None: this stepper's own."""
     init_aux: Callable[[int], Any]
     """``init_aux(n) -> (n,)`` int64: the memory of n fresh episodes (zeros for a task without)."""
     n_event_draws: int
     """Columns of ``event_u``: one uniform per row and learned event."""
+    params: dict[str, Any] | None = None
+    """The numbers of the ModelEnv's model, as arrays: ``coef`` (the model's coefficients),
+    ``members`` (its ensemble members', stacked; None without pessimism), ``chol`` (the step
+    noise's square roots per discrete action; None without noise), ``events`` (per learned event
+    its scaler's mean and scale and its logistic coefficients and intercept). Passed to ``step``
+    as an argument of a compiled program, a refit of the same structure (equal ``key``) steps
+    through the program compiled for the first."""
+    key: tuple = ()
+    """The structure the compiled step depends on besides ``params`` (the term table and which
+    terms are used, the members' count, noise, the events' classes); with the same ModelEnv spec,
+    steppers of equal keys are interchangeable given their ``params``."""
 
 
 def _composed(model_env: Any, jax: Any, jnp: Any) -> Callable:
@@ -259,13 +270,13 @@ def _state_fn(jax: Any, fn: Callable, key: str, n_state: int, width: int | None 
         raise ConfigError(f"{who} returned shape {getattr(out, 'shape', None)} for 2 states; expected {want}")
 
 
-def _pessimism(model_env: Any, jax: Any, jnp: Any) -> Callable | None:
-    """``f(states, z, rewards, terminated, diverged) -> (rewards, terminated)``:
-    ``ModelEnv._pessimism`` with the members' jax predictors; None without pessimism."""
+def _pessimism(model_env: Any, lin: Callable, jax: Any, jnp: Any) -> Callable | None:
+    """``f(states, z, rewards, terminated, diverged, members) -> (rewards, terminated)``:
+    ``ModelEnv._pessimism`` with the members' coefficients ``members`` (K, n_states, n_terms)
+    through ``lin`` (``linear_predictor``); None without pessimism."""
     if model_env._members is None:
         return None
-    task, model = model_env.task, model_env.model
-    members = [jax_predictor(model, coef=c) for c in model.members_]
+    task = model_env.task
     unc = task.uncertainty
     scale = np.asarray(unc.scale, dtype=float)
     regime = task.model_regime
@@ -274,8 +285,9 @@ def _pessimism(model_env: Any, jax: Any, jnp: Any) -> Callable | None:
     penalty, free, limit = float(unc.penalty), float(unc.free), float(unc.limit)
     crash = float(task.crash_reward) if task.crash_reward is not None else 0.0
 
-    def pessimism(states, z, rewards, terminated, diverged):
-        u = (jnp.stack([m(z) for m in members]).std(axis=0) / scale).max(axis=1)  # (N,), as disagreement()
+    def pessimism(states, z, rewards, terminated, diverged, members):
+        spread = jax.vmap(lambda c: lin(z, c))(members)  # (K, N, n_states)
+        u = (spread.std(axis=0) / scale).max(axis=1)  # (N,), as disagreement()
         live = ~diverged & ~terminated
         if regime is not None:
             live = live & jnp.asarray(regime(states), dtype=bool).reshape(-1)
@@ -288,10 +300,11 @@ def _pessimism(model_env: Any, jax: Any, jnp: Any) -> Callable | None:
     return pessimism
 
 
-def _event_draws(model_env: Any, jax: Any, jnp: Any) -> list[Callable]:
-    """Per learned event, ``f(states, actions, nxt, rewards, terminated, diverged, u) ->
-    (rewards, terminated)``: ``ModelEnv._draw_events`` for uniforms ``u`` (N,), the event's
-    functions traced (each checked on jax arrays: one line naming it)."""
+def _event_draws(model_env: Any, jax: Any, jnp: Any) -> list[tuple[Callable, tuple]]:
+    """Per learned event, (``f(states, actions, nxt, rewards, terminated, diverged, u, numbers)
+    -> (rewards, terminated)``, its logistic numbers): ``ModelEnv._draw_events`` for uniforms
+    ``u`` (N,) and the model's (mean, scale, coef, intercept) ``numbers``, the event's functions
+    traced (each checked on jax arrays: one line naming it)."""
     spec = model_env.spec
     n_state = len(spec.state_names)
     s = jax.ShapeDtypeStruct((2, n_state), np.float64)
@@ -312,16 +325,16 @@ def _event_draws(model_env: Any, jax: Any, jnp: Any) -> list[Callable]:
         sets = ends & jnp.asarray([o.reward is not None for o in event.outcomes])
         value = jnp.asarray([o.reward if o.reward is not None else 0.0 for o in event.outcomes], dtype=jnp.float64)
 
-        def draw(states, actions, nxt, rewards, terminated, diverged, u, event=event, numbers=numbers, prior=prior,
-                 n_out=n_out, ends=ends, sets=sets, value=value):
+        def draw(states, actions, nxt, rewards, terminated, diverged, u, numbers, event=event, classes=numbers[4],
+                 prior=prior, n_out=n_out, ends=ends, sets=sets, value=value):
             rows = jnp.asarray(event.trigger(states, actions, nxt), dtype=bool).reshape(-1) & ~terminated & ~diverged
             if prior is not None:
                 rows = rows & (jnp.asarray(prior(states)).reshape(-1) == 0)
-            k = draw_outcomes(outcome_probabilities(numbers, event.features(states), n_out), u)
+            k = draw_outcomes(outcome_probabilities((*numbers, classes), event.features(states), n_out), u)
             rewards = jnp.where(rows & sets[k], value[k], rewards)
             return rewards, terminated | (rows & ends[k])
 
-        draws.append(draw)
+        draws.append((draw, numbers))
     return draws
 
 
@@ -332,35 +345,52 @@ def jax_stepper(model_env: Any) -> JaxStepper:
     spec, task = model_env.spec, model_env.task
     if missing:
         raise NotImplementedError(f"jax_step: env '{spec.name}': not covered yet: {'; '.join(missing)}")
-    predict = jax_predictor(model_env.model)
+    model = model_env.model
     jax, jnp = jax_modules("sdrl_bench.surrogate.jax_step")
+    lin, model_key, order = linear_predictor(model)  # coefficients as arguments, their columns in ``order``
+    members = np.asarray(model.members_, dtype=float)[:, :, order] if model_env._members is not None else None
     inputs = np.concatenate([spec.target_index, spec.exogenous_index]).astype(int)  # ModelEnv.model_inputs
     kernel = model_env._step_batch is not None
     after = _kernel(model_env, jnp) if kernel else _composed(model_env, jax, jnp)
     regime = task.array_step.regime_dynamics if task.regime_dynamics is not None else None
     fresh = task.array_step.init_aux if kernel else (lambda n: np.zeros(n, dtype=np.int64))
-    pessimism = _pessimism(model_env, jax, jnp)
+    pessimism = _pessimism(model_env, lin, jax, jnp)
     draws = _event_draws(model_env, jax, jnp)
+    own = {"coef": np.asarray(model.coef_, dtype=float)[:, order], "members": members,
+           "chol": None if model_env._chol is None else np.asarray(model_env._chol, dtype=float),
+           "events": [tuple(np.asarray(x, dtype=float) for x in numbers[:4]) for _, numbers in draws]}
+    key = (model_key, None if members is None else members.shape, None if own["chol"] is None else own["chol"].shape,
+           tuple((tuple(numbers[4].tolist()), numbers[2].shape) for _, numbers in draws))
 
-    def step(states, actions, aux, noise=None, event_u=None):
+    def step(states, actions, aux, noise=None, event_u=None, params=None):
+        params = own if params is None else params
         states = jnp.asarray(states, dtype=jnp.float64)
         actions = jnp.asarray(actions)
         z = jnp.concatenate([states[:, inputs], spec.encode_actions(actions)], axis=1)
-        rows = predict(z)  # (N, n_targets)
+        rows = lin(z, params["coef"])  # (N, n_targets)
         if noise is not None:
             rows = rows + jnp.asarray(noise, dtype=jnp.float64)
         if regime is not None:
             rows = jnp.asarray(regime(states, actions, rows), dtype=jnp.float64)
         nxt, rewards, terminated, diverged, aux = after(states, actions, rows, jnp.asarray(aux))
         if pessimism is not None:
-            rewards, terminated = pessimism(states, z, rewards, terminated, diverged)
+            rewards, terminated = pessimism(states, z, rewards, terminated, diverged, params["members"])
         if draws and event_u is not None:
             u = jnp.asarray(event_u, dtype=jnp.float64).reshape(states.shape[0], len(draws))
-            for j, draw in enumerate(draws):
-                rewards, terminated = draw(states, actions, nxt, rewards, terminated, diverged, u[:, j])
+            for j, (draw, _) in enumerate(draws):
+                rewards, terminated = draw(states, actions, nxt, rewards, terminated, diverged, u[:, j], params["events"][j])
         return nxt, rewards, terminated, diverged, aux
 
-    return JaxStepper(step, lambda n: jnp.asarray(fresh(n), dtype=jnp.int64), len(draws))
+    return JaxStepper(step, lambda n: jnp.asarray(fresh(n), dtype=jnp.int64), len(draws), own, key)
+
+
+def noise_of(chol: Any, actions: Any, eps: Any) -> Any:
+    """(N, n_targets): the step noise of a ``JaxStepper``'s ``params["chol"]`` for discrete
+    ``actions`` and standard-normal ``eps`` (N, n_targets), as ``step_noise`` makes it (traceable,
+    ``chol`` an argument)."""
+    xp = array_namespace(actions, eps, chol)
+    a = xp.asarray(actions).reshape(xp.shape(actions)[0], -1)[:, 0].astype(np.intp)
+    return xp.einsum("nij,nj->ni", xp.asarray(chol)[a], xp.asarray(eps, dtype=xp.float64))
 
 
 def jax_step(model_env: Any) -> JaxStep:

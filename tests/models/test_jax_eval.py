@@ -20,7 +20,7 @@ pytestmark = pytest.mark.jax
 from helpers import compose_cfg  # noqa: E402
 from sdrl_bench.cli.build import build_fit_job  # noqa: E402
 from sdrl_bench.models.fast import batch_predictor, scalar_predictor  # noqa: E402
-from sdrl_bench.models.jax_eval import jax_predictor  # noqa: E402
+from sdrl_bench.models.jax_eval import jax_predictor, linear_predictor  # noqa: E402
 from sdrl_bench.models.libraries import LibraryPart, RationalLibrary, TrigLibrary, build_library  # noqa: E402
 from sdrl_bench.models.per_equation import PerEquationModel  # noqa: E402
 from sdrl_bench.models.sindy import SindyModel  # noqa: E402
@@ -89,6 +89,12 @@ def check_agrees(model, z: np.ndarray, member: int | None = None) -> float:
     assert got.shape == (len(z), n) and got.dtype == np.float64
     diff = max(float(np.max(np.abs(got - batch))), float(np.max(np.abs(got - ref))))
     assert diff <= TOL, diff
+    # the coefficients as an argument of one compiled program (linear_predictor), for the model
+    # and each member through the same program
+    lin, _, order = linear_predictor(model)
+    c = np.asarray(model.coef_ if member is None else model.members_[member])[:, order]
+    arg = np.asarray(jax.jit(lin)(z, c))
+    assert np.max(np.abs(arg - batch)) <= TOL
     return diff
 
 

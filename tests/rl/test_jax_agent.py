@@ -122,7 +122,9 @@ def test_dyna_refits_are_compiled_again_and_trained_on(store):
     ppo = outcome.agent
     assert isinstance(ppo, JaxPPO) and ppo.rollout_backend == "compiled"
     assert [r.surrogate_steps for r in outcome.rounds] == [0, 512, 1024] and ppo.num_timesteps == 1024
-    assert outcome.rounds[1].refit and ppo.rollout_compiles == 2  # round 2 trained in round 1's refit
+    # round 2 trains in round 1's refit: through the program compiled for round 1 when the refit has
+    # the same structure (its numbers an argument), else compiled again
+    assert outcome.rounds[1].refit and ppo.rollout_compiles + ppo.rollout_swaps == 2 and ppo.rollout_compiles >= 1
 
 
 def test_discrete_actions_get_a_categorical_policy_that_learns_cartpole(tmp_path):
