@@ -125,6 +125,9 @@ def test_dyna_refits_are_compiled_again_and_trained_on(store):
     # round 2 trains in round 1's refit: through the program compiled for round 1 when the refit has
     # the same structure (its numbers an argument), else compiled again
     assert outcome.rounds[1].refit and ppo.rollout_compiles + ppo.rollout_swaps == 2 and ppo.rollout_compiles >= 1
+    s = outcome.summary  # recorded with the run's metrics
+    assert (s["agent_rollout_compiles"], s["agent_rollout_swaps"]) == (ppo.rollout_compiles, ppo.rollout_swaps)
+    assert 0 < s["agent_compile_seconds"] <= s["train_wall_seconds"]
 
 
 def test_discrete_actions_get_a_categorical_policy_that_learns_cartpole(tmp_path):
