@@ -9,7 +9,7 @@ measured side by side in one run:
       (``rl.transfer.surrogate_vec_env``, ``rl.agents.make_agent``: the recipe's VecNormalize
       included), numpy surrogate step and torch networks;
   (b) the compiled PPO (``rl.jax_ppo``): rollout in the jax surrogate step and update in one
-      ``jax.jit`` + ``lax.scan`` (no reward normalisation, see its docstring);
+      ``jax.jit`` + ``lax.scan`` (its reward scaling is VecNormalize's, in jax);
 
 each with the same settings (gSDE and reward scaling included where a recipe sets them), for the
 env's recipes (``ENVS``): on the swing-up its Dyna pack's (``experiment=dyna_cartpole_swingup``: 64
