@@ -110,7 +110,7 @@ class JaxPPO:
         self.cfg: PPOConfig | None = None
         self.net: dict | None = None
         self._opt = None
-        self._compiled: tuple | None = None  # (model, spec, compiled rollout, the surrogate's key)
+        self._compiled: tuple | None = None  # (model, spec, compiled rollout, the surrogate's key, the surrogate)
         self._params: Any = None  # the current surrogate model's numbers (the rollout's argument)
         self._cenv = self._cobs = None  # the compiled loop's env state and observations
         self._last_obs = None  # the Python loop's
@@ -247,6 +247,8 @@ class JaxPPO:
         from sdrl_bench.surrogate.jax_step import unsupported  # noqa: PLC0415
 
         if self._compiled is not None and self._compiled[0] is menv.model and self._compiled[1] is menv.spec:
+            if self._cenv is None:  # a learn that resets: fresh episodes in the same surrogate
+                self._cenv, self._cobs = jax_ppo.init_env(self._compiled[4], self._split(), self.cfg.n_envs, self.cfg)
             return True
         try:
             missing = unsupported(menv)
@@ -262,12 +264,12 @@ class JaxPPO:
             self._cenv, self._cobs = jax_ppo.init_env(sur, self._split(), cfg.n_envs, cfg)
         self._params = sur.params
         if self._compiled is not None and self._compiled[1] is menv.spec and self._compiled[3] == sur.key:
-            self._compiled = (menv.model, menv.spec, self._compiled[2], sur.key)  # a refit: new numbers, same program
+            self._compiled = (menv.model, menv.spec, self._compiled[2], sur.key, sur)  # a refit: new numbers, same program
             self.rollout_swaps += 1
             return True
         rollout = self._jax.jit(jax_ppo.make_rollout(sur, cfg))
         exe = self._timed_compile(rollout, self.net, self._cenv, self._cobs, self._split(), sur.params)
-        self._compiled = (menv.model, menv.spec, exe, sur.key)
+        self._compiled = (menv.model, menv.spec, exe, sur.key, sur)
         self.rollout_compiles += 1
         return True
 

@@ -53,6 +53,8 @@ def test_in_the_surrogate_it_trains_compiled_and_the_callback_sees_whole_rollout
     before = np.asarray(ppo.net["actor"][0][0]).copy()
     ppo.learn(512, reset_num_timesteps=False)  # trains on: one more rollout and update
     assert ppo.num_timesteps == 2560 and ppo.rollout_compiles == 1 and not np.array_equal(before, ppo.net["actor"][0][0])
+    ppo.learn(512)  # SB3's default: the count starts again, from fresh episodes, with the same program
+    assert ppo.num_timesteps == 512 and ppo.rollout_compiles == 1
 
 
 def test_in_real_envs_it_steps_in_python_and_every_step_is_counted(fitted):
