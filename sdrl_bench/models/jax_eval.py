@@ -122,6 +122,33 @@ def _check(model: Any, coef: Any) -> tuple[list[Term], np.ndarray, dict | None, 
     return list(terms), coef, stages, n_inputs
 
 
+def _layout(stages: dict | None, n_inputs: int, m: int) -> tuple[list[tuple[list[int], list[tuple]]], int]:
+    """([(output rows, clips applied after them)] per stage, the column count they read): one
+    stage of every row, or as ``models.fast._staged_batch``: each stage over the inputs and the
+    bounded next values so far (clips: (row, column, low, high))."""
+    if stages is None:
+        return [(list(range(m)), [])], n_inputs
+    n_ext = n_inputs + sum(len(st["clips"]) for st in stages["stages"])
+    return [(list(st["rows"]), [(int(r), int(col), float(lo), float(hi)) for r, col, lo, hi in st["clips"]])
+            for st in stages["stages"]], n_ext
+
+
+def _run_stages(jnp: Any, z: Any, n_inputs: int, n_ext: int, m: int, parts: list, who: str) -> Any:
+    """(..., m): the stages ``parts`` [(rows, clips, evaluate(cols) -> one value per row)] over
+    inputs ``z`` (..., n_inputs), each stage's clipped outputs becoming columns the next reads."""
+    z = jnp.asarray(z, dtype=jnp.float64)
+    if z.ndim < 1 or z.shape[-1] != n_inputs:
+        raise ValueError(f"{who}: inputs of shape {z.shape}, expected (..., {n_inputs})")
+    cols = [z[..., j] for j in range(n_inputs)] + [jnp.zeros(z.shape[:-1], dtype=jnp.float64)] * (n_ext - n_inputs)
+    out: list[Any] = [None] * m
+    for rows, clips, evaluate in parts:
+        for r, v in zip(rows, evaluate(cols), strict=True):
+            out[r] = jnp.broadcast_to(jnp.asarray(v, dtype=jnp.float64), z.shape[:-1])  # a constant equation too
+        for r, col, lo, hi in clips:
+            cols[col] = jnp.clip(out[r], lo, hi)
+    return jnp.stack(out, axis=-1)
+
+
 def jax_predictor(model: Any, coef: Any = None) -> JaxPredict:
     """``f(z) -> (..., n_states)``: the model's prediction at inputs ``z`` (..., n_inputs), a
     pure jax.numpy function (jit-able, vmap-able, float64). ``coef``: evaluate these coefficients
@@ -130,31 +157,9 @@ def jax_predictor(model: Any, coef: Any = None) -> JaxPredict:
     _, jnp = jax_modules()
     namespace = jax_namespace(jnp)
     m = coef.shape[0]
-    if stages is None:
-        parts = [(list(range(m)), _compile(terms, coef, n_inputs, namespace), [])]
-        n_ext = n_inputs
-    else:  # as models.fast._staged_batch: each stage over the inputs and the bounded next values so far
-        n_ext = n_inputs + sum(len(st["clips"]) for st in stages["stages"])
-        parts = [(list(st["rows"]), _compile(terms, coef[st["rows"]], n_ext, namespace),
-                  [(int(r), int(col), float(lo), float(hi)) for r, col, lo, hi in st["clips"]])
-                 for st in stages["stages"]]
-
-    def predict(z):
-        z = jnp.asarray(z, dtype=jnp.float64)
-        if z.ndim < 1 or z.shape[-1] != n_inputs:
-            raise ValueError(f"jax_predictor: inputs of shape {z.shape}, expected (..., {n_inputs})")
-        cols = [z[..., j] for j in range(n_inputs)]
-        if n_ext > n_inputs:
-            cols += [jnp.zeros(z.shape[:-1], dtype=jnp.float64)] * (n_ext - n_inputs)
-        out: list[Any] = [None] * m
-        for rows, fn, clips in parts:
-            for r, v in zip(rows, fn(cols), strict=True):
-                out[r] = jnp.broadcast_to(jnp.asarray(v, dtype=jnp.float64), z.shape[:-1])  # a constant equation too
-            for r, col, lo, hi in clips:
-                cols[col] = jnp.clip(out[r], lo, hi)
-        return jnp.stack(out, axis=-1)
-
-    return predict
+    layout, n_ext = _layout(stages, n_inputs, m)
+    parts = [(rows, clips, _compile(terms, coef[rows], n_ext, namespace)) for rows, clips in layout]
+    return lambda z: _run_stages(jnp, z, n_inputs, n_ext, m, parts, "jax_predictor")
 
 
 def linear_predictor(model: Any) -> tuple[Callable, tuple, np.ndarray]:
@@ -176,33 +181,24 @@ def linear_predictor(model: Any) -> tuple[Callable, tuple, np.ndarray]:
     _, jnp = jax_modules()
     namespace = jax_namespace(jnp)
     m, n_terms = coef.shape
-    if stages is None:
-        layout = [(list(range(m)), n_inputs, [])]
-    else:
-        n_ext = n_inputs + sum(len(st["clips"]) for st in stages["stages"])
-        layout = [(list(st["rows"]), n_ext, [(int(r), int(col), float(lo), float(hi)) for r, col, lo, hi in st["clips"]])
-                  for st in stages["stages"]]
-    n_cols = max(n for _, n, _ in layout)
-    parts = [(rows, _compile(terms, np.eye(n_terms), n_ext, namespace), clips) for rows, n_ext, clips in layout]
+    layout, n_ext = _layout(stages, n_inputs, m)
+    features = [(rows, clips, _compile(terms, np.eye(n_terms), n_ext, namespace)) for rows, clips in layout]
 
-    def predict(z, c):
-        z = jnp.asarray(z, dtype=jnp.float64)
-        c = jnp.asarray(c, dtype=jnp.float64)
-        if z.ndim < 1 or z.shape[-1] != n_inputs:
-            raise ValueError(f"linear_predictor: inputs of shape {z.shape}, expected (..., {n_inputs})")
-        if c.shape != (m, n_terms):
-            raise ValueError(f"linear_predictor: coefficients of shape {c.shape}, expected {(m, n_terms)}")
-        cols = [z[..., j] for j in range(n_inputs)] + [jnp.zeros(z.shape[:-1], dtype=jnp.float64)] * (n_cols - n_inputs)
-        out: list[Any] = [None] * m
-        for rows, fn, clips in parts:
-            feats = jnp.stack([jnp.broadcast_to(jnp.asarray(v, dtype=jnp.float64), z.shape[:-1]) for v in fn(cols)],
+    def stage(fn, rows, c):
+        def evaluate(cols):
+            feats = jnp.stack([jnp.broadcast_to(jnp.asarray(v, dtype=jnp.float64), cols[0].shape) for v in fn(cols)],
                               axis=-1)[..., None, :]  # (..., 1, n_terms)
             cs = c[jnp.asarray(rows)]  # (len(rows), n_terms)
             vals = jnp.sum(jnp.where(cs != 0, cs * feats, 0.0), axis=-1)  # (..., len(rows))
-            for i, r in enumerate(rows):
-                out[r] = vals[..., i]
-            for r, col, lo, hi in clips:
-                cols[col] = jnp.clip(out[r], lo, hi)
-        return jnp.stack(out, axis=-1)
+            return [vals[..., i] for i in range(len(rows))]
+
+        return evaluate
+
+    def predict(z, c):
+        c = jnp.asarray(c, dtype=jnp.float64)
+        if c.shape != (m, n_terms):
+            raise ValueError(f"linear_predictor: coefficients of shape {c.shape}, expected {(m, n_terms)}")
+        parts = [(rows, clips, stage(fn, rows, c)) for rows, clips, fn in features]
+        return _run_stages(jnp, z, n_inputs, n_ext, m, parts, "linear_predictor")
 
     return predict, (repr(terms), repr(stages), n_inputs, (m, n_terms)), order
