@@ -110,8 +110,7 @@ class JaxPPO:
         self.cfg: PPOConfig | None = None
         self.net: dict | None = None
         self._opt = None
-        self._compiled: tuple | None = None  # (model, spec, compiled rollout, the surrogate's key, the surrogate)
-        self._params: Any = None  # the current surrogate model's numbers (the rollout's argument)
+        self._compiled: tuple | None = None  # (model, spec, compiled rollout, jax_ppo.Surrogate of the model)
         self._cenv = self._cobs = None  # the compiled loop's env state and observations
         self._last_obs = None  # the Python loop's
         self._act = self._value = None
@@ -246,36 +245,36 @@ class JaxPPO:
         its current model); a surrogate ``jax_step`` does not cover steps in Python, warned once."""
         from sdrl_bench.surrogate.jax_step import unsupported  # noqa: PLC0415
 
-        if self._compiled is not None and self._compiled[0] is menv.model and self._compiled[1] is menv.spec:
-            if self._cenv is None:  # a learn that resets: fresh episodes in the same surrogate
-                self._cenv, self._cobs = jax_ppo.init_env(self._compiled[4], self._split(), self.cfg.n_envs, self.cfg)
-            return True
-        try:
-            missing = unsupported(menv)
-            sur = jax_ppo.surrogate(menv) if not missing else None
-        except NotImplementedError as exc:
-            missing = [str(exc)]
-        if missing:
-            warnings.warn(f"agent=ppo_jax: the surrogate of env '{menv.spec.name}' steps in Python, not compiled: "
-                          f"{'; '.join(missing)}", stacklevel=3)
-            return False
-        cfg = self.cfg
-        if self._cenv is None:
-            self._cenv, self._cobs = jax_ppo.init_env(sur, self._split(), cfg.n_envs, cfg)
-        self._params = sur.params
-        if self._compiled is not None and self._compiled[1] is menv.spec and self._compiled[3] == sur.key:
-            self._compiled = (menv.model, menv.spec, self._compiled[2], sur.key, sur)  # a refit: new numbers, same program
-            self.rollout_swaps += 1
-            return True
-        rollout = self._jax.jit(jax_ppo.make_rollout(sur, cfg))
-        exe = self._timed_compile(rollout, self.net, self._cenv, self._cobs, self._split(), sur.params)
-        self._compiled = (menv.model, menv.spec, exe, sur.key, sur)
-        self.rollout_compiles += 1
+        held = self._compiled
+        exe = None
+        if held is not None and held[0] is menv.model and held[1] is menv.spec:
+            exe, sur = held[2], held[3]
+        else:
+            try:
+                missing = unsupported(menv)
+                sur = jax_ppo.surrogate(menv) if not missing else None
+            except NotImplementedError as exc:
+                missing = [str(exc)]
+            if missing:
+                warnings.warn(f"agent=ppo_jax: the surrogate of env '{menv.spec.name}' steps in Python, not compiled: "
+                              f"{'; '.join(missing)}", stacklevel=3)
+                return False
+            if held is not None and held[1] is menv.spec and held[3].key == sur.key:
+                exe = held[2]  # a refit: new numbers (sur.params), the same program
+                self.rollout_swaps += 1
+        if self._cenv is None:  # fresh episodes (first learn, or one that resets)
+            self._cenv, self._cobs = jax_ppo.init_env(sur, self._split(), self.cfg.n_envs, self.cfg)
+        if exe is None:
+            rollout = self._jax.jit(jax_ppo.make_rollout(sur, self.cfg))
+            exe = self._timed_compile(rollout, self.net, self._cenv, self._cobs, self._split(), sur.params)
+            self.rollout_compiles += 1
+        self._compiled = (menv.model, menv.spec, exe, sur)
         return True
 
     def _rollout_compiled(self, callback: Any) -> tuple | None:
         callback.on_rollout_start()
-        env, obs, traj, last_value = self._compiled[2](self.net, self._cenv, self._cobs, self._split(), self._params)
+        _, _, exe, sur = self._compiled
+        env, obs, traj, last_value = exe(self.net, self._cenv, self._cobs, self._split(), sur.params)
         self._jax.block_until_ready(last_value)
         self._cenv, self._cobs = env, obs
         self.num_timesteps += self.cfg.rollout_size

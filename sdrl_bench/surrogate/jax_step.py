@@ -66,8 +66,7 @@ Around the step, for a loop compiled with it (``rl.jax_ppo``): ``jax_observe(mod
 observations ``ModelEnv.observation`` emits (the spec's observation map in jax: each angle's cos and
 sin, clipped to the real env's observation space, in its dtype); ``jax_reset(model_env)``, reset
 states drawn from a jax PRNG key (the spec's ``initial_state_fn`` or the task's ``initial_states``,
-or the ModelEnv's reset pool);
-``has_step_noise(model_env)``, whether its step adds noise (a loop that feeds none must refuse it).
+or the ModelEnv's reset pool).
 
 Not covered (``unsupported``; refused when the step is built, one line naming each): models
 without term tables (``nn``, ``pe``), a sampling model's own draws (``noise=False`` steps its
@@ -431,20 +430,12 @@ def step_noise(model_env: Any, actions: Any, eps: Any = None) -> Any:
     if chol is None:
         return xp.zeros((n, m))
     if xp is not np:
-        a = a.reshape(n, -1)[:, 0].astype(np.intp)
-        return xp.einsum("nij,nj->ni", xp.asarray(chol)[a], xp.asarray(eps, dtype=xp.float64))
+        return noise_of(chol, a, eps)
     if eps is not None:
         eps = np.asarray(eps, dtype=float)
         if eps.shape != (n, m):
             raise ValueError(f"step_noise: eps of shape {eps.shape}, expected ({n}, {m})")
     return model_env.noise_rows(a, eps).T  # ModelEnv's own noise (and draws, eps None)
-
-
-def has_step_noise(model_env: Any) -> bool:
-    """Whether ``model_env.step`` adds noise to the model's prediction (the residual covariance of
-    a discrete action, or a sampling model's own draws): a compiled loop that steps ``jax_step``
-    without its ``noise`` input would step the mean instead."""
-    return model_env._chol is not None or model_env._sample is not None
 
 
 def jax_observe(model_env: Any) -> Callable:

@@ -205,15 +205,7 @@ class Run:
             self._client.log_batch(self.run_id, params=items[i : i + 100])
 
     def log_metrics(self, metrics: Mapping[str, float], step: int = 0) -> None:
-        import math
-        import time
-
-        from mlflow.entities import Metric
-
-        now = int(time.time() * 1000)
-        items = [Metric(k, float(v), now, step) for k, v in metrics.items() if v is not None and not math.isnan(float(v))]
-        for i in range(0, len(items), 1000):
-            self._client.log_batch(self.run_id, metrics=items[i : i + 1000])
+        self.log_metric_rows([(metrics, step)])
 
     def log_metric_rows(self, rows: list[tuple[Mapping[str, float], int]]) -> None:
         """Several steps' metrics ((metrics, step) pairs) in as few batches as MLflow allows."""
