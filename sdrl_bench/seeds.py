@@ -42,6 +42,9 @@ PURPOSES: dict[str, int] = {
     "search": 13,          # an Optuna study's sampler (per worker: purpose of the worker's seed)
     "expert": 14,          # training an expert collector
     "events": 15,          # the learned event models' fits (cross-validation folds)
+    "data_noise": 16,      # the fidelity study's observation noise on a cluster's data
+    "fidelity_reference": 17,  # the fidelity study's reference policy in the real env
+    "fidelity_onpolicy": 18,   # the fidelity study's agents' own real episodes (on-policy errors)
 }
 __doc__ += "".join(f"\n* ``{name}`` ({code})" for name, code in PURPOSES.items())
 

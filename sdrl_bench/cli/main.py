@@ -47,7 +47,7 @@ def adopt_finished_job(cfg: DictConfig, parent: str, tags: dict[str, str]) -> fl
     print(f"sdrl-bench: this job FINISHED in run {run['run_id']} of an earlier run of this sweep: adopted, not "
           "rerun (resume=false reruns it)", file=sys.stderr)
     m = run["metrics"]
-    value = m.get("mse_norm/mean", m.get("surrogate/final_return_mean", m.get("real/final_return_mean", m.get("audit_return_mean", 0.0))))
+    value = m.get("mse_norm/mean", m.get("surrogate/final_return_mean", m.get("real/final_return_mean", m.get("audit_return_mean", m.get("real_return_mean", 0.0)))))
     return float(value)
 
 
@@ -110,7 +110,7 @@ def main() -> None:
 def app(cfg: DictConfig) -> float:
     """Entry point of ``sdrl-bench``. ``task=fit`` returns the mean normalized one-step MSE,
     ``task=train`` the surrogate arm's final real return, ``task=dyna`` the final agent's
-    audit return (values for sweepers)."""
+    audit return, ``task=fidelity`` its surrogates' mean real return (values for sweepers)."""
     # SIGTERM (a cluster scheduler, kill) and SIGINT unwind like an exception: the open MLflow
     # run ends KILLED instead of staying RUNNING. A sweep driver running jobs in-process keeps
     # its own handler (cli.callbacks), which also ends the parent run.
@@ -128,8 +128,8 @@ def app(cfg: DictConfig) -> float:
             pack = HydraConfig.get().runtime.choices.get("experiment")
             if pack and pack != "null":
                 tags["sdrl.experiment"] = str(pack)
-        if cfg.task not in ("fit", "train", "dyna"):
-            raise ConfigError(f"task: {cfg.task!r} is not one of 'fit', 'train', 'dyna'")
+        if cfg.task not in ("fit", "train", "dyna", "fidelity"):
+            raise ConfigError(f"task: {cfg.task!r} is not one of 'fit', 'train', 'dyna', 'fidelity'")
         fit_job = build_fit_job(cfg)  # validates the config before anything else
         if parent is not None and key and cfg.get("resume", True):
             done = adopt_finished_job(cfg, parent, tags)
@@ -137,6 +137,11 @@ def app(cfg: DictConfig) -> float:
                 return done
         if cfg.task == "fit":
             return float(run_fit(cfg, parent=parent, extra_tags=tags).fidelity.metrics["mse_norm/mean"])
+        if cfg.task == "fidelity":
+            from sdrl_bench.cli.fidelity_task import run_fidelity_task
+
+            returns = run_fidelity_task(cfg, parent, extra_tags=tags)
+            return float(sum(returns.values()) / len(returns))
         if cfg.task == "dyna":
             from sdrl_bench.cli.dyna_task import run_dyna_task
 

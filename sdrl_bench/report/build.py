@@ -24,6 +24,7 @@ import pandas as pd
 from sdrl_bench import ConfigError, tracking
 from sdrl_bench.report import tables as rt
 from sdrl_bench.report.figures import figure_blocks
+from sdrl_bench.report.fidelity_study import fidelity_blocks
 from sdrl_bench.report.render import MISSING, NOT_RUN, Block, Cell, Heading, Para, Table, fmt, render_html, render_markdown
 
 
@@ -507,6 +508,7 @@ def build_report(inp: ReportInput, name: str, out_dir: Path, command: str = "sdr
     link = Linker(runs, inp.ui_url)
     blocks = overview_blocks(inp, runs, problems, command) + made + table_blocks(runs, link)
     blocks += figure_blocks(inp.uri, runs, folder, link.url)
+    blocks += fidelity_blocks(runs, folder, link)
     rt.runs_frame(runs).to_csv(folder / "runs.csv", index=False)
     (folder / "report.md").write_text(render_markdown(blocks, folder))
     (folder / "report.html").write_text(render_html(blocks, f"sdrl-bench report {name}"))

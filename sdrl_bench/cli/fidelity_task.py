@@ -1,0 +1,150 @@
+"""The ``task=fidelity`` half of ``sdrl-bench``: one cluster of the fidelity-vs-transfer study
+(``rl.fidelity_study``), a cluster MLflow run with one child run per surrogate.
+
+The cluster's data follow from its seed, a full factorial over ``fidelity.axes``: with axes of
+sizes (a, b, c), seed s takes ``n_transitions[s % a]``, ``collector[(s // a) % b]`` and
+``data_noise[(s // ab) % c]``, so seeds 0..abc-1 cover every combination once, each with its own
+real data (no two clusters share a reset seed). ``fidelity.models`` names the surrogates fitted on
+every cluster (label -> Hydra overrides, composed on top of the job's own). A study is then an
+ordinary sweep over seeds (``-m experiment=fidelity_<env>``); a rerun adopts its finished
+clusters, and inside a cluster its finished surrogates (same config key), so a stopped study
+continues where it stopped.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig, OmegaConf
+
+from sdrl_bench import ConfigError, tracking
+from sdrl_bench.cli.build import build_fit_job, compose, config_key, instantiate_key, int_key, run_label
+from sdrl_bench.rl.fidelity_study import ClusterJob, Variant, collect_cluster, score_variant
+
+POINT_TAG = "sdrl.fidelity_point"
+"""A surrogate run's config key: a rerun of its cluster adopts it instead of refitting."""
+
+
+def cluster_axes(cfg: DictConfig) -> dict[str, object]:
+    """The cluster's data settings, chosen by its seed from ``fidelity.axes`` (a full factorial)."""
+    axes = cfg.fidelity.axes
+    seed = int_key(cfg, "seed", minimum=0)
+    out, div = {}, 1
+    for key in ("n_transitions", "collector", "data_noise"):
+        values = list(OmegaConf.to_container(axes[key], resolve=True)) if key in axes else []
+        if not values:
+            raise ConfigError(f"fidelity.axes.{key}: a non-empty list is required")
+        out[key] = values[(seed // div) % len(values)]
+        div *= len(values)
+    out["n_clusters"] = div
+    return out
+
+
+def base_overrides(cfg: DictConfig, given: list[str] | None) -> list[str]:
+    """The job's own overrides (the command line's, or ``given``), less the keys the cluster sets."""
+    if given is None:
+        given = list(HydraConfig.get().overrides.task) if HydraConfig.initialized() else []
+    drop = ("n_transitions=", "collector=", "task=", "surrogate=", "library=", "optimizer=")
+    return [o for o in given if not o.lstrip("+~").startswith(drop)]
+
+
+def build_cluster(cfg: DictConfig, given: list[str] | None = None) -> tuple[ClusterJob, dict, list[DictConfig]]:
+    """The typed cluster job, its data settings and each surrogate's composed config."""
+    f = cfg.fidelity
+    axes = cluster_axes(cfg)
+    base = base_overrides(cfg, given) + [f"n_transitions={axes['n_transitions']}", f"collector={axes['collector']}"]
+    data_cfg = compose(base)
+    data_job = build_fit_job(data_cfg)
+    models = OmegaConf.to_container(f.models, resolve=True) if f.models is not None else {"default": []}
+    if not isinstance(models, dict) or not models:
+        raise ConfigError("fidelity.models: a mapping label -> list of overrides is required")
+    variants, cfgs = [], []
+    for label, overrides in models.items():
+        if not isinstance(overrides, list):
+            raise ConfigError(f"fidelity.models.{label}: a list of overrides is required, got {overrides!r}")
+        vcfg = compose(base + [str(o) for o in overrides])
+        job = build_fit_job(vcfg)
+        variants.append(Variant(str(label), str(vcfg.surrogate.kind), job))
+        cfgs.append(vcfg)
+    ref = str(f.reference)
+    reference = None if ref == "random" else instantiate_key(compose(base[:-1] + [f"collector={ref}"]).collector.policy,
+                                                             "fidelity.reference")
+    agent = instantiate_key(cfg.agent, "agent")
+    job = ClusterJob(
+        data_job=data_job, variants=tuple(variants), agent=agent, train_steps=int_key(cfg, "fidelity.train_steps", 1),
+        agent_seeds=int_key(cfg, "fidelity.agent_seeds", 1), final_episodes=int_key(cfg, "fidelity.final_episodes", 1),
+        onpolicy_episodes=int_key(cfg, "fidelity.onpolicy_episodes", 0), reference=reference, reference_name=ref,
+        reference_episodes=int_key(cfg, "fidelity.reference_episodes", 1),
+        data_noise=float(axes["data_noise"]), seed=int_key(cfg, "seed", minimum=0),
+    )
+    return job, axes, cfgs
+
+
+def run_fidelity_task(cfg: DictConfig, parent: str | None, extra_tags: dict[str, str] | None = None,
+                      given: list[str] | None = None) -> dict[str, float]:
+    """Validate, then run one cluster inside an MLflow run; returns {label: real return}."""
+    from sdrl_bench.cli.train import prepare
+
+    job, axes, cfgs = build_cluster(cfg, given)
+    job, _, uri = prepare(cfg, job)
+    spec = job.data_job.spec
+    study = cfg.fidelity.study or f"fidelity-{spec.name}"
+    tags = {"env": spec.name, "sdrl.study": study, "seed": job.seed, "collector": axes["collector"],
+            "n_transitions": axes["n_transitions"], "data_noise": axes["data_noise"], "agent": job.agent.name,
+            "reference": job.reference_name, **(extra_tags or {})}
+    name = run_label(f"fidelity-{spec.name}-s{job.seed}", extra_tags)
+    print(f"sdrl-bench: {name}: study {study}, cluster {job.seed} of {axes['n_clusters']}: {axes['n_transitions']} "
+          f"transitions, collector {axes['collector']}, data noise {axes['data_noise']}; {len(job.variants)} surrogates x "
+          f"{job.agent_seeds} agents of {job.train_steps:,} steps", flush=True)
+    out: dict[str, float] = {}
+    with tracking.tracked_run(uri, cfg.tracking.experiment, name, "fidelity-cluster", tags, parent, task="fidelity",
+                              config=OmegaConf.to_container(cfg, resolve=True), system=True) as run:
+        cluster = collect_cluster(job)
+        run.log_metrics({"reference_real_return": float(cluster.reference_real.mean()),
+                         "real_steps/model_data": float(cluster.counts["collect"]),
+                         "real_steps/reference": float(cluster.counts["reference"]), "n_surrogates": float(len(job.variants))})
+        for variant, vcfg in zip(job.variants, cfgs, strict=True):
+            out[variant.label] = _surrogate_run(cfg, uri, run.run_id, job, variant, vcfg, cluster, tags, extra_tags)
+        run.log_metrics({"real_return_mean": sum(out.values()) / len(out)})
+    return out
+
+
+def _surrogate_run(cfg, uri, cluster_run, job, variant, vcfg, cluster, tags, extra_tags) -> float:
+    key = config_key(vcfg) + f"-{variant.label}"
+    done = tracking.find_runs(uri, cfg.tracking.experiment,
+                              f"tags.`{POINT_TAG}` = '{key}' and attributes.status = 'FINISHED'") if cfg.get("resume", True) else []
+    if done:
+        prev = done[-1]
+        tracking.Run(uri, prev["run_id"]).set_tags({tracking.PARENT_TAG: cluster_run})
+        print(f"  {variant.label}: finished in run {prev['run_id']}: adopted", file=sys.stderr, flush=True)
+        return float(prev["metrics"]["real_return"])
+    from sdrl_bench.rl.accounting import expert_of, headline
+
+    spec = job.data_job.spec
+    vtags = {**tags, "model": variant.label, "family": variant.family, "surrogate": variant.family,
+             "library": variant.fit.names.get("library", ""), POINT_TAG: key}
+    name = run_label(f"fidelity-{spec.name}-s{job.seed}-{variant.label}", extra_tags)
+    with tracking.tracked_run(uri, cfg.tracking.experiment, name, "fidelity-surrogate", vtags, cluster_run,
+                              task="fidelity") as run:
+        score = score_variant(job, variant, cluster,
+                              on_fit=lambda fit: tracking.log_fit(run, fit, config=OmegaConf.to_container(vcfg, resolve=True),
+                                                                  task="fidelity", model=False))
+        c = score.counts
+        counts = {"model_data": len(cluster.data), "judge": c["judge"] + len(cluster.test)}
+        m = headline(counts, score.fit.spec.declared_priors, [expert_of(variant.fit.policy, spec.name)],
+                     tuning=job.agent.tuning_real_steps + variant.fit.tuning_real_steps)
+        m.update({"real_steps/onpolicy": float(c["onpolicy"]), "real_steps/reference": float(cluster.counts["reference"]),
+                  "real_resets/reset_pool": float(c["resets/reset_pool"])})
+        m.update({f"candidate/{k}": float(v) for k, v in score.candidates.items()})
+        m["real_return"] = score.real_return
+        m["reference_real_return"] = float(cluster.reference_real.mean())
+        for k, (rets, own) in enumerate(zip(score.returns, score.surrogate_returns, strict=True)):
+            m[f"agent{k}/real_return"] = float(sum(rets) / len(rets))
+            m[f"agent{k}/surrogate_return"] = own
+        m.update({f"{k}_seconds": v for k, v in score.seconds.items()})
+        run.log_metrics(m)
+    line = ", ".join(f"{k} {score.candidates[k]:.3g}" for k in ("one_step", "rollout50", "onpolicy_one_step")
+                     if k in score.candidates)
+    print(f"  {variant.label}: real return {score.real_return:.1f} ({line})", flush=True)
+    return score.real_return
