@@ -91,7 +91,7 @@ def cluster_bootstrap(df: pd.DataFrame, metric: str, n_boot: int = N_BOOT, seed:
     boots = []
     for _ in range(n_boot):
         parts = []
-        for env, gs in by_env.items():
+        for gs in by_env.values():
             for i in rng.integers(len(gs), size=len(gs)):
                 parts.append(gs[i])
         b = rho(pd.concat(parts, ignore_index=True))
