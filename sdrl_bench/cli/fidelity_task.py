@@ -111,7 +111,9 @@ def run_fidelity_task(cfg: DictConfig, parent: str | None, extra_tags: dict[str,
 
 
 def _surrogate_run(cfg, uri, cluster_run, job, variant, vcfg, cluster, tags, extra_tags) -> float:
-    key = config_key(vcfg) + f"-{variant.label}"
+    own = OmegaConf.to_container(vcfg, resolve=True)
+    own["fidelity"].pop("models")  # a surrogate's key: its own config, not its siblings' (adding a model keeps the others)
+    key = config_key(OmegaConf.create(own)) + f"-{variant.label}"
     done = tracking.find_runs(uri, cfg.tracking.experiment,
                               f"tags.`{POINT_TAG}` = '{key}' and attributes.status = 'FINISHED'") if cfg.get("resume", True) else []
     if done:

@@ -1,0 +1,137 @@
+"""The fidelity-vs-transfer study: one cluster end to end into a temp store (tiny SB3 agents), its
+resume, its bad input, and the analysis (cluster bootstrap, halves, pooled ranks) on known data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from helpers import compose_cfg, search
+from sdrl_bench import ConfigError
+from sdrl_bench.cli.fidelity_task import build_cluster, cluster_axes, run_fidelity_task
+from sdrl_bench.report import fidelity_study as fs
+from sdrl_bench.rl.fidelity_study import CANDIDATES, ROLLOUT_CAP, normalized_error
+
+TINY = [
+    "task=fidelity", "env=mountain_car", "library=poly_trig", "agent=ppo_fast", "agent.n_envs=4", "agent.algo.n_steps=16",
+    "agent.algo.batch_size=32", "agent.algo.n_epochs=1", "fidelity.train_steps=64", "fidelity.agent_seeds=2",
+    "fidelity.final_episodes=1", "fidelity.onpolicy_episodes=1", "fidelity.reference=heuristic",
+    "fidelity.reference_episodes=1", "fidelity.axes.n_transitions=[75]", "fidelity.axes.collector=[heuristic]",
+    "progress_bar=false",
+]
+
+
+def cluster(store, *extra):
+    overrides = [f"tracking.uri={store}", *TINY, *extra]
+    return run_fidelity_task(compose_cfg(*overrides), None, given=overrides)
+
+
+def test_a_cluster_scores_each_surrogate_and_counts_its_real_steps(store, capsys):
+    out = cluster(store, "fidelity.models={law: [], polynomial: ['library=polynomial']}")
+    runs = search(store)
+    parent = runs[runs["tags.sdrl.kind"] == "fidelity-cluster"]
+    assert len(parent) == 1 and parent.iloc[0]["status"] == "FINISHED"
+    assert parent.iloc[0]["metrics.real_steps/model_data"] == 75
+    sur = runs[runs["tags.sdrl.kind"] == "fidelity-surrogate"].set_index("tags.model")
+    assert set(sur.index) == {"law", "polynomial"} and set(sur["status"]) == {"FINISHED"}
+    assert set(sur["tags.mlflow.parentRunId"]) == {parent.iloc[0]["run_id"]}
+    law, poly = sur.loc["law"], sur.loc["polynomial"]
+    # the exact law from 75 heuristic transitions (docs/fidelity.md): float rounding only
+    assert law["metrics.candidate/one_step"] < 1e-10 and law["metrics.candidate/rollout50"] < 1e-8
+    assert poly["metrics.candidate/one_step"] > 1e3 * law["metrics.candidate/one_step"]
+    for name in ("one_step", "rollout10", "rollout_episode", "reward_error", "onpolicy_one_step", "reference_gap",
+                 "optimism_gap", "n_terms"):
+        assert np.isfinite(law[f"metrics.candidate/{name}"]), name
+    assert set(k.split("/", 1)[1] for k in runs.columns if k.startswith("metrics.candidate/")) <= set(CANDIDATES)
+    # the thing to predict: the mean over agents of their real return
+    assert law["metrics.real_return"] == pytest.approx((law["metrics.agent0/real_return"] + law["metrics.agent1/real_return"]) / 2)
+    assert out["law"] == pytest.approx(law["metrics.real_return"])
+    # every real step by purpose: data, one on-policy episode per agent (MountainCar: 1 to 999 steps), the judging
+    for s in (law, poly):
+        assert s["metrics.real_steps/model_data"] == 75
+        assert 2 <= s["metrics.real_steps/onpolicy"] <= 2 * 999
+        assert s["metrics.real_steps/judge"] > 2  # two final episodes and the held-out set
+        assert s["metrics.real_steps/reference"] == parent.iloc[0]["metrics.real_steps/reference"] > 0
+
+    # a rerun with one more surrogate adopts the finished ones and fits only the new one
+    cluster(store, "fidelity.models={law: [], polynomial: ['library=polynomial'], trig: ['library=trig']}")
+    assert "law: finished in run" in capsys.readouterr().err
+    sur2 = search(store, filter_string="tags.`sdrl.kind` = 'fidelity-surrogate'")
+    assert sorted(sur2["tags.model"]) == ["law", "polynomial", "trig"]
+
+
+def test_bad_models_and_axes_fail_before_any_run(store):
+    with pytest.raises(ConfigError, match="fidelity.models.law"):
+        build_cluster(compose_cfg(*TINY, "fidelity.models={law: notalist}"), given=[])
+    with pytest.raises(ConfigError, match="fidelity.axes.collector"):
+        build_cluster(compose_cfg(*TINY, "fidelity.axes.collector=[]"), given=[])
+    assert search(store).empty
+
+
+def test_cluster_seeds_cover_the_factorial_once():
+    seen = set()
+    for seed in range(12):
+        cfg = compose_cfg("experiment=fidelity_mountain_car", f"seed={seed}")
+        a = cluster_axes(cfg)
+        assert a["n_clusters"] == 12
+        seen.add((a["n_transitions"], a["collector"], a["data_noise"]))
+    assert len(seen) == 12
+
+
+def test_normalized_error_caps_non_finite_rows():
+    e = normalized_error(np.zeros((3, 2)), np.array([[1.0, 1.0], [np.nan, 0.0], [1e9, 0.0]]), np.array([1.0, 2.0]))
+    assert e.tolist() == [pytest.approx(0.625), ROLLOUT_CAP, ROLLOUT_CAP]
+
+
+def synthetic(n_clusters=10, per=4, noise=0.0, seed=0, envs=("a", "b")):
+    rng = np.random.default_rng(seed)
+    rows = []
+    for env in envs:
+        for c in range(n_clusters):
+            base = rng.normal()
+            for j in range(per):
+                err = rng.lognormal()
+                ret = -np.log(err) + noise * rng.normal() + 0.1 * base
+                rows.append({"env": env, "cluster": c, "family": "sindy" if j % 2 else "nn", "model": f"m{j}",
+                             "real_return": ret, "one_step": err, "n_terms": rng.normal()})
+    return pd.DataFrame(rows)
+
+
+def test_a_monotone_metric_has_rho_one_and_noise_has_a_ci_around_zero():
+    df = synthetic()
+    rho, lo, hi, n = fs.cluster_bootstrap(df[df["env"] == "a"], "one_step", n_boot=300)
+    assert n == 40 and rho > 0.97 and lo > 0.9  # return falls with the error (minus a small cluster effect)
+    rho, lo, hi, _ = fs.cluster_bootstrap(df[df["env"] == "a"], "n_terms", n_boot=300)
+    assert lo < 0 < hi and abs(rho) < 0.5
+    pooled = fs.cluster_bootstrap(df, "one_step", n_boot=300, pooled=True)
+    assert pooled[0] > 0.95 and pooled[3] == 80
+
+
+def test_the_cluster_bootstrap_is_wider_than_a_row_bootstrap_when_clusters_repeat():
+    # 6 clusters of 8 near-copies: 48 rows but 6 independent draws
+    rng = np.random.default_rng(1)
+    rows = []
+    for c in range(6):
+        err, ret = rng.lognormal(), rng.normal()
+        for j in range(8):
+            rows.append({"env": "a", "cluster": c, "family": "sindy", "model": f"m{j}",
+                         "real_return": ret + 1e-3 * rng.normal(), "one_step": err * (1 + 1e-3 * rng.normal())})
+    df = pd.DataFrame(rows)
+    _, lo, hi, _ = fs.cluster_bootstrap(df, "one_step", n_boot=400)
+    rowwise = df.assign(cluster=np.arange(len(df)))
+    _, lo2, hi2, _ = fs.cluster_bootstrap(rowwise, "one_step", n_boot=400)
+    assert hi - lo > 1.5 * (hi2 - lo2)
+
+
+def test_halves_split_each_envs_clusters_in_two_and_the_table_has_every_part():
+    df = synthetic(n_clusters=8)
+    half = fs.halves(df)
+    for _env, g in df.groupby("env"):
+        per_cluster = half[g.index].groupby(g["cluster"]).nunique()
+        assert (per_cluster == 1).all()  # a cluster is never split
+        assert (half[g.index].groupby(g["cluster"]).first() == "select").sum() == 4
+    assert fs.halves(df).equals(half)  # seeded
+    table = fs.correlation_table(df, n_boot=100)
+    assert set(table["env"]) == {"a", "b", "pooled"} and set(table["metric"]) == {"one_step", "n_terms"}
+    assert fs.best_metric(table, ["one_step", "n_terms"]) == "one_step"
