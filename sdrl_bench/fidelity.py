@@ -159,17 +159,64 @@ def rollouts(
         state = test.next_states[starts + j].copy()  # exogenous variables: the real values
         state[:, tgt] = nxt
     final_true = test.next_states[starts + k - 1][:, tgt]
-    return final_true, _align_angles(spec, final_true, state[:, tgt]), diverged
+    return final_true, align_angles(spec, final_true, state[:, tgt]), diverged
 
 
-def _align_angles(spec: EnvSpec, true: np.ndarray, pred: np.ndarray) -> np.ndarray:
+def align_angles(spec: EnvSpec, true: np.ndarray, pred: np.ndarray) -> np.ndarray:
     """Predicted angles (``spec.angles``) moved by whole turns to within pi of the true ones: an
     angle's error is its wrapped difference."""
     cols = [i for i, n in enumerate(spec.target_names) if n in spec.angles]
     if cols:
         pred = pred.copy()
-        pred[:, cols] = true[:, cols] + wrap_angle(pred[:, cols] - true[:, cols])
+        with np.errstate(all="ignore"):
+            pred[:, cols] = true[:, cols] + wrap_angle(pred[:, cols] - true[:, cols])
     return pred
+
+
+ROLLOUT_CAP = 1.0e4
+"""Normalized squared error given to a diverged or non-finite prediction (about 100 standard
+deviations off): the fidelity study's and the search's open-loop errors stay finite and rank a
+diverging model below every model that does not diverge."""
+
+
+def normalized_error(true: np.ndarray, pred: np.ndarray, std: np.ndarray) -> np.ndarray:
+    """Per row: mean over states of ((pred - true) / std)^2; a non-finite row is ``ROLLOUT_CAP``."""
+    with np.errstate(all="ignore"):
+        e = np.mean(((pred - true) / std) ** 2, axis=1)
+    return np.where(np.isfinite(e), np.minimum(e, ROLLOUT_CAP), ROLLOUT_CAP)
+
+
+def rollout_error(model: DynamicsModel, spec: EnvSpec, test: Transitions, k: int, std: np.ndarray) -> float:
+    """k-step open-loop error on the test set: mean over rollouts of the normalized error after k
+    steps, a diverged rollout counting as ``ROLLOUT_CAP``."""
+    true, pred, diverged = rollouts(model, spec, test, k)
+    if not len(true):
+        return float("nan")
+    e = normalized_error(true, pred, std)
+    return float(np.mean(np.where(diverged, ROLLOUT_CAP, e)))
+
+
+def episode_error(model: DynamicsModel, spec: EnvSpec, test: Transitions, std: np.ndarray) -> float:
+    """Open loop over each whole test episode from its first state with its recorded actions
+    (exogenous variables from the record), all episodes stepped together: the normalized error
+    averaged over time, then over episodes; after a divergence every step counts as the cap."""
+    tgt, limit = spec.target_index, spec.divergence_limit()
+    eps = [np.flatnonzero(test.episode == e) for e in np.unique(test.episode)]
+    state = test.states[[ix[0] for ix in eps]].copy()
+    sums, dead = np.zeros(len(eps)), np.zeros(len(eps), dtype=bool)
+    for t in range(max(len(ix) for ix in eps)):
+        live = np.flatnonzero([t < len(ix) for ix in eps])
+        rows = np.array([eps[i][t] for i in live])
+        nxt = step(model, spec, state[live], test.actions[rows])
+        bad = ~np.all(np.isfinite(nxt), axis=1) | np.any(np.abs(nxt) > limit, axis=1)
+        dead[live] |= bad
+        err = normalized_error(test.next_states[rows][:, tgt], align_angles(spec, test.next_states[rows][:, tgt], nxt), std)
+        sums[live] += np.where(dead[live], ROLLOUT_CAP, err)
+        new = test.next_states[rows].copy()
+        new[:, tgt] = np.where(dead[live][:, None], test.next_states[rows][:, tgt], nxt)
+        state[live] = new
+    return float(np.mean(sums / np.array([len(ix) for ix in eps])))
+
 
 
 def open_loop_episode(
@@ -186,7 +233,7 @@ def open_loop_episode(
         state[:, spec.target_index] = nxt
         pred.append(nxt[0])
     true = test.next_states[idx][:, spec.target_index]
-    return true, _align_angles(spec, true, np.asarray(pred))
+    return true, align_angles(spec, true, np.asarray(pred))
 
 
 def replay_noise_floor(spec: EnvSpec, test: Transitions, episode_seeds: dict[int, int], rows_per_episode: int = 400,

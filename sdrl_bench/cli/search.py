@@ -127,9 +127,10 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
         n_trials = 1
         for values in grid_values(space).values():
             n_trials *= len(values)
-    name = st.name or f"{choices.get('env', 'env')}-{sc.name}-s{cfg.seed}"
+    objective = str(sc.get("objective", "one_step"))
+    name = st.name or f"{choices.get('env', 'env')}-{sc.name}-s{cfg.seed}" + ("" if objective == "one_step" else f"-{objective}")
     return StudySettings(
-        name=str(name), space=space, storage=st.storage, objectives=tuple(sc.objectives),
+        name=str(name), space=space, storage=st.storage, objectives=tuple(sc.objectives), objective=objective,
         sampler=str(sc.sampler), n_trials=int(n_trials), k_folds=int(sc.k_folds), pruner=str(sc.pruner),
         seed=int(st.seed), worker=int(st.worker), heartbeat_interval=int(st.heartbeat_interval),
         heartbeat_grace=int(st.heartbeat_grace), tracking_uri=cfg.tracking.uri,

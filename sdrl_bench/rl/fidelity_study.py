@@ -31,7 +31,7 @@ import numpy as np
 from sdrl_bench import ConfigError, seeds
 from sdrl_bench.data import PolicyFactory, Transitions, TransitionRecorder, collect, held_out_test_set, random_policy, recorded
 from sdrl_bench.envs.base import EnvSpec
-from sdrl_bench.fidelity import rollouts, step
+from sdrl_bench.fidelity import ROLLOUT_CAP, align_angles, episode_error, normalized_error, rollout_error
 from sdrl_bench.pipeline import FitJob, FitResult, check, fit_transitions
 from sdrl_bench.rl.agents import AgentConfig, StepCounter, check_budget, evaluate_real, train
 from sdrl_bench.rl.transfer import evaluate_surrogate, surrogate_vec_env
@@ -56,10 +56,6 @@ with the real return, so a positive Spearman means the metric ranks surrogates t
 
 NEEDS_POLICY = ("onpolicy_one_step", "onpolicy_reward", "optimism_gap")
 """Candidates that need trained agents (real steps per surrogate beyond its data)."""
-
-ROLLOUT_CAP = 1.0e4
-"""Normalized squared error given to a diverged rollout (about 100 standard deviations off)."""
-
 
 @dataclass(frozen=True)
 class Variant:
@@ -177,52 +173,6 @@ class _Reference:
         return (out if batched else out[0]), None
 
 
-def normalized_error(true: np.ndarray, pred: np.ndarray, std: np.ndarray) -> np.ndarray:
-    """Per row: mean over states of ((pred - true) / std)^2; a non-finite row is ``ROLLOUT_CAP``."""
-    with np.errstate(all="ignore"):
-        e = np.mean(((pred - true) / std) ** 2, axis=1)
-    return np.where(np.isfinite(e), np.minimum(e, ROLLOUT_CAP), ROLLOUT_CAP)
-
-
-def rollout_error(model: Any, spec: EnvSpec, test: Transitions, k: int, std: np.ndarray) -> float:
-    """k-step open-loop error on the test set: mean over rollouts of the normalized error after k
-    steps, a diverged rollout counting as ``ROLLOUT_CAP``."""
-    true, pred, diverged = rollouts(model, spec, test, k)
-    if not len(true):
-        return float("nan")
-    e = normalized_error(true, pred, std)
-    return float(np.mean(np.where(diverged, ROLLOUT_CAP, e)))
-
-
-def episode_error(model: Any, spec: EnvSpec, test: Transitions, std: np.ndarray) -> float:
-    """Open loop over each whole test episode from its first state with its recorded actions
-    (exogenous variables from the record), all episodes stepped together: the normalized error
-    averaged over time, then over episodes; after a divergence every step counts as the cap."""
-    tgt, limit = spec.target_index, spec.divergence_limit()
-    eps = [np.flatnonzero(test.episode == e) for e in np.unique(test.episode)]
-    state = test.states[[ix[0] for ix in eps]].copy()
-    sums, dead = np.zeros(len(eps)), np.zeros(len(eps), dtype=bool)
-    for t in range(max(len(ix) for ix in eps)):
-        live = np.flatnonzero([t < len(ix) for ix in eps])
-        rows = np.array([eps[i][t] for i in live])
-        nxt = step(model, spec, state[live], test.actions[rows])
-        bad = ~np.all(np.isfinite(nxt), axis=1) | np.any(np.abs(nxt) > limit, axis=1)
-        dead[live] |= bad
-        err = normalized_error(test.next_states[rows][:, tgt], _wrap_like(spec, test.next_states[rows][:, tgt], nxt), std)
-        sums[live] += np.where(dead[live], ROLLOUT_CAP, err)
-        new = test.next_states[rows].copy()
-        new[:, tgt] = np.where(dead[live][:, None], test.next_states[rows][:, tgt], nxt)
-        state[live] = new
-    return float(np.mean(sums / np.array([len(ix) for ix in eps])))
-
-
-def _wrap_like(spec: EnvSpec, true: np.ndarray, pred: np.ndarray) -> np.ndarray:
-    from sdrl_bench.fidelity import _align_angles  # noqa: PLC0415
-
-    with np.errstate(all="ignore"):
-        return _align_angles(spec, true, pred)
-
-
 def one_step_errors(fit: FitResult, spec: EnvSpec, rows: Transitions, std: np.ndarray, reward_var: float) -> tuple[float, float]:
     """(normalized one-step error, normalized reward error) of the full surrogate step on real ``rows``."""
     from sdrl_bench.surrogate.model_env import ModelEnv  # noqa: PLC0415
@@ -230,7 +180,7 @@ def one_step_errors(fit: FitResult, spec: EnvSpec, rows: Transitions, std: np.nd
     sur = ModelEnv(fit.model, fit.spec, noise=False, penalty=False)
     nxt, reward, _, _ = sur.step(rows.states, rows.actions)
     tgt = spec.target_index
-    e = normalized_error(rows.next_states[:, tgt], _wrap_like(spec, rows.next_states[:, tgt], nxt[:, tgt]), std)
+    e = normalized_error(rows.next_states[:, tgt], align_angles(spec, rows.next_states[:, tgt], nxt[:, tgt]), std)
     return float(np.mean(e)), float(np.mean((np.asarray(reward) - rows.rewards) ** 2) / reward_var)
 
 

@@ -37,6 +37,10 @@ warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 
 OBJECTIVES = ("error", "n_terms")
+ERROR_METRICS = ("one_step", "rollout10", "rollout50", "rollout_episode")
+"""What the ``error`` objective measures on each validation fold (``search.objective``): today's
+one-step error, or an open-loop error of the fidelity study (``rl.fidelity_study``: k steps, or
+whole validation episodes; a diverged rollout counts as its cap)."""
 SAMPLERS = ("tpe", "random", "grid", "nsga2")
 OBJECTIVE_VERSION = "geomean over folds of (mean normalized one-step MSE + float floor), v1"
 TRIAL_ERRORS: tuple[type[BaseException], ...] = (ConfigError, ValueError, ArithmeticError, np.linalg.LinAlgError)
@@ -57,6 +61,8 @@ class StudySettings:
     """Optuna storage URL; None: ``sqlite:///mlruns/optuna.db``; ``journal:<file>`` for a journal."""
     objectives: tuple[str, ...] = ("error",)
     """``("error",)`` or ``("error", "n_terms")`` (multi-objective: the Pareto front)."""
+    objective: str = "one_step"
+    """What ``error`` measures on each validation fold (``ERROR_METRICS``)."""
     sampler: str = "tpe"
     """``tpe``, ``random``, ``grid`` (every grid point once) or ``nsga2``."""
     n_trials: int = 100
@@ -92,6 +98,7 @@ class StudyData:
     floor: float
     exclude_bound: bool
     sha256: str
+    objective: str = "one_step"
 
 
 @dataclass(frozen=True)
@@ -125,6 +132,8 @@ def check_settings(s: StudySettings) -> None:
     if not s.objectives or s.objectives[0] != "error" or len(set(s.objectives)) != len(s.objectives) \
             or any(o not in OBJECTIVES for o in s.objectives):
         raise ConfigError(f"search.objectives: use [error] or [error, n_terms], got {list(s.objectives)}")
+    if s.objective not in ERROR_METRICS:
+        raise ConfigError(f"search.objective: one of {list(ERROR_METRICS)}, got {s.objective!r}")
     if s.sampler not in SAMPLERS:
         raise ConfigError(f"search.sampler: one of {list(SAMPLERS)}, got {s.sampler!r}")
     if s.sampler == "grid":
@@ -141,17 +150,25 @@ def check_settings(s: StudySettings) -> None:
         raise ConfigError("study.heartbeat_interval and study.heartbeat_grace must be >= 1 second")
 
 
-def study_data(job: FitJob, k_folds: int) -> StudyData:
+def study_data(job: FitJob, k_folds: int, objective: str = "one_step") -> StudyData:
     """Collect (or load) the study's data once, as ``pipeline.fit_dynamics`` would (the same
-    reset seeds: the data of ``sdrl-bench seed=<study seed>``)."""
+    reset seeds: the data of ``sdrl-bench seed=<study seed>``). A k-step objective needs a
+    validation episode of k transitions in every fold (checked here, before any trial)."""
     _, loaded = check(job)
     data = loaded if loaded is not None else collect(
         job.spec, job.policy or random_policy, job.n_transitions, job.epsilon, seeds.reset_seed(job.seed, "collect"),
         max_steps_per_episode=job.max_steps_per_episode,
     )
+    folds = make_folds(data, k_folds)
+    k = int(objective[len("rollout"):]) if objective[len("rollout"):].isdigit() else 0
+    for i, fold in enumerate(folds):
+        valid = data.subset(fold.valid)
+        if k and max(np.bincount(valid.episode - valid.episode.min())) < k:
+            raise ConfigError(f"search.objective={objective}: validation fold {i} holds no episode of {k} transitions; "
+                              "use rollout10, rollout_episode or more data")
     return StudyData(
-        spec=job.spec, data=data, folds=make_folds(data, k_folds), floor=resolution_floor(job.spec, data),
-        exclude_bound=job.exclude_bound_transitions, sha256=data.content_hash(),
+        spec=job.spec, data=data, folds=folds, floor=resolution_floor(job.spec, data),
+        exclude_bound=job.exclude_bound_transitions, sha256=data.content_hash(), objective=objective,
     )
 
 
@@ -177,7 +194,8 @@ def _evaluate(job: FitJob, sd: StudyData, report: Callable[[int, float], bool] |
         return build_model(job, library)
 
     errors: list[float] = []
-    for i, err in enumerate(cross_validate(make, spec, sd.data, sd.folds, sd.exclude_bound)):
+    folds = cross_validate(make, spec, sd.data, sd.folds, sd.exclude_bound, sd.objective)
+    for i, err in enumerate(folds):
         errors.append(err)
         if report is not None and report(i, aggregate(errors, sd.floor)):
             return TrialOutcome(aggregate(errors, sd.floor), errors, pruned=True, n_fits=len(errors))
@@ -224,7 +242,7 @@ def fingerprint(s: StudySettings, sd: StudyData) -> dict[str, Any]:
     return {
         "space": describe_space(s.space),
         "objectives": list(s.objectives),
-        "objective": OBJECTIVE_VERSION,
+        "objective": OBJECTIVE_VERSION if s.objective == "one_step" else f"{s.objective}: {OBJECTIVE_VERSION}",
         "k_folds": s.k_folds,
         "data": {"env": sd.spec.name, "n_transitions": len(sd.data), "sha256": sd.sha256},
         "context": {k: v for k, v in s.context.items()},
@@ -254,7 +272,7 @@ def run_study(
     heartbeat = settings.heartbeat_interval if not storage_url.startswith("journal:") else None
     storage = open_storage(storage_url, heartbeat, settings.heartbeat_grace if heartbeat else None, on_stale)
     tracking.ensure_experiment(uri, settings.experiment)
-    sd = study_data(build_job({}), settings.k_folds)
+    sd = study_data(build_job({}), settings.k_folds, settings.objective)
     directions = ["minimize"] * len(settings.objectives)
     where = f" in {redact(storage_url)}"
     study = open_study(storage, settings.name, directions, fingerprint(settings, sd),
@@ -262,6 +280,7 @@ def run_study(
     parent = study_parent_run(
         uri, settings.experiment, settings.name, redact(storage_url),
         {"env": sd.spec.name, "sampler": settings.sampler, "objectives": ",".join(settings.objectives),
+         "search.objective": settings.objective,
          "git_commit": tracking.git_commit()},
     )
     result = WorkerResult(study, settings, sd, parent, uri, storage_url)

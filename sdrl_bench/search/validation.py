@@ -91,11 +91,24 @@ def cross_validate(
     data: Transitions,
     folds: list[Fold],
     exclude_bound: bool = True,
+    objective: str = "one_step",
 ) -> Iterator[float]:
-    """Yield each fold's error (mean normalized one-step MSE over states), fold by fold, so a
-    caller can report running means to a pruner and stop early."""
+    """Yield each fold's error, fold by fold, so a caller can report running means to a pruner
+    and stop early. ``one_step``: the mean normalized one-step MSE over states; ``rollout<k>`` and
+    ``rollout_episode``: the fidelity study's open-loop errors on the fold's episodes
+    (``rl.fidelity_study.rollout_error`` / ``episode_error``), normalized by the training rows' std."""
+    from sdrl_bench.fidelity import episode_error, rollout_error
+
     for _, model, train, valid in _fold_fits(make_model, spec, data, folds, exclude_bound):
-        yield float(np.mean(normalized_errors(model, spec, valid, train)))
+        if objective == "one_step":
+            yield float(np.mean(normalized_errors(model, spec, valid, train)))
+            continue
+        stats = train.normalization(spec)
+        std = np.array([stats[n]["std"] for n in spec.target_names])
+        if objective == "rollout_episode":
+            yield episode_error(model, spec, valid, std)
+        else:
+            yield rollout_error(model, spec, valid, int(objective[len("rollout"):]), std)
 
 
 def fold_residuals(

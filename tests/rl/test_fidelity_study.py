@@ -11,7 +11,8 @@ from helpers import compose_cfg, search
 from sdrl_bench import ConfigError
 from sdrl_bench.cli.fidelity_task import build_cluster, cluster_axes, run_fidelity_task
 from sdrl_bench.report import fidelity_study as fs
-from sdrl_bench.rl.fidelity_study import CANDIDATES, ROLLOUT_CAP, normalized_error
+from sdrl_bench.fidelity import ROLLOUT_CAP, normalized_error
+from sdrl_bench.rl.fidelity_study import CANDIDATES
 
 TINY = [
     "task=fidelity", "env=mountain_car", "library=poly_trig", "agent=ppo_fast", "agent.n_envs=4", "agent.algo.n_steps=16",

@@ -404,3 +404,19 @@ def test_mountain_car_100_tpe_trials_find_the_exact_law(tmp_path, uri):
     assert summary.n_trials == 100
     assert exact_law(summary.best_equations), summary.best_equations
     assert summary.test_error < 1e-13
+
+
+def test_an_open_loop_objective_ranks_by_rollout_error_and_is_part_of_the_studys_identity(tmp_path, uri):
+    grid = ["search=grid", "search.space.threshold.grid=[1e-3,3e-2]", "search.space.alpha.grid=[1e-10]",
+            "study.final_score=false"]
+    result, summary = run_search(search_cfg(tmp_path, uri, "study.name=roll", "search.objective=rollout10", *grid), quiet=True)
+    errors = {t.params["threshold"]: t.values[0] for t in result.study.trials}
+    # the exact law (threshold 1e-3) is at float noise over 10 open-loop steps; the coarse one is far off
+    assert errors[1e-3] < 1e-6 < errors[3e-2]
+    assert summary.best_params["threshold"] == 1e-3
+    parent = tracking.find_runs(uri, EXPERIMENT, "tags.`sdrl.study` = 'roll' and tags.`sdrl.kind` = 'study'")[0]
+    assert parent["tags"]["search.objective"] == "rollout10"
+    with pytest.raises(ConfigError, match=r"^study.name: study 'roll' .* different setup"):
+        run_search(search_cfg(tmp_path, uri, "study.name=roll", *grid), quiet=True)  # today's objective: another study
+    with pytest.raises(ConfigError, match=r"^search.objective: one of \['one_step', 'rollout10'"):
+        run_search(search_cfg(tmp_path, uri, "study.name=bad_objective", "search.objective=bogus"), quiet=True)
