@@ -36,6 +36,9 @@ with ``--jobs`` processes at a time, one thread each. The stages, in order:
                loop with the PE ensemble, SINDy-RL's model form (env=cartpole_swingup_circle: its
                fits and its Dyna loop), and SB3's default SAC in the real env, seeds 0-4.
   search       one Optuna TPE study per env (sdrl-bench-search, seed 0) over the SINDy hyperparameters.
+  fidelity     the fidelity-vs-transfer study (experiment=fidelity_<env>): per env 40-60 surrogates
+               (data size x collector x noise clusters, SINDy / MLP / ensemble), 3 compiled-PPO agents
+               each judged in the real env, every candidate fidelity metric (needs the [jax] extra).
   report       sdrl-bench-report on the store, with this run's provenance (command, seeds,
                budgets, per-stage wall and CPU seconds, commit) as its first section.
 
@@ -132,6 +135,9 @@ def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
             ["search:", "env=mountain_car", "collector=expert", f"tracking.experiment={STORE_EXPERIMENT}"],
             ["search:", "env=lunar_lander", "collector=expert", "env.spec.fit_regime=null", "search.n_trials=40",
              "search.space.poly_degree.high=2", f"tracking.experiment={STORE_EXPERIMENT}"],
+        ]),
+        ("fidelity", [  # which fidelity predicts transfer: each pack's own clusters (seeds in the pack), >= 40 surrogates per env
+            ["-m", f"experiment=fidelity_{env}"] for env in ("mountain_car", "pendulum", "lunar_lander", "cartpole_swingup")
         ]),
     ]
 
