@@ -24,6 +24,8 @@ from scipy import stats
 SURROGATE_KIND = "fidelity-surrogate"
 N_BOOT = 2000
 SPLIT_SEED = 0
+MIN_CLUSTERS = 3
+"""Fewer clusters in an env: a Spearman without a CI."""
 TARGET = 0.8
 """The Spearman correlation the issue asks a metric to reach on an env."""
 
@@ -88,6 +90,8 @@ def cluster_bootstrap(df: pd.DataFrame, metric: str, n_boot: int = N_BOOT, seed:
     by_env: dict[str, list] = {}
     for (env, _), g in groups.items():
         by_env.setdefault(env, []).append(g)
+    if min(len(gs) for gs in by_env.values()) < MIN_CLUSTERS:  # resampling one or two clusters is no interval
+        return est, float("nan"), float("nan"), len(d)
     boots = []
     for _ in range(n_boot):
         parts = []

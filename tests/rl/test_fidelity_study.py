@@ -28,7 +28,7 @@ def cluster(store, *extra):
     return run_fidelity_task(compose_cfg(*overrides), None, given=overrides)
 
 
-def test_a_cluster_scores_each_surrogate_and_counts_its_real_steps(store, capsys):
+def test_a_cluster_scores_each_surrogate_and_counts_its_real_steps(store, capsys, tmp_path):
     out = cluster(store, "fidelity.models={law: [], polynomial: ['library=polynomial']}")
     runs = search(store)
     parent = runs[runs["tags.sdrl.kind"] == "fidelity-cluster"]
@@ -60,6 +60,18 @@ def test_a_cluster_scores_each_surrogate_and_counts_its_real_steps(store, capsys
     assert "law: finished in run" in capsys.readouterr().err
     sur2 = search(store, filter_string="tags.`sdrl.kind` = 'fidelity-surrogate'")
     assert sorted(sur2["tags.model"]) == ["law", "polynomial", "trig"]
+
+    # the report's section 6 reads them: the population, the table (3 surrogates: a Spearman, no CI) and a figure
+    from sdrl_bench.report.build import ReportInput, build_report
+
+    res = build_report(ReportInput(store), "r", tmp_path, log_run=False)
+    text = (res.folder / "report.md").read_text()
+    assert "## 6. Which fidelity predicts transfer" in text
+    assert "mountain_car: 3 surrogates in 1 clusters" in text
+    assert (res.folder / "figures" / "fidelity_mountain_car.png").stat().st_size > 10_000
+    table = pd.read_csv(res.folder / "fidelity_correlations.csv")
+    one = table[table["metric"] == "one_step"].iloc[0]
+    assert one["all_n"] == 3 and np.isfinite(one["all_rho"]) and np.isnan(one["all_lo"])  # one cluster: no CI
 
 
 def test_bad_models_and_axes_fail_before_any_run(store):
