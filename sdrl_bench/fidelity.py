@@ -173,6 +173,10 @@ def align_angles(spec: EnvSpec, true: np.ndarray, pred: np.ndarray) -> np.ndarra
     return pred
 
 
+POLICY_METRICS = ("onpolicy_one_step", "reference_gap")
+"""The fidelity study's candidates a search can select on that need a policy (real steps per trial,
+or per study): scored by ``rl.fidelity_study.PolicyProbe``."""
+
 ROLLOUT_CAP = 1.0e4
 """Normalized squared error given to a diverged or non-finite prediction (about 100 standard
 deviations off): the fidelity study's and the search's open-loop errors stay finite and rank a

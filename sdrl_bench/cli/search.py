@@ -131,11 +131,31 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
     name = st.name or f"{choices.get('env', 'env')}-{sc.name}-s{cfg.seed}" + ("" if objective == "one_step" else f"-{objective}")
     return StudySettings(
         name=str(name), space=space, storage=st.storage, objectives=tuple(sc.objectives), objective=objective,
+        policy=_policy_probe(cfg, objective),
         sampler=str(sc.sampler), n_trials=int(n_trials), k_folds=int(sc.k_folds), pruner=str(sc.pruner),
         seed=int(st.seed), worker=int(st.worker), heartbeat_interval=int(st.heartbeat_interval),
         heartbeat_grace=int(st.heartbeat_grace), tracking_uri=cfg.tracking.uri,
         experiment=str(cfg.tracking.experiment), context=context,
     )
+
+
+def _policy_probe(cfg: DictConfig, objective: str):
+    """``search.objective=onpolicy_one_step | reference_gap``: the agent (``agent=...``) and the real
+    episodes (``search.policy.*``) it scores each trial with; None for a data objective."""
+    from sdrl_bench.fidelity import POLICY_METRICS
+
+    if objective not in POLICY_METRICS:
+        return None
+    from sdrl_bench.rl.fidelity_study import PolicyProbe
+    node = cfg.search.get("policy")
+    if node is None:
+        raise ConfigError(f"search.objective={objective}: needs search.policy (train_steps, episodes, reference)")
+    from sdrl_bench.cli.build import instantiate_key, int_key
+
+    ref = str(node.get("reference", "random"))
+    reference = None if ref == "random" else instantiate_key(load_group("collector", ref).policy, "search.policy.reference")
+    return PolicyProbe(objective, instantiate_key(cfg.agent, "agent"), int_key(cfg, "search.policy.train_steps", 1),
+                       int_key(cfg, "search.policy.episodes", 1), reference, int(cfg.seed))
 
 
 def run_search(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet: bool = False):

@@ -29,9 +29,9 @@ from collections.abc import Callable
 import numpy as np
 
 from sdrl_bench import ConfigError, seeds
-from sdrl_bench.data import PolicyFactory, Transitions, TransitionRecorder, collect, held_out_test_set, random_policy, recorded
+from sdrl_bench.data import PolicyFactory, Transitions, TransitionRecorder, collect, concat, held_out_test_set, random_policy, recorded
 from sdrl_bench.envs.base import EnvSpec
-from sdrl_bench.fidelity import ROLLOUT_CAP, align_angles, episode_error, normalized_error, rollout_error
+from sdrl_bench.fidelity import POLICY_METRICS, ROLLOUT_CAP, align_angles, episode_error, normalized_error, rollout_error
 from sdrl_bench.pipeline import FitJob, FitResult, check, fit_transitions
 from sdrl_bench.rl.agents import AgentConfig, StepCounter, check_budget, evaluate_real, train
 from sdrl_bench.rl.transfer import evaluate_surrogate, surrogate_vec_env
@@ -173,11 +173,12 @@ class _Reference:
         return (out if batched else out[0]), None
 
 
-def one_step_errors(fit: FitResult, spec: EnvSpec, rows: Transitions, std: np.ndarray, reward_var: float) -> tuple[float, float]:
-    """(normalized one-step error, normalized reward error) of the full surrogate step on real ``rows``."""
+def one_step_errors(model: Any, spec: EnvSpec, rows: Transitions, std: np.ndarray, reward_var: float) -> tuple[float, float]:
+    """(normalized one-step error, normalized reward error) of the full surrogate step of ``model``
+    (on ``spec``'s task) on real ``rows``."""
     from sdrl_bench.surrogate.model_env import ModelEnv  # noqa: PLC0415
 
-    sur = ModelEnv(fit.model, fit.spec, noise=False, penalty=False)
+    sur = ModelEnv(model, spec, noise=False, penalty=False)
     nxt, reward, _, _ = sur.step(rows.states, rows.actions)
     tgt = spec.target_index
     e = normalized_error(rows.next_states[:, tgt], align_angles(spec, rows.next_states[:, tgt], nxt[:, tgt]), std)
@@ -203,7 +204,7 @@ def fidelity_candidates(fit: FitResult, cluster: ClusterData) -> dict[str, float
     if cluster.test.terminated.any():
         p, r = (0.0 if p is None or not np.isfinite(p) else p), (0.0 if r is None or not np.isfinite(r) else r)
         out["termination_error"] = 1.0 - (2 * p * r / (p + r) if p + r > 0 else 0.0)
-    out["reward_error"] = one_step_errors(fit, spec, cluster.test, std, cluster.reward_var)[1]
+    out["reward_error"] = one_step_errors(fit.model, fit.spec, cluster.test, std, cluster.reward_var)[1]
     summary = fit.model.summary_metrics()
     out["n_terms"] = float(summary.get("n_active_terms", summary.get("n_parameters", np.nan)))
     return out
@@ -261,22 +262,78 @@ def score_variant(job: ClusterJob, variant: Variant, cluster: ClusterData,
         own.append(float(evaluate_surrogate(result.model, sur, job.final_episodes,
                                             seeds.int_seed(job.seed, "surrogate_eval") + 1 + k).mean()))
         if job.onpolicy_episodes:
-            recorders: list[TransitionRecorder] = []
-
-            def wrap(env, i, recorders=recorders, k=k):
-                rec = TransitionRecorder(env, spec, k * job.onpolicy_episodes + i)
-                recorders.append(rec)
-                return rec
-
-            evaluate_real(result.model, spec, job.onpolicy_episodes,
-                          seed=seeds.reset_seed(job.seed, "fidelity_onpolicy", k * job.onpolicy_episodes),
-                          counts=counts, phase="onpolicy", wrap_env=wrap)
-            onpolicy.append(recorded(recorders))
+            onpolicy.append(own_episodes(result.model, spec, job.onpolicy_episodes,
+                                         seeds.reset_seed(job.seed, "fidelity_onpolicy", k * job.onpolicy_episodes), counts))
         t_eval += time.perf_counter() - t0
     seconds.update(train_wall=t_train, evaluate_wall=t_eval)
     if onpolicy:
-        rows = Transitions(**{f: np.concatenate([getattr(p, f) for p in onpolicy]) for f in Transitions.__dataclass_fields__})
-        cand["onpolicy_one_step"], cand["onpolicy_reward"] = one_step_errors(fit, spec, rows, cluster.norm_std, cluster.reward_var)
+        rows = concat(onpolicy)
+        cand["onpolicy_one_step"], cand["onpolicy_reward"] = one_step_errors(fit.model, fit.spec, rows, cluster.norm_std, cluster.reward_var)
     real_means = np.array([np.mean(r) for r in returns])
     cand["optimism_gap"] = float(np.mean(np.abs(np.array(own) - real_means)))
     return VariantScore(fit, cand, returns, own, counts, seconds)
+
+
+def own_episodes(policy: Any, spec: EnvSpec, episodes: int, seed: int, counts: Counter) -> Transitions:
+    """``episodes`` real episodes of ``policy`` (deterministic; reset seeds ``seed + i``), recorded
+    as transitions and counted under ``onpolicy``."""
+    recorders: list[TransitionRecorder] = []
+
+    def wrap(env, i):
+        rec = TransitionRecorder(env, spec, i)
+        recorders.append(rec)
+        return rec
+
+    evaluate_real(policy, spec, episodes, seed=seed, counts=counts, phase="onpolicy", wrap_env=wrap)
+    return recorded(recorders)
+
+
+class PolicyProbe:
+    """A search objective that needs a policy (``search.objective=onpolicy_one_step`` or
+    ``reference_gap``): scores one fitted model per trial and counts the real steps it takes.
+
+    * ``onpolicy_one_step``: an agent (``agent``, ``train_steps``) trains in the model's surrogate and
+      plays ``episodes`` real episodes (stream ``fidelity_onpolicy``, a block per trial); the score
+      is the model's normalized one-step error on them (``episodes x episode length`` real steps per trial).
+    * ``reference_gap``: the reference policy plays ``episodes`` episodes in the surrogate; the score
+      is the gap to its real return over ``episodes`` real episodes (stream ``fidelity_reference``,
+      played once per study).
+    """
+
+    def __init__(self, metric: str, agent: AgentConfig, train_steps: int, episodes: int,
+                 reference: PolicyFactory | None, seed: int):
+        if metric not in POLICY_METRICS:
+            raise ConfigError(f"search.objective: a policy objective is one of {list(POLICY_METRICS)}, got {metric!r}")
+        check_budget("search.policy.train_steps", train_steps)
+        check_budget("search.policy.episodes", episodes)
+        self.metric, self.agent, self.train_steps, self.episodes = metric, agent, train_steps, episodes
+        self.reference, self.seed = reference, seed
+        self._reference_real: float | None = None
+
+    def describe(self) -> dict[str, Any]:
+        """What the scores depend on (a resumed study must match it)."""
+        return {"metric": self.metric, "agent": self.agent.name, "train_steps": self.train_steps, "episodes": self.episodes,
+                "reference": getattr(self.reference, "__name__", str(self.reference)), "seed": self.seed}
+
+    def score(self, model: Any, spec: EnvSpec, data: Transitions, trial: int, counts: Counter) -> float:
+        """The objective for ``model`` fitted on ``data`` (trial number ``trial``); real steps added to ``counts``."""
+        from sdrl_bench.surrogate.model_env import ModelEnv  # noqa: PLC0415
+
+        if self.metric == "reference_gap":
+            if self._reference_real is None:
+                real = evaluate_real(_Reference(spec, self.reference), spec, self.episodes,
+                                     seed=seeds.reset_seed(self.seed, "fidelity_reference"), counts=counts, phase="reference")
+                self._reference_real = float(real.returns.mean())
+            own = evaluate_surrogate(_Reference(spec, self.reference), ModelEnv(model, spec), self.episodes,
+                                     seeds.int_seed(self.seed, "surrogate_eval"))
+            return abs(float(own.mean()) - self._reference_real)
+        agent_seed = int(seeds.generator(self.seed, "agent", trial).integers(2**31))
+        venv = surrogate_vec_env(model, spec, self.agent.n_envs, agent_seed)
+        counts["resets/reset_pool"] += getattr(getattr(venv, "surrogate", None), "real_resets", 0)
+        result = train(self.agent, venv, self.train_steps, agent_seed, env_seed=agent_seed)
+        venv.close()
+        rows = own_episodes(result.model, spec, self.episodes,
+                            seeds.reset_seed(self.seed, "fidelity_onpolicy", trial * self.episodes), counts)
+        stats = data.normalization(spec)
+        std = np.array([stats[spec.state_names[i]]["std"] for i in spec.target_index])
+        return one_step_errors(model, spec, rows, std, 1.0)[0]

@@ -29,6 +29,7 @@ from sdrl_bench.data import Transitions, collect, random_policy
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.models.libraries import build_library
 from sdrl_bench.pipeline import FitJob, build_model, check
+from sdrl_bench.fidelity import POLICY_METRICS
 from sdrl_bench.search.space import GROUP_PARAMS, NN_PARAMS, PARAM_KEYS, SearchSpace, describe_space, grid_values, suggest
 from sdrl_bench.search.storage import open_storage, open_study, redact, resolve_storage, study_parent_run
 from sdrl_bench.search.validation import Fold, aggregate, cross_validate, fit_model, make_folds, resolution_floor
@@ -62,7 +63,10 @@ class StudySettings:
     objectives: tuple[str, ...] = ("error",)
     """``("error",)`` or ``("error", "n_terms")`` (multi-objective: the Pareto front)."""
     objective: str = "one_step"
-    """What ``error`` measures on each validation fold (``ERROR_METRICS``)."""
+    """What ``error`` measures: on each validation fold (``ERROR_METRICS``), or with a policy on a
+    fit to all the data (``POLICY_METRICS``, scored by ``policy``)."""
+    policy: Any = None
+    """A policy objective's ``rl.fidelity_study.PolicyProbe`` (agent, budget, real episodes)."""
     sampler: str = "tpe"
     """``tpe``, ``random``, ``grid`` (every grid point once) or ``nsga2``."""
     n_trials: int = 100
@@ -111,6 +115,8 @@ class TrialOutcome:
     n_terms: int | None = None
     n_fits: int = 0
     equations: str = ""
+    real_steps: dict[str, float] = field(default_factory=dict)
+    """Real steps the objective took (a policy objective's episodes), by purpose."""
 
 
 @dataclass
@@ -132,8 +138,10 @@ def check_settings(s: StudySettings) -> None:
     if not s.objectives or s.objectives[0] != "error" or len(set(s.objectives)) != len(s.objectives) \
             or any(o not in OBJECTIVES for o in s.objectives):
         raise ConfigError(f"search.objectives: use [error] or [error, n_terms], got {list(s.objectives)}")
-    if s.objective not in ERROR_METRICS:
-        raise ConfigError(f"search.objective: one of {list(ERROR_METRICS)}, got {s.objective!r}")
+    if s.objective not in ERROR_METRICS + POLICY_METRICS:
+        raise ConfigError(f"search.objective: one of {list(ERROR_METRICS + POLICY_METRICS)}, got {s.objective!r}")
+    if s.objective in POLICY_METRICS and s.policy is None:
+        raise ConfigError(f"search.objective={s.objective} needs a policy: set search.policy (train_steps, episodes, reference)")
     if s.sampler not in SAMPLERS:
         raise ConfigError(f"search.sampler: one of {list(SAMPLERS)}, got {s.sampler!r}")
     if s.sampler == "grid":
@@ -177,21 +185,36 @@ def evaluate_params(
     build_job: BuildJob,
     sd: StudyData,
     report: Callable[[int, float], bool] | None = None,
+    policy: Any = None,
+    trial: int = 0,
 ) -> TrialOutcome:
     """k-fold error of the fit ``build_job(params)`` describes, then a fit on all the data for
-    its number of active terms. ``report(fold, running error)`` returning True stops early."""
+    its number of active terms. ``report(fold, running error)`` returning True stops early.
+    A policy objective (``policy``, a ``PolicyProbe``) scores the fit on all the data instead."""
     with warnings.catch_warnings():
         # pysindy warns when a threshold removes every term: that candidate simply scores badly
         warnings.simplefilter("ignore", UserWarning)
-        return _evaluate(build_job(params), sd, report)
+        return _evaluate(build_job(params), sd, report, policy, trial)
 
 
-def _evaluate(job: FitJob, sd: StudyData, report: Callable[[int, float], bool] | None) -> TrialOutcome:
+def _evaluate(job: FitJob, sd: StudyData, report: Callable[[int, float], bool] | None, policy: Any = None,
+              trial: int = 0) -> TrialOutcome:
     spec = sd.spec
     library = build_library(job.library_parts, spec.target_names, spec.control_names)
 
     def make():
         return build_model(job, library)
+
+    if sd.objective in POLICY_METRICS:
+        from collections import Counter
+
+        model, counts = fit_model(make, spec, sd.data, sd.exclude_bound), Counter()
+        value = float(policy.score(model, spec, sd.data, trial, counts))
+        active = model.summary_metrics().get("n_active_terms")
+        value += sd.floor if sd.objective == "onpolicy_one_step" else 0.0  # a one-step error: float noise does not rank
+        return TrialOutcome(value, [value], False, None if active is None else int(active), 1, model.describe(),
+                            {"selection": float(counts["onpolicy"] + counts["reference"]),
+                             "resets/reset_pool": float(counts["resets/reset_pool"])})
 
     errors: list[float] = []
     folds = cross_validate(make, spec, sd.data, sd.folds, sd.exclude_bound, sd.objective)
@@ -246,6 +269,7 @@ def fingerprint(s: StudySettings, sd: StudyData) -> dict[str, Any]:
         "k_folds": s.k_folds,
         "data": {"env": sd.spec.name, "n_transitions": len(sd.data), "sha256": sd.sha256},
         "context": {k: v for k, v in s.context.items()},
+        **({"policy": s.policy.describe()} if s.policy is not None else {}),
     }
 
 
@@ -345,13 +369,13 @@ def _objective(s: StudySettings, build_job: BuildJob, sd: StudyData, uri: str, p
             run.log_params(fit_params(s.context, params))
             try:
                 with stop_signals_held(False):
-                    out = evaluate_params(params, build_job, sd, report if prune else None)
+                    out = evaluate_params(params, build_job, sd, report if prune else None, s.policy, trial.number)
             except TRIAL_ERRORS as exc:
                 msg = f"{type(exc).__name__}: {str(exc).strip()}".splitlines()[0][:500]
                 trial.set_user_attr("error", msg)
                 run.set_tags({"optuna.state": "FAIL", "error": msg})
                 raise
-            run.log_metrics({"error": out.error, "n_fits": out.n_fits,
+            run.log_metrics({"error": out.error, "n_fits": out.n_fits, **{f"real_steps/{k}": v for k, v in out.real_steps.items()},
                              **{f"fold_error/{i}": e for i, e in enumerate(out.fold_errors)},
                              **({"n_terms": out.n_terms} if out.n_terms is not None else {})})
             run.set_tags({"optuna.state": "PRUNED" if out.pruned else "COMPLETE"})

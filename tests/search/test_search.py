@@ -420,3 +420,26 @@ def test_an_open_loop_objective_ranks_by_rollout_error_and_is_part_of_the_studys
         run_search(search_cfg(tmp_path, uri, "study.name=roll", *grid), quiet=True)  # today's objective: another study
     with pytest.raises(ConfigError, match=r"^search.objective: one of \['one_step', 'rollout10'"):
         run_search(search_cfg(tmp_path, uri, "study.name=bad_objective", "search.objective=bogus"), quiet=True)
+
+
+def test_a_policy_objective_trains_an_agent_per_trial_and_counts_its_real_episodes(tmp_path, uri):
+    tiny = ["agent=ppo_fast", "agent.n_envs=4", "agent.algo.n_steps=16", "agent.algo.batch_size=32", "agent.algo.n_epochs=1",
+            "search.policy.train_steps=64", "search.policy.episodes=1"]
+    grid = ["search=grid", "search.space.threshold.grid=[1e-3,3e-2]", "search.space.alpha.grid=[1e-10]",
+            "study.final_score=false"]
+    result, _ = run_search(search_cfg(tmp_path, uri, "study.name=onpol", "search.objective=onpolicy_one_step", *tiny, *grid),
+                           quiet=True)
+    errors = {t.params["threshold"]: t.values[0] for t in result.study.trials}
+    # the exact law predicts the agent's own real steps to float noise; the coarse fit does not
+    assert errors[1e-3] < 1e-8 < errors[3e-2]
+    trials = tracking.find_runs(uri, EXPERIMENT, "tags.`sdrl.study` = 'onpol' and tags.`sdrl.kind` = 'trial'")
+    assert len(trials) == 2
+    for t in trials:  # one real episode of MountainCar per trial (1 to 999 steps), counted as selection
+        assert 1 <= t["metrics"]["real_steps/selection"] <= 999
+    gap, _ = run_search(search_cfg(tmp_path, uri, "study.name=refgap", "search.objective=reference_gap",
+                                   "search.policy.reference=heuristic", "search.policy.episodes=2", *grid), quiet=True)
+    gaps = {t.params["threshold"]: t.values[0] for t in gap.study.trials}
+    assert gaps[1e-3] < gaps[3e-2]
+    with pytest.raises(ConfigError, match=r"^search.objective=onpolicy_one_step: needs search.policy"):
+        run_search(search_cfg(tmp_path, uri, "study.name=nopol", "~search.policy", "search.objective=onpolicy_one_step"),
+                   quiet=True)
