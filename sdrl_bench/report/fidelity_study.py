@@ -46,6 +46,11 @@ def points(runs: Sequence[Mapping[str, Any]]) -> pd.DataFrame:
                "real_steps_onpolicy": m.get("real_steps/onpolicy", 0.0), "real_steps_model": m.get("real_steps/model_data", 0.0),
                "real_steps_judge": m.get("real_steps/judge", 0.0), "real_steps_reference": m.get("real_steps/reference", 0.0)}
         row.update({k.split("/", 1)[1]: v for k, v in m.items() if k.startswith("candidate/")})
+        k, agents = 0, []
+        while f"agent{k}/real_return" in m:
+            agents.append(m[f"agent{k}/real_return"])
+            k += 1
+        row["agent_returns"] = agents
         rows.append(row)
     df = pd.DataFrame(rows)
     if not df.empty:  # a surrogate rerun after an adoption: the newest run per (study, cluster, model)
@@ -105,6 +110,18 @@ def cluster_bootstrap(df: pd.DataFrame, metric: str, n_boot: int = N_BOOT, seed:
         return est, float("nan"), float("nan"), len(d)
     lo, hi = np.percentile(boots, [2.5, 97.5])
     return est, float(lo), float(hi), len(d)
+
+
+def agent_ceiling(df: pd.DataFrame, n_boot: int = N_BOOT) -> tuple[float, float, float, int]:
+    """How well the target can be predicted at all: Spearman of one agent's real return with the
+    other agents' mean in the same surrogate, across surrogates (cluster-bootstrap CI). Agents that
+    fail or succeed regardless of the surrogate pull it below 1, and no fidelity metric can rank
+    surrogates much better than their own agents agree."""
+    d = df[df["agent_returns"].map(len) >= 2].copy()
+    d["first"] = d["agent_returns"].map(lambda r: r[0])
+    d["others"] = d["agent_returns"].map(lambda r: float(np.mean(r[1:])))
+    d = d.assign(**{"real_return": d["others"], "_first": -d["first"]})
+    return cluster_bootstrap(d, "_first", n_boot)
 
 
 def halves(df: pd.DataFrame, seed: int = SPLIT_SEED) -> pd.Series:
@@ -214,6 +231,13 @@ def fidelity_blocks(runs: Sequence[Mapping[str, Any]], folder, link) -> list:
                     "from 2,000 cluster-bootstrap resamples; select / confirm: a seeded random half of each env's "
                     "clusters each; pooled: ranks within env. " + "; ".join(lines) + "."))
     table = correlation_table(df)
+    ceilings = []
+    for env in sorted(df["env"].unique()):
+        rho, lo, hi, n = agent_ceiling(df[df["env"] == env])
+        ceilings.append(f"{env} {_ci(rho, lo, hi)}")
+    out.append(Para("How far the target can be predicted: the Spearman of one agent's real return with the other "
+                    "agents' mean in the same surrogates (the agents agree on a surrogate only as far as its quality, "
+                    "not their own luck, decides their return): " + "; ".join(ceilings) + "."))
     rows = []
     for _, r in table.iterrows():
         rows.append([Cell(r["env"]), Cell(r["metric"]), Cell(str(int(r["all_n"]))), Cell(_ci(r["all_rho"], r["all_lo"], r["all_hi"])),
