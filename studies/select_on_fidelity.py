@@ -22,11 +22,14 @@ import json
 import time
 from pathlib import Path
 
+from omegaconf import open_dict
+
 from sdrl_bench import tracking
 from sdrl_bench.cli.build import compose
 from sdrl_bench.cli.fidelity_task import run_fidelity_task
 from sdrl_bench.cli.search import run_search
 from sdrl_bench.report.tables import bootstrap_ci
+from sdrl_bench.rl.jax_agent import use_compilation_cache
 from sdrl_bench.search.space import GROUP_PARAMS, PARAM_KEYS
 
 DATA = {  # the fidelity pack's middle cluster: data size and collector
@@ -57,14 +60,21 @@ def main() -> None:
     common = [f"env={args.env}", f"collector={collector}", f"n_transitions={n}", f"seed={args.seed}",
               f"tracking.uri='{uri}'", f"study.storage='sqlite:///{work}/optuna.db'", f"study.export_dir='{work}/search'",
               f"search.n_trials={args.trials}", "search.space.poly_degree.high=2"]
+    pack = compose([f"experiment=fidelity_{args.env}"])  # the study's recipe: a policy objective's agent and budget
     picks, t0 = {}, time.perf_counter()
     for objective in ("one_step", args.objective):
-        cfg = compose([*common, f"search.objective={objective}", f"study.name={args.env}-s{args.seed}-{objective}"],
+        cfg = compose([*common, f"search.objective={objective}", f"study.name={args.env}-s{args.seed}-{objective}",
+                       f"search.policy.train_steps={pack.fidelity.train_steps}", "search.policy.episodes=2",
+                       f"search.policy.reference={pack.fidelity.reference}"],
                       config_name="search_app", return_hydra_config=True)
+        with open_dict(cfg):
+            cfg.agent = pack.agent
+        if pack.get("jax_cache_dir"):
+            use_compilation_cache(str(work / "jax_cache"))
         _, summary = run_search(cfg, quiet=True)
         picks[objective] = {"params": dict(summary.best_params), "validation_error": summary.best_error,
                             "test_error": summary.test_error}
-        print(f"{objective}: best {summary.best_params} (validation {summary.best_error:.4g})", flush=True)
+        print(f"{objective}: best {summary.best_params} ({objective} {summary.best_error:.4g})", flush=True)
     search_wall = time.perf_counter() - t0
     models = "{" + ", ".join(f"{k}: [{', '.join(repr(o) for o in overrides_of(v['params']))}]" for k, v in picks.items()) + "}"
     overrides = [f"experiment=fidelity_{args.env}", f"seed={args.seed}", f"tracking.uri='{uri}'",
@@ -75,7 +85,11 @@ def main() -> None:
     runs = tracking.find_runs(uri, "sdrl-bench", f"tags.`sdrl.kind` = 'fidelity-surrogate' and tags.`sdrl.study` = 'select-{args.env}'"
                               f" and attributes.status = 'FINISHED'")
     out = {"env": args.env, "objective": args.objective, "seed": args.seed, "trials": args.trials,
-           "search_wall_seconds": search_wall, "picks": picks}
+           "search_wall_seconds": search_wall, "picks": picks,
+           "search_real_steps": {"model_data (each search)": n, "selection (trials' own episodes)": sum(
+               t["metrics"].get("real_steps/selection", 0.0) for t in tracking.find_runs(
+                   uri, "sdrl-bench-search", f"tags.`sdrl.study` = '{args.env}-s{args.seed}-{args.objective}' "
+                   "and tags.`sdrl.kind` = 'trial'"))}}
     for objective in picks:
         r = next(r for r in runs if r["tags"].get("model") == objective)
         m = r["metrics"]
