@@ -30,12 +30,18 @@ TARGET = 0.8
 """The Spearman correlation the issue asks a metric to reach on an env."""
 
 
-def points(runs: Sequence[Mapping[str, Any]]) -> pd.DataFrame:
-    """One row per finished surrogate of the study: env, study, cluster, family, model, data settings,
-    real return and every ``candidate/*`` metric (columns named by the candidate)."""
+STUDY_PREFIX = "fidelity-"
+"""The studies the report pools (``fidelity.study``, default ``fidelity-<env>``); others (a
+selection experiment's clusters, ``select-<env>``) are read by their own scripts."""
+
+
+def points(runs: Sequence[Mapping[str, Any]], prefix: str = STUDY_PREFIX) -> pd.DataFrame:
+    """One row per finished surrogate of the studies named ``prefix*``: env, study, cluster, family,
+    model, data settings, real return and every ``candidate/*`` metric (columns named by the candidate)."""
     rows = []
     for r in runs:
-        if r.get("status") != "FINISHED" or r["tags"].get("sdrl.kind") != SURROGATE_KIND:
+        if r.get("status") != "FINISHED" or r["tags"].get("sdrl.kind") != SURROGATE_KIND \
+                or not str(r["tags"].get("sdrl.study", "")).startswith(prefix):
             continue
         t, m = r["tags"], r["metrics"]
         if "real_return" not in m:
