@@ -278,4 +278,31 @@ def fidelity_blocks(runs: Sequence[Mapping[str, Any]], folder, link) -> list:
         out.append(Image(path, f"{env}: each candidate metric against the real return (one point per surrogate)"))
     table.to_csv(folder / "fidelity_correlations.csv", index=False)
     out.append(Para("The table as numbers: [fidelity_correlations.csv](fidelity_correlations.csv)."))
+    out += selection_blocks(runs)
     return out
+
+
+def selection_blocks(runs: Sequence[Mapping[str, Any]]) -> list:
+    """Selecting on a metric: the clusters of ``studies/select_on_fidelity.py`` (studies ``select-<env>``),
+    each surrogate a search's pick, its agents' real return as the IQM with a 95% bootstrap CI."""
+    from sdrl_bench.report.render import Cell, Heading, Para, Table
+    from sdrl_bench.report.tables import bootstrap_ci
+
+    df = points(runs, prefix="select-")
+    if df.empty:
+        return [Para("Selecting on a metric: not run (`studies/select_on_fidelity.py`).")]
+    rows = []
+    for (env, model), g in df.groupby(["env", "model"]):
+        r = g.iloc[0]
+        point, lo, hi, stat = bootstrap_ci(r["agent_returns"])
+        rows.append([Cell(env), Cell(model), Cell(str(len(r["agent_returns"]))), Cell(f"{stat} {point:.1f} [{lo:.1f}, {hi:.1f}]"),
+                     Cell(f"{r['one_step']:.3g}"), Cell(f"{r.get('onpolicy_one_step', float('nan')):.3g}"),
+                     Cell(f"{r['real_steps_model']:,.0f} + judge {r['real_steps_judge']:,.0f}"), Cell(r["run_id"][:8])])
+    return [Heading(3, "Selecting the surrogate on a metric"),
+            Para("Two Optuna searches (20 TPE trials each, the default SINDy space) on the same real data (seed 100, outside "
+                 "the study's clusters): one with today's objective (`one_step`: k-fold one-step error), one with the "
+                 "study's recommended metric; each pick fitted on the data and 10 agents trained in it with the study's "
+                 "recipe, judged on 10 real episodes each. The policy objective's own real episodes per trial are logged "
+                 "on the search's trial runs (`real_steps/selection`)."),
+            Table(["env", "selected on", "agents", "real return [95% CI]", "test one-step error",
+                   "agents' on-policy error", "real steps (model data + judging)", "run"], rows)]

@@ -68,6 +68,7 @@ def test_a_cluster_scores_each_surrogate_and_counts_its_real_steps(store, capsys
     text = (res.folder / "report.md").read_text()
     assert "## 6. Which fidelity predicts transfer" in text
     assert "mountain_car: 3 surrogates in 1 clusters" in text
+    assert "Selecting on a metric: not run" in text
     assert (res.folder / "figures" / "fidelity_mountain_car.png").stat().st_size > 10_000
     table = pd.read_csv(res.folder / "fidelity_correlations.csv")
     one = table[table["metric"] == "one_step"].iloc[0]
@@ -148,3 +149,19 @@ def test_halves_split_each_envs_clusters_in_two_and_the_table_has_every_part():
     table = fs.correlation_table(df, n_boot=100)
     assert set(table["env"]) == {"a", "b", "pooled"} and set(table["metric"]) == {"one_step", "n_terms"}
     assert fs.best_metric(table, ["one_step", "n_terms"]) == "one_step"
+
+
+def test_the_selection_table_gives_each_picks_agents_an_iqm_and_ci():
+    def run(model, returns):
+        metrics = {"real_return": float(np.mean(returns)), "candidate/one_step": 0.1, "candidate/onpolicy_one_step": 0.2,
+                   "real_steps/model_data": 1000.0, "real_steps/judge": 5000.0,
+                   **{f"agent{k}/real_return": v for k, v in enumerate(returns)}}
+        return {"run_id": f"{model:0<32}", "status": "FINISHED", "metrics": metrics,
+                "tags": {"sdrl.kind": "fidelity-surrogate", "sdrl.study": "select-lunar_lander", "env": "lunar_lander",
+                         "seed": "100", "model": model, "family": "sindy"}}
+
+    runs = [run("one_step", [10.0 * k for k in range(10)]), run("onpolicy_one_step", [-500.0 - k for k in range(10)])]
+    blocks = fs.selection_blocks(runs)
+    rows = {r[1].text: r for r in blocks[-1].rows}
+    assert rows["one_step"][3].text.startswith("IQM 45.0 [") and rows["onpolicy_one_step"][3].text.startswith("IQM -504.5 [")
+    assert fs.points(runs).empty  # the selection's clusters stay out of the correlation population
