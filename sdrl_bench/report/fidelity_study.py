@@ -162,13 +162,15 @@ def correlation_table(df: pd.DataFrame, n_boot: int = N_BOOT) -> pd.DataFrame:
 
 
 def best_metric(table: pd.DataFrame, selectable: Sequence[str]) -> str | None:
-    """The selector the study recommends: among ``selectable`` metrics, the highest lower CI bound
-    on the selection half, the lowest over envs (a metric must predict on every env)."""
-    t = table[(table["env"] != "pooled") & table["metric"].isin(selectable)]
-    if t.empty:
-        return None
-    worst = t.groupby("metric")["select_lo"].min().dropna()
-    return str(worst.idxmax()) if not worst.empty else None
+    """The selector the study recommends: among ``selectable`` metrics measured on every env, the
+    highest lower CI bound of the pooled Spearman (ranks within env) on the selection half; its
+    confirmation-half interval is then read off the same table. One env alone: that env's bound."""
+    envs = set(table.loc[table["env"] != "pooled", "env"])
+    per_env = table[table["env"] != "pooled"].dropna(subset=["select_rho"])
+    everywhere = [m for m in selectable if set(per_env.loc[per_env["metric"] == m, "env"]) == envs]
+    scope = "pooled" if len(envs) > 1 else next(iter(envs), None)
+    t = table[(table["env"] == scope) & table["metric"].isin(everywhere)].dropna(subset=["select_lo"])
+    return str(t.loc[t["select_lo"].idxmax(), "metric"]) if not t.empty else None
 
 
 def scatter_figure(df: pd.DataFrame, env: str, metrics: Sequence[str]):
@@ -257,8 +259,9 @@ def fidelity_blocks(runs: Sequence[Mapping[str, Any]], folder, link) -> list:
         conf = table[(table["metric"] == best)]
         text = ", ".join(f"{r['env']} {_ci(r['confirm_rho'], r['confirm_lo'], r['confirm_hi'])}" for _, r in conf.iterrows())
         needs = " It needs trained agents' real episodes (real steps per candidate)." if best in NEEDS_POLICY else ""
-        out.append(Para(f"Selected on the selection half (highest lower CI bound, worst env): `{best}`; on the "
-                        f"confirmation half: {text}.{needs}"))
+        out.append(Para(f"Chosen on the selection half (the highest lower CI bound of the pooled Spearman among the "
+                        f"metrics every env measures; `optimism_gap` left out: it needs the real return it would "
+                        f"predict): `{best}`; on the confirmation half: {text}.{needs}"))
     envs = sorted(df["env"].unique())
     for env in envs:
         t = table[(table["env"] == env)]
