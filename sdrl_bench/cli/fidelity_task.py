@@ -19,6 +19,7 @@ from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig, OmegaConf
 
 from sdrl_bench import ConfigError, tracking
+from sdrl_bench.cli.callbacks import CONFIG_KEY_TAG
 from sdrl_bench.cli.build import build_fit_job, compose, config_key, instantiate_key, int_key, run_label
 from sdrl_bench.rl.fidelity_study import ClusterJob, Variant, collect_cluster, score_variant
 
@@ -124,8 +125,9 @@ def _surrogate_run(cfg, uri, cluster_run, job, variant, vcfg, cluster, tags, ext
     from sdrl_bench.rl.accounting import expert_of, headline
 
     spec = job.data_job.spec
+    # its own config key: the cluster's (a sweep job's tag) would make the report keep one surrogate per cluster
     vtags = {**tags, "model": variant.label, "family": variant.family, "surrogate": variant.family,
-             "library": variant.fit.names.get("library", ""), POINT_TAG: key}
+             "library": variant.fit.names.get("library", ""), POINT_TAG: key, CONFIG_KEY_TAG: key}
     name = run_label(f"fidelity-{spec.name}-s{job.seed}-{variant.label}", extra_tags)
     with tracking.tracked_run(uri, cfg.tracking.experiment, name, "fidelity-surrogate", vtags, cluster_run,
                               task="fidelity") as run:

@@ -25,7 +25,9 @@ TINY = [
 
 def cluster(store, *extra):
     overrides = [f"tracking.uri={store}", *TINY, *extra]
-    return run_fidelity_task(compose_cfg(*overrides), None, given=overrides)
+    # as inside a sweep: the job's config key on the cluster's tags (each surrogate must still get its own)
+    return run_fidelity_task(compose_cfg(*overrides), None, extra_tags={"sdrl.config_key": "the-cluster-job"},
+                             given=overrides)
 
 
 def test_a_cluster_scores_each_surrogate_and_counts_its_real_steps(store, capsys, tmp_path):
