@@ -173,6 +173,9 @@ def align_angles(spec: EnvSpec, true: np.ndarray, pred: np.ndarray) -> np.ndarra
     return pred
 
 
+DATA_METRICS = ("one_step", "rollout10", "rollout50", "rollout_episode")
+"""The fidelity study's candidates a search can score on validation folds (``search.objective``)."""
+
 POLICY_METRICS = ("onpolicy_one_step", "reference_gap")
 """The fidelity study's candidates a search can select on that need a policy (real steps per trial,
 or per study): scored by ``rl.fidelity_study.PolicyProbe``."""

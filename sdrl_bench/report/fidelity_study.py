@@ -253,15 +253,17 @@ def fidelity_blocks(runs: Sequence[Mapping[str, Any]], folder, link) -> list:
                      Cell(_ci(r["confirm_rho"], r["confirm_lo"], r["confirm_hi"]))])
     out.append(Table(["env", "metric", "surrogates", "Spearman, all [95% CI]", "selection half", "confirmation half"], rows,
                      "Metrics: " + "; ".join(f"`{k}`: {v}" for k, v in CANDIDATES.items())))
-    selectable = [m for m in candidates_of(df) if m != "optimism_gap"]
+    from sdrl_bench.fidelity import DATA_METRICS, POLICY_METRICS
+
+    selectable = [m for m in candidates_of(df) if m in DATA_METRICS + POLICY_METRICS]  # what search.objective offers
     best = best_metric(table, selectable)
     if best is not None:
         conf = table[(table["metric"] == best)]
         text = ", ".join(f"{r['env']} {_ci(r['confirm_rho'], r['confirm_lo'], r['confirm_hi'])}" for _, r in conf.iterrows())
         needs = " It needs trained agents' real episodes (real steps per candidate)." if best in NEEDS_POLICY else ""
         out.append(Para(f"Chosen on the selection half (the highest lower CI bound of the pooled Spearman among the "
-                        f"metrics every env measures; `optimism_gap` left out: it needs the real return it would "
-                        f"predict): `{best}`; on the confirmation half: {text}.{needs}"))
+                        f"metrics every env measures that `search.objective` offers: "
+                        f"{', '.join(f'`{m}`' for m in selectable)}): `{best}`; on the confirmation half: {text}.{needs}"))
     envs = sorted(df["env"].unique())
     for env in envs:
         t = table[(table["env"] == env)]

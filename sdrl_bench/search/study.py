@@ -29,7 +29,7 @@ from sdrl_bench.data import Transitions, collect, random_policy
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.models.libraries import build_library
 from sdrl_bench.pipeline import FitJob, build_model, check
-from sdrl_bench.fidelity import POLICY_METRICS
+from sdrl_bench.fidelity import DATA_METRICS, POLICY_METRICS
 from sdrl_bench.search.space import GROUP_PARAMS, NN_PARAMS, PARAM_KEYS, SearchSpace, describe_space, grid_values, suggest
 from sdrl_bench.search.storage import open_storage, open_study, redact, resolve_storage, study_parent_run
 from sdrl_bench.search.validation import Fold, aggregate, cross_validate, fit_model, make_folds, resolution_floor
@@ -38,10 +38,10 @@ warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning
 optuna.logging.set_verbosity(optuna.logging.WARNING)
 
 OBJECTIVES = ("error", "n_terms")
-ERROR_METRICS = ("one_step", "rollout10", "rollout50", "rollout_episode")
+ERROR_METRICS = DATA_METRICS
 """What the ``error`` objective measures on each validation fold (``search.objective``): today's
-one-step error, or an open-loop error of the fidelity study (``rl.fidelity_study``: k steps, or
-whole validation episodes; a diverged rollout counts as its cap)."""
+one-step error, or an open-loop error of the fidelity study (``fidelity.rollout_error`` /
+``episode_error``: k steps, or whole validation episodes; a diverged rollout counts as its cap)."""
 SAMPLERS = ("tpe", "random", "grid", "nsga2")
 OBJECTIVE_VERSION = "geomean over folds of (mean normalized one-step MSE + float floor), v1"
 TRIAL_ERRORS: tuple[type[BaseException], ...] = (ConfigError, ValueError, ArithmeticError, np.linalg.LinAlgError)
