@@ -239,10 +239,11 @@ def fidelity_blocks(runs: Sequence[Mapping[str, Any]], folder, link) -> list:
                     "from 2,000 cluster-bootstrap resamples; select / confirm: a seeded random half of each env's "
                     "clusters each; pooled: ranks within env. " + "; ".join(lines) + "."))
     table = correlation_table(df)
-    ceilings = []
+    ceilings, ceiling = [], {}
     for env in sorted(df["env"].unique()):
         rho, lo, hi, n = agent_ceiling(df[df["env"] == env])
         ceilings.append(f"{env} {_ci(rho, lo, hi)}")
+        ceiling[env] = rho
     out.append(Para("How far the target can be predicted: the Spearman of one agent's real return with the other "
                     "agents' mean in the same surrogates (the agents agree on a surrogate only as far as its quality, "
                     "not their own luck, decides their return): " + "; ".join(ceilings) + "."))
@@ -269,8 +270,12 @@ def fidelity_blocks(runs: Sequence[Mapping[str, Any]], folder, link) -> list:
         t = table[(table["env"] == env)]
         top = t["all_rho"].max()
         if not (top >= TARGET):
+            limit = (f"the agents themselves agree only to {ceiling[env]:+.2f}, which caps any metric"
+                     if ceiling.get(env, math.nan) < TARGET else
+                     f"the agents agree ({ceiling.get(env, math.nan):+.2f}): the surrogate decides their return, "
+                     "and no metric here sees enough of what in it does")
             out.append(Para(f"{env}: no metric reaches Spearman {TARGET} (best {t.loc[t['all_rho'].idxmax(), 'metric']} "
-                            f"{top:+.2f})." if math.isfinite(top) else f"{env}: too few surrogates for a correlation."))
+                            f"{top:+.2f}); {limit}." if math.isfinite(top) else f"{env}: too few surrogates for a correlation."))
     figs = folder / "figures"
     figs.mkdir(parents=True, exist_ok=True)
     for env in envs:
