@@ -55,7 +55,7 @@ def build_cluster(cfg: DictConfig, given: list[str] | None = None) -> tuple[Clus
     f = cfg.fidelity
     axes = cluster_axes(cfg)
     base = base_overrides(cfg, given) + [f"n_transitions={axes['n_transitions']}", f"collector={axes['collector']}"]
-    data_cfg = compose(base)
+    data_cfg = _compose(base, "fidelity.axes")
     data_job = build_fit_job(data_cfg)
     models = OmegaConf.to_container(f.models, resolve=True) if f.models is not None else {"default": []}
     if not isinstance(models, dict) or not models:
@@ -64,13 +64,13 @@ def build_cluster(cfg: DictConfig, given: list[str] | None = None) -> tuple[Clus
     for label, overrides in models.items():
         if not isinstance(overrides, list):
             raise ConfigError(f"fidelity.models.{label}: a list of overrides is required, got {overrides!r}")
-        vcfg = compose(base + [str(o) for o in overrides])
+        vcfg = _compose(base + [str(o) for o in overrides], f"fidelity.models.{label}")
         job = build_fit_job(vcfg)
         variants.append(Variant(str(label), str(vcfg.surrogate.kind), job))
         cfgs.append(vcfg)
     ref = str(f.reference)
-    reference = None if ref == "random" else instantiate_key(compose(base[:-1] + [f"collector={ref}"]).collector.policy,
-                                                             "fidelity.reference")
+    reference = None if ref == "random" else instantiate_key(
+        _compose(base[:-1] + [f"collector={ref}"], "fidelity.reference").collector.policy, "fidelity.reference")
     agent = instantiate_key(cfg.agent, "agent")
     job = ClusterJob(
         data_job=data_job, variants=tuple(variants), agent=agent, train_steps=int_key(cfg, "fidelity.train_steps", 1),
@@ -80,6 +80,18 @@ def build_cluster(cfg: DictConfig, given: list[str] | None = None) -> tuple[Clus
         data_noise=float(axes["data_noise"]), seed=int_key(cfg, "seed", minimum=0),
     )
     return job, axes, cfgs
+
+
+def _compose(overrides: list[str], key: str) -> DictConfig:
+    """``compose``; an override Hydra refuses (an unknown group option, a bad key) is one line naming ``key``."""
+    from hydra.errors import HydraException
+    from omegaconf.errors import OmegaConfBaseException
+
+    try:
+        return compose(overrides)
+    except (HydraException, OmegaConfBaseException) as exc:
+        text = " ".join(str(exc).split()).split(" Config search path:")[0]
+        raise ConfigError(f"{key}: {text[:300]}") from None
 
 
 def run_fidelity_task(cfg: DictConfig, parent: str | None, extra_tags: dict[str, str] | None = None,

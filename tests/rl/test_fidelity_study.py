@@ -80,6 +80,9 @@ def test_a_cluster_scores_each_surrogate_and_counts_its_real_steps(store, capsys
 def test_bad_models_and_axes_fail_before_any_run(store):
     with pytest.raises(ConfigError, match="fidelity.models.law"):
         build_cluster(compose_cfg(*TINY, "fidelity.models={law: notalist}"), given=[])
+    with pytest.raises(ConfigError, match=r"^fidelity.models.law: .*nope") as err:
+        build_cluster(compose_cfg(*TINY, "fidelity.models={law: ['library=nope']}"), given=[])
+    assert "\n" not in str(err.value)
     with pytest.raises(ConfigError, match="fidelity.axes.collector"):
         build_cluster(compose_cfg(*TINY, "fidelity.axes.collector=[]"), given=[])
     assert search(store).empty
