@@ -107,7 +107,8 @@ def run_fidelity_task(cfg: DictConfig, parent: str | None, extra_tags: dict[str,
             "n_transitions": axes["n_transitions"], "data_noise": axes["data_noise"], "agent": job.agent.name,
             "reference": job.reference_name, **(extra_tags or {})}
     name = run_label(f"fidelity-{spec.name}-s{job.seed}", extra_tags)
-    print(f"sdrl-bench: {name}: study {study}, cluster {job.seed} of {axes['n_clusters']}: {axes['n_transitions']} "
+    print(f"sdrl-bench: {name}: study {study}, cluster seed {job.seed} (cell {job.seed % axes['n_clusters']} of "
+          f"{axes['n_clusters']}): {axes['n_transitions']} "
           f"transitions, collector {axes['collector']}, data noise {axes['data_noise']}; {len(job.variants)} surrogates x "
           f"{job.agent_seeds} agents of {job.train_steps:,} steps", flush=True)
     out: dict[str, float] = {}

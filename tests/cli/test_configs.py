@@ -94,7 +94,20 @@ def test_every_experiment_pack_composes_and_validates(pack):
     from sdrl_bench.cli.build import build_dyna_job, real_arm_key
 
     cfg = compose_cfg(f"experiment={pack}")
-    assert cfg.task in ("train", "dyna")
+    assert cfg.task in ("train", "dyna", "fidelity")
+    if cfg.task == "fidelity":  # a study pack: its first cluster builds; the compiled agent needs the [jax] extra
+        import importlib.util
+
+        from sdrl_bench.cli.fidelity_task import build_cluster
+
+        cluster, axes, _ = build_cluster(cfg, given=[f"experiment={pack}"])
+        assert axes["n_clusters"] * len(cluster.variants) >= 40 and cluster.agent.name == "ppo_jax"
+        if importlib.util.find_spec("jax") is not None:
+            cluster.check()
+        else:
+            with pytest.raises(ConfigError, match=r"\[jax\]"):
+                cluster.check()
+        return
     job = build_transfer_job(cfg, build_fit_job(cfg))
     job.check()  # agent fits the action space, budgets positive; no expert is trained here
     assert job.agent.name in {"sac", "ppo", "ppo_fast"} and set(job.arms) == set(cfg.rl.arms) and job.arms

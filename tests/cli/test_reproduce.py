@@ -43,7 +43,7 @@ def test_every_stage_command_builds_and_every_rl_sweep_has_five_seeds(tmp_path, 
     (tmp_path / "mlruns" / "datasets").mkdir(parents=True)
     (tmp_path / "mlruns" / "datasets" / "lunar_lander-touchdowns-v1.npz").write_bytes(b"")
     stages = dict(mod.stages(mod.parse_seeds("0-4")))
-    assert list(stages) == ["experts", "fits", "transfer", "fast", "dyna", "own", "pe", "cartpole", "search"]
+    assert list(stages) == ["experts", "fits", "transfer", "fast", "dyna", "own", "pe", "cartpole", "search", "fidelity"]
     built = 0
     for name, commands in stages.items():
         for cmd in commands:
@@ -61,6 +61,14 @@ def test_every_stage_command_builds_and_every_rl_sweep_has_five_seeds(tmp_path, 
                 assert cfg.search.name == "tpe"
                 built += 1
             if cmd[0] != "-m":
+                continue
+            if name == "fidelity":  # a study pack sweeps its own cluster seeds (hydra.sweeper.params)
+                from sdrl_bench.cli.fidelity_task import build_cluster
+
+                cfg = compose_cfg(*cmd[1:])
+                assert cfg.task == "fidelity" and not any(c.startswith("seed=") for c in cmd)
+                build_cluster(cfg, given=cmd[1:])
+                built += 1
                 continue
             assert "seed=0,1,2,3,4" in cmd or "seed=5,6,7,8,9" in cmd or "seed=0,1,2,3,4,5,6,7,8,9" in cmd, (name, cmd)
             for job in _jobs(cmd[1:]):
@@ -119,7 +127,7 @@ def test_a_rerun_skips_finished_stages_and_keeps_the_cost_of_an_interrupted_one(
     ran.clear()
     assert mod.main() == 0
     record = json.loads((tmp_path / "rebuild.json").read_text())
-    assert set(ran) == {"transfer", "fast", "dyna", "own", "pe", "cartpole", "search"}  # experts and fits were skipped
+    assert set(ran) == {"transfer", "fast", "dyna", "own", "pe", "cartpole", "search", "fidelity"}  # experts and fits were skipped
     # the rerun's 100 s added to the failed attempt's 100 s, not in place of them
     assert record["stages"]["transfer"]["attempts"] == 2 and record["stages"]["transfer"]["wall_seconds"] == 200.0
     assert all(v["status"] == "finished" for v in record["stages"].values())
