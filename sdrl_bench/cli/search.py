@@ -155,7 +155,7 @@ def _policy_probe(cfg: DictConfig, objective: str):
     ref = str(node.get("reference", "random"))
     reference = None if ref == "random" else instantiate_key(load_group("collector", ref).policy, "search.policy.reference")
     return PolicyProbe(objective, instantiate_key(cfg.agent, "agent"), int_key(cfg, "search.policy.train_steps", 1),
-                       int_key(cfg, "search.policy.episodes", 1), reference, int(cfg.seed))
+                       int_key(cfg, "search.policy.episodes", 1), reference, int(cfg.seed), ref)
 
 
 def run_search(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet: bool = False):

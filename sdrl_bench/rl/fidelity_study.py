@@ -301,19 +301,19 @@ class PolicyProbe:
     """
 
     def __init__(self, metric: str, agent: AgentConfig, train_steps: int, episodes: int,
-                 reference: PolicyFactory | None, seed: int):
+                 reference: PolicyFactory | None, seed: int, reference_name: str = "random"):
         if metric not in POLICY_METRICS:
             raise ConfigError(f"search.objective: a policy objective is one of {list(POLICY_METRICS)}, got {metric!r}")
         check_budget("search.policy.train_steps", train_steps)
         check_budget("search.policy.episodes", episodes)
         self.metric, self.agent, self.train_steps, self.episodes = metric, agent, train_steps, episodes
-        self.reference, self.seed = reference, seed
+        self.reference, self.seed, self.reference_name = reference, seed, reference_name
         self._reference_real: float | None = None
 
     def describe(self) -> dict[str, Any]:
         """What the scores depend on (a resumed study must match it)."""
         return {"metric": self.metric, "agent": self.agent.name, "train_steps": self.train_steps, "episodes": self.episodes,
-                "reference": getattr(self.reference, "__name__", str(self.reference)), "seed": self.seed}
+                "reference": self.reference_name, "seed": self.seed}
 
     def score(self, model: Any, spec: EnvSpec, data: Transitions, trial: int, counts: Counter) -> float:
         """The objective for ``model`` fitted on ``data`` (trial number ``trial``); real steps added to ``counts``."""

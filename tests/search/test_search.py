@@ -440,6 +440,9 @@ def test_a_policy_objective_trains_an_agent_per_trial_and_counts_its_real_episod
                                    "search.policy.reference=heuristic", "search.policy.episodes=2", *grid), quiet=True)
     gaps = {t.params["threshold"]: t.values[0] for t in gap.study.trials}
     assert gaps[1e-3] < gaps[3e-2]
+    again, _ = run_search(search_cfg(tmp_path, uri, "study.name=refgap", "search.objective=reference_gap",  # resumes
+                                     "search.policy.reference=heuristic", "search.policy.episodes=2", *grid), quiet=True)
+    assert again.trials == [] and len(again.study.trials) == 2
     with pytest.raises(ConfigError, match=r"^search.objective=onpolicy_one_step: needs search.policy"):
         run_search(search_cfg(tmp_path, uri, "study.name=nopol", "~search.policy", "search.objective=onpolicy_one_step"),
                    quiet=True)
