@@ -225,7 +225,6 @@ def episode_error(model: DynamicsModel, spec: EnvSpec, test: Transitions, std: n
     return float(np.mean(sums / np.array([len(ix) for ix in eps])))
 
 
-
 def open_loop_episode(
     model: DynamicsModel, spec: EnvSpec, test: Transitions, episode: int, max_steps: int = 300
 ) -> tuple[np.ndarray, np.ndarray]:

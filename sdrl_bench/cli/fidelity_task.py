@@ -100,7 +100,7 @@ def run_fidelity_task(cfg: DictConfig, parent: str | None, extra_tags: dict[str,
     from sdrl_bench.cli.train import prepare
 
     job, axes, cfgs = build_cluster(cfg, given)
-    job, _, uri = prepare(cfg, job)
+    job, checked, uri = prepare(cfg, job)  # checked: each variant's (library, data), built once
     spec = job.data_job.spec
     study = cfg.fidelity.study or f"fidelity-{spec.name}"
     tags = {"env": spec.name, "sdrl.study": study, "seed": job.seed, "collector": axes["collector"],
@@ -118,13 +118,13 @@ def run_fidelity_task(cfg: DictConfig, parent: str | None, extra_tags: dict[str,
         run.log_metrics({"reference_real_return": float(cluster.reference_real.mean()),
                          "real_steps/model_data": float(cluster.counts["collect"]),
                          "real_steps/reference": float(cluster.counts["reference"]), "n_surrogates": float(len(job.variants))})
-        for variant, vcfg in zip(job.variants, cfgs, strict=True):
-            out[variant.label] = _surrogate_run(cfg, uri, run.run_id, job, variant, vcfg, cluster, tags, extra_tags)
+        for variant, vcfg, (library, _) in zip(job.variants, cfgs, checked, strict=True):
+            out[variant.label] = _surrogate_run(cfg, uri, run.run_id, job, variant, vcfg, library, cluster, tags, extra_tags)
         run.log_metrics({"real_return_mean": sum(out.values()) / len(out)})
     return out
 
 
-def _surrogate_run(cfg, uri, cluster_run, job, variant, vcfg, cluster, tags, extra_tags) -> float:
+def _surrogate_run(cfg, uri, cluster_run, job, variant, vcfg, library, cluster, tags, extra_tags) -> float:
     own = OmegaConf.to_container(vcfg, resolve=True)
     own["fidelity"].pop("models")  # a surrogate's key: its own config, not its siblings' (adding a model keeps the others)
     key = config_key(OmegaConf.create(own)) + f"-{variant.label}"
@@ -144,7 +144,7 @@ def _surrogate_run(cfg, uri, cluster_run, job, variant, vcfg, cluster, tags, ext
     name = run_label(f"fidelity-{spec.name}-s{job.seed}-{variant.label}", extra_tags)
     with tracking.tracked_run(uri, cfg.tracking.experiment, name, "fidelity-surrogate", vtags, cluster_run,
                               task="fidelity") as run:
-        score = score_variant(job, variant, cluster,
+        score = score_variant(job, variant, cluster, library,
                               on_fit=lambda fit: tracking.log_fit(run, fit, config=OmegaConf.to_container(vcfg, resolve=True),
                                                                   task="fidelity", model=False))
         c = score.counts
@@ -156,9 +156,9 @@ def _surrogate_run(cfg, uri, cluster_run, job, variant, vcfg, cluster, tags, ext
         m.update({f"candidate/{k}": float(v) for k, v in score.candidates.items()})
         m["real_return"] = score.real_return
         m["reference_real_return"] = float(cluster.reference_real.mean())
-        for k, (rets, own) in enumerate(zip(score.returns, score.surrogate_returns, strict=True)):
+        for k, (rets, in_surrogate) in enumerate(zip(score.returns, score.surrogate_returns, strict=True)):
             m[f"agent{k}/real_return"] = float(sum(rets) / len(rets))
-            m[f"agent{k}/surrogate_return"] = own
+            m[f"agent{k}/surrogate_return"] = in_surrogate
         m.update({f"{k}_seconds": v for k, v in score.seconds.items()})
         run.log_metrics(m)
     line = ", ".join(f"{k} {score.candidates[k]:.3g}" for k in ("one_step", "rollout50", "onpolicy_one_step")

@@ -109,7 +109,7 @@ class ClusterJob:
         if not spec.defines_task:
             raise ConfigError(f"env.spec.reward_fn: env '{spec.name}' defines no reward: a surrogate needs a task")
         self.agent.check(spec)
-        return [check(replace(v.fit, n_transitions=self.data_job.n_transitions)) for v in self.variants]
+        return [check(v.fit) for v in self.variants]
 
 
 @dataclass
@@ -152,7 +152,6 @@ class _Reference:
     """A policy factory's policy behind SB3's ``predict`` (batched over the rows of ``obs``)."""
 
     def __init__(self, spec: EnvSpec, factory: PolicyFactory | None):
-        self.spec, self.factory, self._policy = spec, factory, None
         env = spec.make_env()
         try:
             self._policy = factory(spec, env) if factory is not None else None
@@ -228,11 +227,11 @@ class VariantScore:
         return float(np.mean([np.mean(r) for r in self.returns]))
 
 
-def score_variant(job: ClusterJob, variant: Variant, cluster: ClusterData,
+def score_variant(job: ClusterJob, variant: Variant, cluster: ClusterData, library: Any,
                   on_fit: Callable[[FitResult], None] | None = None) -> VariantScore:
-    """Fit the variant on the cluster's data, measure its candidates, train its agents and judge them."""
+    """Fit the variant on the cluster's data, measure its candidates, train its agents and judge them.
+    ``library``: the variant's feature library, as ``ClusterJob.check`` built it."""
     spec, counts, seconds = job.data_job.spec, Counter(), {}
-    library, _ = check(variant.fit)
     fit = fit_transitions(variant.fit, library, cluster.data, test=(cluster.test_name, cluster.test))
     if on_fit is not None:
         on_fit(fit)

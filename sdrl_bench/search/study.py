@@ -17,6 +17,7 @@ stale-trial repair) are one unit that a reader follows top to bottom.
 from __future__ import annotations
 
 import warnings
+from collections import Counter
 from dataclasses import dataclass, field
 from typing import Any
 from collections.abc import Callable, Mapping
@@ -206,8 +207,6 @@ def _evaluate(job: FitJob, sd: StudyData, report: Callable[[int, float], bool] |
         return build_model(job, library)
 
     if sd.objective in POLICY_METRICS:
-        from collections import Counter
-
         model, counts = fit_model(make, spec, sd.data, sd.exclude_bound), Counter()
         value = float(policy.score(model, spec, sd.data, trial, counts))
         active = model.summary_metrics().get("n_active_terms")
