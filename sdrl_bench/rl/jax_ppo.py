@@ -55,6 +55,7 @@ memory, the noise and event draws made from jax keys inside the loop (the same d
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, fields
@@ -82,6 +83,10 @@ def _modules() -> tuple[Any, Any, Any]:
     except ImportError as exc:
         raise ImportError(f"sdrl_bench.rl.jax_ppo needs optax, an optional extra: {INSTALL_HINT}") from exc
     return jax, jnp, optax
+
+
+MAX_ROLLOUT = 2**24
+"""The most samples one update shuffles (``shuffles`` keeps at least 40 random bits per index)."""
 
 
 @dataclass(frozen=True)
@@ -118,6 +123,9 @@ class PPOConfig:
         if (self.n_envs * self.n_steps) % self.batch_size:
             raise ConfigError(f"PPOConfig: batch_size {self.batch_size} must divide n_envs x n_steps = "
                               f"{self.n_envs * self.n_steps} (compiled minibatches have one shape)")
+        if self.n_envs * self.n_steps > MAX_ROLLOUT:
+            raise ConfigError(f"PPOConfig: n_envs x n_steps = {self.n_envs * self.n_steps:,} is over the "
+                              f"{MAX_ROLLOUT:,} samples one update can shuffle (shuffles)")
 
     @property
     def rollout_size(self) -> int:
@@ -197,17 +205,52 @@ def is_discrete(net: dict) -> bool:
     return "log_std" not in net
 
 
-def _hidden(layers: list, x: Any) -> Any:
-    import jax.numpy as jnp  # noqa: PLC0415  (imported by _modules before any call)
+@functools.cache
+def _dense() -> Callable:
+    """``dense(x_t, w, b) -> w.T @ x_t + b``: one linear layer on features-major activations
+    (``x_t``: (n_in, N), out (n_out, N); ``w`` (n_in, n_out) as SB3 stores it), with its gradient
+    written by hand. Why: in the usual samples-major form the weights' gradient x.T @ dy
+    contracts the samples' axis of both operands, a product XLA's CPU backend leaves to its slow
+    generic dot (about 80 us per 1024 x 64 layer, measured) while its fast library kernels take
+    the other two. Features-major, the three products are w.T @ x_t (w.T copied: 64 x 64), w @ dy_t
+    and x_t @ dy_t.T, all of the shapes the fast kernels take; the fast pack's update went from
+    8.0 to 6.4 ms (``benchmarks/compiled_ppo.py``). The same sums, in another order: results
+    move by rounding."""
+    jax, jnp, _ = _modules()
 
+    def forward(x_t, w, b):
+        return jax.lax.optimization_barrier(w.T) @ x_t + b[:, None]  # the barrier keeps w.T a copy
+
+    @jax.custom_vjp
+    def dense(x_t, w, b):
+        return forward(x_t, w, b)
+
+    def fwd(x_t, w, b):
+        return forward(x_t, w, b), (x_t, w)
+
+    def bwd(res, dy_t):
+        x_t, w = res
+        return w @ dy_t, x_t @ dy_t.T, jnp.sum(dy_t, axis=1)
+
+    dense.defvjp(fwd, bwd)
+    return dense
+
+
+def _hidden(layers: list, x: Any) -> Any:
+    """The last hidden layer's features, features-major (64, N), for samples-major inputs (N, n_obs)."""
+    import jax  # noqa: PLC0415  (imported by _modules before any call)
+    import jax.numpy as jnp  # noqa: PLC0415
+
+    dense, h = _dense(), jax.lax.optimization_barrier(x.T)  # a copy: the first weights' gradient a fast product too
     for w, b in layers[:-1]:
-        x = jnp.tanh(x @ w + b)
-    return x
+        h = jnp.tanh(dense(h, w, b))
+    return h
 
 
 def _mlp(layers: list, x: Any) -> Any:
+    """The network's outputs, samples-major (N, n_out)."""
     w, b = layers[-1]
-    return _hidden(layers, x) @ w + b
+    return _dense()(_hidden(layers, x), w, b).T
 
 
 def action_mean(net: dict, obs: Any) -> Any:
@@ -225,22 +268,22 @@ SDE_EPS = 1e-6
 
 
 def policy(net: dict, obs: Any) -> tuple[Any, Any, Any]:
-    """(mean (N, n_act), std (N, n_act), latent features (N, 64)) of the policy's Gaussian.
-    Plain: std = exp(log_std) for every state. gSDE (a 2-D log-std): the std of mean +
+    """(mean (N, n_act), std (N, n_act), latent features, features-major (64, N)) of the policy's
+    Gaussian. Plain: std = exp(log_std) for every state. gSDE (a 2-D log-std): the std of mean +
     latent @ E with E ~ N(0, exp(log_std)^2) elementwise, i.e. sqrt(latent^2 @ exp(log_std)^2 +
     1e-6), the latent features taken without gradient (SB3's ``learn_features=False``)."""
     import jax  # noqa: PLC0415
     import jax.numpy as jnp  # noqa: PLC0415
 
-    latent = _hidden(net["actor"], obs)
+    latent_t = _hidden(net["actor"], obs)
     w, b = net["actor"][-1]
-    mean = latent @ w + b
+    mean = _dense()(latent_t, w, b).T
     log_std = net["log_std"]
     if log_std.ndim == 1:
         std = jnp.broadcast_to(jnp.exp(log_std), mean.shape)
     else:
-        std = jnp.sqrt(jax.lax.stop_gradient(latent) ** 2 @ jnp.exp(log_std) ** 2 + SDE_EPS)
-    return mean, std, latent
+        std = jnp.sqrt((jnp.exp(log_std) ** 2).T @ jax.lax.stop_gradient(latent_t) ** 2 + SDE_EPS).T
+    return mean, std, latent_t
 
 
 def exploration_matrices(net: dict, key: Any, n: int) -> Any:
@@ -267,11 +310,11 @@ def sample_action(net: dict, obs: Any, key: Any, explore: Any = None) -> tuple[A
         action = jax.random.categorical(key, logits).astype(jnp.int32)
         logp = jnp.take_along_axis(jax.nn.log_softmax(logits), action[:, None], axis=1)[:, 0]
         return action, logp, jnp.argmax(logits, axis=-1).astype(jnp.int32)
-    mean, std, latent = policy(net, obs)
+    mean, std, latent_t = policy(net, obs)
     if explore is None:
         action = mean + std * jax.random.normal(key, mean.shape, jnp.float32)
     else:
-        action = mean + jnp.einsum("ni,nij->nj", latent, explore)
+        action = mean + jnp.einsum("in,nij->nj", latent_t, explore)
     return action, log_prob(action, mean, std), mean
 
 
@@ -526,6 +569,23 @@ def optimizer(cfg: PPOConfig) -> Any:
                                      optax.adam(cfg.learning_rate, eps=ADAM_EPS)))
 
 
+def shuffles(key: Any, n_epochs: int, n: int) -> Any:
+    """(n_epochs, n) int32: an independent random permutation of range(n) per epoch, as SB3 draws
+    one per epoch. Written by hand because ``jax.random.permutation`` sorts (key, index) pairs in
+    rounds, and XLA's CPU sort of a pair is slow: 1.2 ms per permutation of 4,096 samples, against
+    12 ms for the whole fast-pack update it served (measured, this 2-core machine). Here each
+    index goes into the low bits of a random uint64, and all epochs are sorted at once in one
+    plain integer sort (0.53 ms for four). The order is that of the random high bits (64 - b of
+    them, b = the bits of n - 1): a uniform permutation unless two draws share all of them
+    (chance under n^2 / 2^(65 - b), 1.6e-8 at n = 8,192), where the lower index goes first."""
+    jax, jnp, _ = _modules()
+    if not 1 <= n <= MAX_ROLLOUT:
+        raise ValueError(f"shuffles: n must be in [1, {MAX_ROLLOUT:,}], got {n:,}")
+    b = max(1, (n - 1).bit_length())
+    packed = jax.random.bits(key, (n_epochs, n), jnp.uint64) >> b << b | jnp.arange(n, dtype=jnp.uint64)
+    return (jnp.sort(packed, axis=1) & ((1 << b) - 1)).astype(jnp.int32)
+
+
 def make_update(cfg: PPOConfig) -> Callable:
     """``update(net, opt_state, batch, key) -> (net, opt_state, stats)``: ``cfg.n_epochs`` passes
     over ``batch`` (obs, action, log_prob, advantage, return; first axis the samples) in shuffled
@@ -555,15 +615,14 @@ def make_update(cfg: PPOConfig) -> Callable:
         updates, opt = tx.update(grads, opt, net)
         return (optax.apply_updates(net, updates), opt), aux
 
-    def epoch(carry, key, batch):
+    def epoch(carry, perm, batch):
         n = batch[0].shape[0]
-        perm = jax.random.permutation(key, n)
         mbs = jax.tree_util.tree_map(lambda x: x[perm].reshape(n // cfg.batch_size, cfg.batch_size, *x.shape[1:]), batch)
         return jax.lax.scan(minibatch, carry, mbs)
 
     def update(net, opt_state, batch, key):
-        (net, opt_state), aux = jax.lax.scan(lambda c_, k: epoch(c_, k, batch), (net, opt_state),
-                                             jax.random.split(key, cfg.n_epochs))
+        (net, opt_state), aux = jax.lax.scan(lambda c_, p: epoch(c_, p, batch), (net, opt_state),
+                                             shuffles(key, cfg.n_epochs, batch[0].shape[0]))
         return net, opt_state, jax.tree_util.tree_map(jnp.mean, aux)
 
     return update

@@ -304,3 +304,50 @@ def test_a_compiled_rollout_steps_another_model_of_the_same_structure_given_its_
     own_b = run_b(net, env, obs, jax.random.key(2), sur_b.params)[2].next_state
     assert np.max(np.abs(np.asarray(via_a) - np.asarray(own_b))) <= 1e-12
     assert np.max(np.abs(np.asarray(run_a(net, env, obs, jax.random.key(2), sur_a.params)[2].next_state) - np.asarray(own_b))) > 1e-6
+
+
+def test_each_epochs_shuffle_is_a_uniform_permutation():
+    """``shuffles`` (hand-written: jax's permutation sorts slowly on this CPU) gives a permutation
+    of range(n) per epoch, different between epochs and keys, the same for the same key; over
+    4,000 draws every sample lands at the first position about equally often (chi-square)."""
+    from scipy import stats
+
+    n = 3000  # not a power of two: the packed index keeps 12 bits
+    p = np.asarray(jax_ppo.shuffles(jax.random.key(0), 4, n))
+    assert p.shape == (4, n) and p.dtype == np.int32
+    for row in p:
+        assert np.array_equal(np.sort(row), np.arange(n))
+    assert not np.array_equal(p[0], p[1])
+    assert np.array_equal(p, np.asarray(jax_ppo.shuffles(jax.random.key(0), 4, n)))
+    assert not np.array_equal(p, np.asarray(jax_ppo.shuffles(jax.random.key(1), 4, n)))
+    small = np.asarray(jax.vmap(lambda k: jax_ppo.shuffles(k, 1, 8)[0])(jax.random.split(jax.random.key(2), 4000)))
+    first = np.bincount(small[:, 0], minlength=8)
+    assert stats.chisquare(first).pvalue > 1e-3, first
+    assert np.array_equal(np.sort(small, axis=1), np.broadcast_to(np.arange(8), small.shape))
+    with pytest.raises(ValueError, match="shuffles"):
+        jax_ppo.shuffles(jax.random.key(0), 1, jax_ppo.MAX_ROLLOUT + 1)
+
+
+def test_the_hand_written_layer_gradient_is_autodiffs():
+    """The features-major layers (``_dense``, its gradient written by hand) give the samples-major
+    network's outputs and gradients: the same sums in another order, to float32 rounding."""
+    net = jax_ppo.init_net(jax.random.key(0), 5, 3)
+    net["log_std"] = jnp.full((64, 3), -0.5, jnp.float32)  # gSDE: the latent features' path too
+    obs = jax.random.normal(jax.random.key(1), (257, 5), jnp.float32)
+
+    def plain(layers, x):
+        for w, b in layers[:-1]:
+            x = jnp.tanh(x @ w + b)
+        w, b = layers[-1]
+        return x @ w + b
+
+    def loss(mlp, net):
+        return jnp.sum(jnp.sin(mlp(net["actor"], obs))) + jnp.sum(mlp(net["critic"], obs) ** 2)
+
+    np.testing.assert_allclose(jax_ppo.action_mean(net, obs), plain(net["actor"], obs), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(jax_ppo.value(net, obs), plain(net["critic"], obs)[:, 0], rtol=1e-5, atol=1e-6)
+    got = jax.grad(lambda n: loss(jax_ppo._mlp, n))(net)
+    want = jax.grad(lambda n: loss(plain, n))(net)
+    for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
+        np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-5)
+    assert max(float(jnp.abs(g).max()) for g in jax.tree_util.tree_leaves(got)) > 1.0  # gradients that could differ
