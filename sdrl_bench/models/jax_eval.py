@@ -172,22 +172,42 @@ def jax_predictor(model: Any, coef: Any = None) -> JaxPredict:
     return lambda z: _run_stages(jnp, z, n_inputs, n_ext, m, parts, "jax_predictor")
 
 
-def linear_predictor(model: Any) -> tuple[Callable, tuple, np.ndarray]:
-    """``(predict(z, coef) -> (..., n_states), key, order)``: the model's prediction with its
-    coefficients an *argument* (``coef`` (n_states, n_terms) with its columns in ``order``,
-    ``model.coef_[:, order]``; traced under ``jit``), so that a
-    compiled program serves every model of the same structure: a Dyna refit or an ensemble member
-    steps through it without compiling again. Every term of the model's table is evaluated (the
-    generated source of ``scalar_source`` over an identity matrix, per stage for a staged model as
-    in ``jax_predictor``), and each output sums coefficient x term over the terms whose
-    coefficient is not 0: a term a refit dropped adds exactly 0, even where it is not finite, as
-    in the numpy evaluators, which never compute it. ``key``: the structure (term table, stages,
-    input count): models with equal keys share the compiled program, whatever their sparsity
-    (the terms are put in one canonical order, ``order``, since a fit lists them as it found them).
-    Equal to ``jax_predictor`` to rounding (the terms are summed in another order)."""
-    terms, coef, stages, n_inputs = _check(model, None)
-    order = np.array(sorted(range(len(terms)), key=lambda k: repr(terms[k])), dtype=int)
-    terms = [terms[k] for k in order]
+def linear_predictor(model: Any) -> tuple[Callable, tuple, Callable]:
+    """``(predict(z, coef) -> (..., n_states), key, columns)``: the model's prediction with its
+    coefficients an *argument* (``coef`` (n_states, n_table), traced under ``jit``), so that a
+    compiled program serves every model of the same structure: a Dyna refit, another seed's fit
+    of the same library, or an ensemble member steps through it without compiling again.
+    ``columns(c)`` puts coefficients (..., n_states, len(model.terms_)) (``coef_``, ``members_``)
+    into the table's columns.
+
+    The table: the model's ``candidate_structure()`` where it has one (every term its library
+    can keep: a per-equation fit lists only the terms it kept, so keying on those, a refit that
+    drops or regains one would compile again), else its own term table, put in one canonical
+    order (a fit lists terms as it found them). Every term of the table is evaluated (the
+    generated source of ``scalar_source`` over an identity matrix, per stage for a staged model
+    as in ``jax_predictor``), and each output sums coefficient x term over the terms whose
+    coefficient is not 0: a term the fit did not keep adds exactly 0, even where it is not
+    finite, as in the numpy evaluators, which never compute it. ``key``: the structure (term
+    table, stages, input count): models with equal keys share the compiled program, whatever
+    their sparsity. Equal to ``jax_predictor`` to rounding (the terms are summed in another order)."""
+    own, _, stages, n_inputs = _check(model, None)
+    candidates = getattr(model, "candidate_structure", None)
+    terms, stages = candidates() if callable(candidates) else (own, stages)
+    terms = sorted(terms, key=repr)
+    where = {repr(t): k for k, t in enumerate(terms)}
+    missing = [t for t in own if repr(t) not in where]
+    if missing:
+        raise ValueError(f"linear_predictor: the model's candidate structure lacks {len(missing)} of its terms "
+                         f"(first: {missing[0]!r})")
+    index = np.array([where[repr(t)] for t in own], dtype=int)
+
+    def columns(c: Any) -> np.ndarray:
+        c = np.asarray(c, dtype=float)
+        out = np.zeros((*c.shape[:-1], len(terms)))
+        out[..., index] = c
+        return out
+
+    coef = columns(model.coef_)
     _, jnp = jax_modules()
     namespace = jax_namespace(jnp)
     m, n_terms = coef.shape
@@ -211,4 +231,4 @@ def linear_predictor(model: Any) -> tuple[Callable, tuple, np.ndarray]:
         parts = [(rows, clips, stage(fn, rows, c)) for rows, clips, fn in features]
         return _run_stages(jnp, z, n_inputs, n_ext, m, parts, "linear_predictor")
 
-    return predict, (repr(terms), repr(stages), n_inputs, (m, n_terms)), order
+    return predict, (repr(terms), repr(stages), n_inputs, (m, n_terms)), columns

@@ -387,13 +387,30 @@ class PerEquationModel:
         self._active_coef_t = np.ascontiguousarray(self.coef_.T)
         self.stages_ = self._stages() if self.clipped_ else None
 
-    def _stages(self) -> dict:
+    def candidate_structure(self) -> tuple[list[Term], dict | None]:
+        """(terms, stages) of every term a fit of this library can keep: the flattened table of
+        the equations with every candidate coefficient non-zero, and its staged evaluation. Any
+        fit's ``terms_`` is a subset, and these stages are a valid order for it (a row waits for
+        every bounded value it could read). ``models.jax_eval.linear_predictor`` keys its compiled
+        program on this, so Dyna's refits and other seeds of the same library share one program
+        whatever terms each fit kept."""
+        exps = self._expansions({t: np.ones_like(c) for t, c in self.eq_coef_.items()})
+        terms = list(dict.fromkeys(term for s in self.state_names_ for term in exps[s]))
+        index = {term: k for k, term in enumerate(terms)}
+        pattern = np.zeros((len(self.state_names_), len(terms)))
+        for i, s in enumerate(self.state_names_):
+            pattern[i, [index[term] for term in exps[s]]] = 1.0
+        return terms, self._stages(terms, pattern) if self.clipped_ else None
+
+    def _stages(self, terms: Sequence[Term] | None = None, coef: np.ndarray | None = None) -> dict:
         """The staged evaluation a bounded prime needs (``models.fast`` reads it): ``n_inputs``,
         and per stage the output rows it computes and the bounds it then applies, {row, extra
-        input column, low, high}. A row's stage follows the extra columns its terms read."""
+        input column, low, high}. A row's stage follows the extra columns its terms read (of
+        ``terms`` with ``coef`` non-zero; default the fit's ``terms_`` and ``coef_``)."""
+        terms, coef = (self.terms_, self.coef_) if terms is None else (terms, coef)
         n, extra = self._n_inputs, {self._extra_index(s): s for s in self.clipped_}
         stage: dict[int, int] = {}
-        rows_of = {i: {j for k, t in enumerate(self.terms_) if self.coef_[i, k] != 0 for j, *_ in t if j >= n}
+        rows_of = {i: {j for k, t in enumerate(terms) if coef[i, k] != 0 for j, *_ in t if j >= n}
                    for i in range(len(self.state_names_))}
         while len(stage) < len(rows_of):
             for i, needs in rows_of.items():

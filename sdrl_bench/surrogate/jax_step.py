@@ -346,8 +346,8 @@ def jax_stepper(model_env: Any) -> JaxStepper:
         raise NotImplementedError(f"jax_step: env '{spec.name}': not covered yet: {'; '.join(missing)}")
     model = model_env.model
     jax, jnp = jax_modules("sdrl_bench.surrogate.jax_step")
-    lin, model_key, order = linear_predictor(model)  # coefficients as arguments, their columns in ``order``
-    members = np.asarray(model.members_, dtype=float)[:, :, order] if model_env._members is not None else None
+    lin, model_key, columns = linear_predictor(model)  # coefficients as arguments, in the table's ``columns``
+    members = columns(model.members_) if model_env._members is not None else None
     inputs = np.concatenate([spec.target_index, spec.exogenous_index]).astype(int)  # ModelEnv.model_inputs
     kernel = model_env._step_batch is not None
     after = _kernel(model_env, jnp) if kernel else _composed(model_env, jax, jnp)
@@ -355,7 +355,7 @@ def jax_stepper(model_env: Any) -> JaxStepper:
     fresh = task.array_step.init_aux if kernel else (lambda n: np.zeros(n, dtype=np.int64))
     pessimism = _pessimism(model_env, lin, jax, jnp)
     draws = _event_draws(model_env, jax, jnp)
-    own = {"coef": np.asarray(model.coef_, dtype=float)[:, order], "members": members,
+    own = {"coef": columns(model.coef_), "members": members,
            "chol": None if model_env._chol is None else np.asarray(model_env._chol, dtype=float),
            "events": [tuple(np.asarray(x, dtype=float) for x in numbers[:4]) for _, numbers in draws]}
     key = (model_key, None if members is None else members.shape, None if own["chol"] is None else own["chol"].shape,

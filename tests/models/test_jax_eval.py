@@ -91,8 +91,8 @@ def check_agrees(model, z: np.ndarray, member: int | None = None) -> float:
     assert diff <= TOL, diff
     # the coefficients as an argument of one compiled program (linear_predictor), for the model
     # and each member through the same program
-    lin, _, order = linear_predictor(model)
-    c = np.asarray(model.coef_ if member is None else model.members_[member])[:, order]
+    lin, _, columns = linear_predictor(model)
+    c = columns(model.coef_ if member is None else model.members_[member])
     arg = np.asarray(jax.jit(lin)(z, c))
     assert np.max(np.abs(arg - batch)) <= TOL
     return diff
@@ -227,3 +227,33 @@ def test_the_package_imports_without_jax(tmp_path):
     out = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=120, env=_env())
     assert out.returncode == 0, out.stderr[-2000:]
     assert "ImportError: sdrl_bench.models.jax_eval needs jax" in out.stdout and "sdrl-bench[jax]" in out.stdout
+
+
+@pytest.mark.parametrize("bounded", [False, True])
+def test_fits_of_one_library_that_keep_other_terms_share_one_compiled_program(bounded):
+    """A per-equation refit that drops terms has another term table but the same candidate
+    structure: ``linear_predictor`` gives both one key, and the program compiled for the first
+    evaluates the second's coefficients (its own ``columns``) as its numpy evaluators do, staged
+    bounds included."""
+    model, spec, data = fitted("lunar_lander")
+    if bounded:
+        model = with_bounds(model, data, ["vx", "vy", "angvel"])
+    table = {repr(t) for t in model.terms_}
+
+    def dropped(t: str, k: int) -> PerEquationModel:
+        d = model.to_dict()
+        d.pop("members", None)  # the members' terms are in the table too
+        d["coefficients"][t] = [0.0 if j == k else c for j, c in enumerate(d["coefficients"][t])]
+        return PerEquationModel.from_dict(d)
+
+    # a refit that keeps one term fewer, where that leaves another flattened term table
+    refits = (dropped(t, k) for t, c in model.eq_coef_.items() for k in np.flatnonzero(c))
+    sparser = next(m for m in refits if {repr(x) for x in m.terms_} != table)
+    lin_a, key_a, _ = linear_predictor(model)
+    _, key_b, columns_b = linear_predictor(sparser)
+    assert key_a == key_b
+    z = draw_inputs(spec, data, n=2000, seed=2)
+    got = np.asarray(jax.jit(lin_a)(z, columns_b(sparser.coef_)))
+    want = batch_predictor(sparser)(np.ascontiguousarray(z.T)).T
+    assert np.max(np.abs(got - want)) <= TOL
+    assert np.max(np.abs(got - batch_predictor(model)(np.ascontiguousarray(z.T)).T)) > 1e-3  # the drop matters
