@@ -187,7 +187,9 @@ class Curve:
 
 
 class RealEvalCallback(BaseCallback):
-    """Every ``every`` training steps, evaluate the current policy in the real env.
+    """Every ``every`` training steps, evaluate the current policy in the real env. The
+    evaluation's seconds (its episodes and ``on_point``, which records the point) are kept out
+    of the training's.
 
     ``stop_when_solved``: end training at the first evaluation whose mean reaches the env's
     solved threshold (time-to-solve runs). ``clock`` and ``cpu_clock`` read wall and CPU
@@ -257,8 +259,10 @@ class RealEvalCallback(BaseCallback):
         if c.first_solved_step is None and solved is not None and res.mean >= solved:
             c.first_solved_step, c.first_solved_wall, c.first_solved_cpu = int(self.num_timesteps), wall, cpu
             c.first_solved_rollout_wall = self.rollout_wall_seconds + self._open_rollout(t1)
-        if self.on_point is not None:
+        if self.on_point is not None:  # recording the point (an MLflow write) is the evaluation's cost too
             self.on_point(int(self.num_timesteps), res.mean, res.std)
+            self.eval_wall_seconds += self.clock() - t1
+            self.eval_cpu_seconds += self.cpu_clock() - c1
 
 
 @dataclass

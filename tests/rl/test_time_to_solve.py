@@ -55,20 +55,22 @@ def test_fast_recipes_compose_and_train_both_arms_on_tiny_budgets(store, pack, s
 
 def test_training_time_excludes_evaluation_time():
     """Clocks that count env steps: a training step costs 1 ms, an evaluation step 1 s of wall
-    (2 ms and 3 s of CPU). Every training-time figure must be the training steps' share alone."""
+    (2 ms and 3 s of CPU), recording a point (``on_point``, an MLflow write in a run) 5 s of
+    both. Every training-time figure must be the training steps' share alone."""
     spec = MountainCarSpec()
     counts: Counter = Counter()
-    wall = lambda: 0.001 * counts["train"] + 1.0 * counts["evaluate"]  # noqa: E731
-    cpu = lambda: 0.002 * counts["train"] + 3.0 * counts["evaluate"]  # noqa: E731
+    wall = lambda: 0.001 * counts["train"] + 1.0 * counts["evaluate"] + 5.0 * counts["record"]  # noqa: E731
+    cpu = lambda: 0.002 * counts["train"] + 3.0 * counts["evaluate"] + 5.0 * counts["record"]  # noqa: E731
     venv = real_vec_env(spec, 2, 0, counts, "train")
-    callback = RealEvalCallback(spec, every=32, episodes=2, seed=0, counts=counts, clock=wall, cpu_clock=cpu)
+    callback = RealEvalCallback(spec, every=32, episodes=2, seed=0, counts=counts, clock=wall, cpu_clock=cpu,
+                                on_point=lambda *_: counts.update(["record"]))
     result = train(tiny_ppo(), venv, 96, 0, callback)
     curve = callback.curve
-    assert curve.steps == [0, 32, 64, 96] and counts["train"] == 96
+    assert curve.steps == [0, 32, 64, 96] and counts["train"] == 96 and counts["record"] == 4
     assert counts["evaluate"] >= 4 * 2  # 4 evaluations of 2 episodes were played and counted apart
     assert result.wall_seconds == pytest.approx(0.001 * 96)
     assert result.cpu_seconds == pytest.approx(0.002 * 96)
-    assert result.eval_wall_seconds == pytest.approx(1.0 * counts["evaluate"])
+    assert result.eval_wall_seconds == pytest.approx(1.0 * counts["evaluate"] + 5.0 * 4)
     assert curve.wall == pytest.approx([0.001 * s for s in curve.steps])
     # the fake clock moves only on env steps, so all training time is rollout time (updates: 0 s)
     assert result.rollout_wall_seconds == pytest.approx(0.001 * 96)
