@@ -213,8 +213,8 @@ def _dense() -> Callable:
     contracts the samples' axis of both operands, a product XLA's CPU backend leaves to its slow
     generic dot (about 80 us per 1024 x 64 layer, measured) while its fast library kernels take
     the other two. Features-major, the three products are w.T @ x_t (w.T copied: 64 x 64), w @ dy_t
-    and x_t @ dy_t.T, all of the shapes the fast kernels take; the fast pack's update went from
-    8.0 to 6.4 ms (``benchmarks/compiled_ppo.py``). The same sums, in another order: results
+    and x_t @ dy_t.T, all of the shapes the fast kernels take; the fast MountainCar pack's update went
+    from 8.0 to 6.4-7.0 ms (one update timed alone, this 2-core machine). The same sums, in another order: results
     move by rounding."""
     jax, jnp, _ = _modules()
 
@@ -442,6 +442,8 @@ class Surrogate(NamedTuple):
     and the model's numbers ``params`` (``JaxStepper.params``)."""
     observe: Callable
     reset: Callable
+    """``reset(key, n, params=None)``: n fresh states (from ``params["pool"]`` when given, else the
+    surrogate's own reset pool or draw)."""
     n_obs: int
     n_act: int
     """Action dimensions (Box) or the number of discrete actions."""
@@ -476,14 +478,24 @@ def surrogate(model_env: Any) -> Surrogate:
         event_u = jax.random.uniform(k_event, (n, k), jnp.float64) if k else None
         return stepper.step(states, actions, aux, noise, event_u, params)
 
+    # the reset pool (a seed's real first observations) is a number of the model like its
+    # coefficients: an argument, so that one compiled rollout serves every seed's surrogate
+    pool = None if model_env._pool is None else np.asarray(model_env._pool, dtype=np.float64)
+    params = {**stepper.params, "pool": pool}
+    key = (stepper.key, None if pool is None else pool.shape)
+    draw_reset = jax_reset(model_env)
+
+    def reset(key, n, params=None):
+        return draw_reset(key, n, None if params is None else params["pool"])
+
     space = model_env.action_space
-    pieces = (step, jax_observe(model_env), jax_reset(model_env), len(spec.obs_names))
+    pieces = (step, jax_observe(model_env), reset, len(spec.obs_names))
     if spec.n_discrete_actions:
         return Surrogate(*pieces, int(spec.n_discrete_actions), None, None, int(spec.max_episode_steps), True,
-                         stepper.init_aux, stepper.params, stepper.key)
+                         stepper.init_aux, params, key)
     return Surrogate(*pieces, spec.raw_action_width, np.asarray(space.low, np.float32),
                      np.asarray(space.high, np.float32), int(spec.max_episode_steps), False, stepper.init_aux,
-                     stepper.params, stepper.key)
+                     params, key)
 
 
 def init_env(sur: Surrogate, key: Any, n_envs: int, cfg: PPOConfig | None = None) -> tuple[EnvState, Any]:
@@ -521,7 +533,7 @@ def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
             env.norm.step(reward, done, gamma, cfg.clip_reward)
         learn_reward = scaled + gamma * jnp.where(timeout, boot, 0.0)
         ep_return = env.ep_return + reward
-        fresh = sur.reset(k_reset, n)
+        fresh = sur.reset(k_reset, n, params)
         states = jnp.where(done[:, None], fresh, nxt)
         new_obs = jnp.where(done[:, None], sur.observe(fresh).astype(jnp.float32), final_obs)
         new_env = EnvState(states, jnp.where(done, 0, t), jnp.where(done, 0.0, ep_return), norm,

@@ -453,9 +453,10 @@ def jax_observe(model_env: Any) -> Callable:
 
 
 def jax_reset(model_env: Any) -> Callable:
-    """``reset(key, n) -> (n, n_state)`` float64 reset states from a jax PRNG key: uniformly from
-    the ModelEnv's reset pool when it has one (given initial states, or the real env's first
-    observations), else the spec's ``initial_state_fn`` (or the ``task.initial_states`` a spec
+    """``reset(key, n, pool=None) -> (n, n_state)`` float64 reset states from a jax PRNG key:
+    uniformly from the ModelEnv's reset pool when it has one (given initial states, or the real
+    env's first observations; ``pool``: rows of the same width in its place, e.g. the pool as an
+    argument of a compiled program, so that programs built for other seeds' pools are one), else the spec's ``initial_state_fn`` (or the ``task.initial_states`` a spec
     class built) called on the key (written with ``envs.functional``'s draws; checked when built:
     one line naming the key or the function). The same distribution as
     ``ModelEnv.initial_states``, not the same draws."""
@@ -463,8 +464,13 @@ def jax_reset(model_env: Any) -> Callable:
     spec, task = model_env.spec, model_env.task
     pool = model_env._pool
     if pool is not None:
-        pool = jnp.asarray(pool, dtype=jnp.float64)
-        return lambda key, n: pool[jax.random.randint(key, (n,), 0, pool.shape[0])]
+        own = jnp.asarray(pool, dtype=jnp.float64)
+
+        def from_pool(key, n, pool=None):
+            rows = own if pool is None else pool
+            return rows[jax.random.randint(key, (n,), 0, rows.shape[0])]
+
+        return from_pool
     if _is_method(task.initial_states, EnvSpec._checked_initial_states):
         fn = resolve(spec.initial_state_fn, "env.spec.initial_state_fn")
         who = f"env.spec.initial_state_fn ({spec.initial_state_fn})"
@@ -479,4 +485,4 @@ def jax_reset(model_env: Any) -> Callable:
                           "envs.functional's uniform / standard_normal") from None
     if tuple(getattr(out, "shape", ())) != (2, n_state):
         raise ConfigError(f"jax_reset: {who} returned shape {getattr(out, 'shape', None)} for n=2; expected (2, {n_state})")
-    return lambda key, n: jnp.asarray(fn(key, n), dtype=jnp.float64)
+    return lambda key, n, pool=None: jnp.asarray(fn(key, n), dtype=jnp.float64)

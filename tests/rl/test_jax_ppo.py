@@ -285,25 +285,30 @@ def test_gae_and_one_update_are_sb3s_given_its_rollout_and_weights(env_id):
 
 
 def test_a_compiled_rollout_steps_another_model_of_the_same_structure_given_its_numbers():
-    """Two LunarLander flight laws fitted on different seeds' data (other coefficients, members and
-    step noise; the same terms): the rollout compiled for the first, given the second's numbers,
-    gives the trajectory a rollout compiled for the second gives; its own numbers give another."""
+    """Two LunarLander flight laws fitted on different seeds' data (other coefficients, members,
+    step noise and reset pool; the same terms): the rollout compiled for the first, given the
+    second's numbers, gives the trajectory a rollout compiled for the second gives, its episodes'
+    restarts included; its own numbers give another."""
     menvs = []
     for seed in (0, 1):
         res = fit_dynamics(build_fit_job(compose_cfg("env=lunar_lander", "collector=heuristic", f"seed={seed}")))
-        menvs.append(ModelEnv(res.model, res.spec, seed=0))
+        menvs.append(ModelEnv(res.model, res.spec, seed=seed))
     sur_a, sur_b = (jax_ppo.surrogate(m) for m in menvs)
     assert sur_a.key == sur_b.key and sur_b.params["members"] is not None and sur_b.params["chol"] is not None
     assert not np.array_equal(sur_a.params["coef"], sur_b.params["coef"])
-    cfg = jax_ppo.PPOConfig(n_envs=4, n_steps=50, batch_size=100)
+    assert not np.array_equal(sur_a.params["pool"], sur_b.params["pool"])  # each seed's real first observations
+    cfg = jax_ppo.PPOConfig(n_envs=4, n_steps=150, batch_size=100)
     net = jax_ppo.init_net(jax.random.key(0), sur_a.n_obs, sur_a.n_act, cfg, discrete=True)
     env, obs = jax_ppo.init_env(sur_a, jax.random.key(1), cfg.n_envs, cfg)
     run_a = jax.jit(jax_ppo.make_rollout(sur_a, cfg)).lower(net, env, obs, jax.random.key(2), sur_a.params).compile()
     run_b = jax.jit(jax_ppo.make_rollout(sur_b, cfg))
-    via_a = run_a(net, env, obs, jax.random.key(2), sur_b.params)[2].next_state
-    own_b = run_b(net, env, obs, jax.random.key(2), sur_b.params)[2].next_state
-    assert np.max(np.abs(np.asarray(via_a) - np.asarray(own_b))) <= 1e-12
-    assert np.max(np.abs(np.asarray(run_a(net, env, obs, jax.random.key(2), sur_a.params)[2].next_state) - np.asarray(own_b))) > 1e-6
+    via_a = run_a(net, env, obs, jax.random.key(2), sur_b.params)[2]
+    own_b = run_b(net, env, obs, jax.random.key(2), sur_b.params)[2]
+    assert np.asarray(own_b.done).any()  # some episodes restarted, from the pool
+    for x, y in ((via_a.next_state, own_b.next_state), (via_a.state, own_b.state)):
+        assert np.max(np.abs(np.asarray(x) - np.asarray(y))) <= 1e-12
+    assert np.max(np.abs(np.asarray(run_a(net, env, obs, jax.random.key(2), sur_a.params)[2].next_state)
+                         - np.asarray(own_b.next_state))) > 1e-6
 
 
 def test_each_epochs_shuffle_is_a_uniform_permutation():
