@@ -467,7 +467,7 @@ def jax_reset(model_env: Any) -> Callable:
         own = jnp.asarray(pool, dtype=jnp.float64)
 
         def from_pool(key, n, pool=None):
-            rows = own if pool is None else pool
+            rows = own if pool is None else jnp.asarray(pool, dtype=jnp.float64)
             return rows[jax.random.randint(key, (n,), 0, rows.shape[0])]
 
         return from_pool

@@ -309,6 +309,11 @@ def test_a_compiled_rollout_steps_another_model_of_the_same_structure_given_its_
         assert np.max(np.abs(np.asarray(x) - np.asarray(y))) <= 1e-12
     assert np.max(np.abs(np.asarray(run_a(net, env, obs, jax.random.key(2), sur_a.params)[2].next_state)
                          - np.asarray(own_b.next_state))) > 1e-6
+    # without numbers given, a rollout (and the whole training program) steps the surrogate's own
+    own_a = jax.jit(jax_ppo.make_rollout(sur_a, cfg))(net, env, obs, jax.random.key(2))[2]
+    assert np.array_equal(np.asarray(own_a.state), np.asarray(run_a(net, env, obs, jax.random.key(2), sur_a.params)[2].state))
+    trained, _ = jax_ppo.make_train(menvs[0], cfg, cfg.rollout_size)(jax.random.key(3))
+    assert all(np.all(np.isfinite(np.asarray(x))) for x in jax.tree_util.tree_leaves(trained))
 
 
 def test_each_epochs_shuffle_is_a_uniform_permutation():
