@@ -277,7 +277,8 @@ def main() -> None:
                                         f"compile ~ {r['first'] - r['later']:.1f} s" for r in rows))
     print("(b) with its compile (first call): " + "; ".join(
         f"{r['name']}: {r['steps'] / r['first']:,.0f} steps/s, {r['steps'] / r['first'] / r['a']['rate']:.1f}x (a)" for r in rows))
-    print("ceiling, were the update at the layers' shape rate (its matmul FLOPs / that rate, plus (b)'s rollout): " + "; ".join(
+    print("were the update at the layers' shape rate (its matmul FLOPs / that rate, plus (b)'s rollout; a forward-only "
+          "micro-benchmark, not a bound: the update's products can run faster): " + "; ".join(
         f"{r['name']}: {r['rollout_size'] / (r['flops'] / (peaks['layer'] * 1e9) + r['roll_s']):,.0f} steps/s, "
         f"{r['rollout_size'] / (r['flops'] / (peaks['layer'] * 1e9) + r['roll_s']) / r['a']['rate']:.1f}x (a)" for r in rows))
     print("rollout: share of training wall time in rollouts ((b): its rollout and update jitted and timed apart); "
