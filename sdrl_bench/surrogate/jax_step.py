@@ -457,9 +457,10 @@ def jax_reset(model_env: Any) -> Callable:
     uniformly from the ModelEnv's reset pool when it has one (given initial states, or the real
     env's first observations; ``pool``: rows of the same width in its place, e.g. the pool as an
     argument of a compiled program, so that one program serves other seeds' pools), else the
-    spec's ``initial_state_fn`` (or the ``task.initial_states`` a spec class built) called on the key (written with ``envs.functional``'s draws; checked when built:
-    one line naming the key or the function). The same distribution as
-    ``ModelEnv.initial_states``, not the same draws."""
+    spec's ``initial_state_fn`` (or the ``task.initial_states`` a spec class built) called on
+    the key (written with ``envs.functional``'s draws; checked when built: one line naming the
+    key or the function). The same distribution as ``ModelEnv.initial_states``, not the same
+    draws."""
     jax, jnp = jax_modules("sdrl_bench.surrogate.jax_step")
     spec, task = model_env.spec, model_env.task
     pool = model_env._pool
