@@ -3,13 +3,14 @@
 The tests check the pieces against SB3 (the policy, the reward scaling, GAE and one update on SB3's
 own rollout and weights). This checks the whole loop: for each seed, SB3's PPO (``rl.agents.make_agent``
 around the surrogate vector env, as the harness trains it) and ``rl.jax_agent.JaxPPO`` (its rollouts
-compiled in the same surrogate) train ``--steps`` steps with the same recipe (the env's fast pack)
-in the same SINDy surrogate (fitted once, from the env's heuristic), and each trained policy plays
+compiled in the same surrogate) train ``--steps`` steps with the same recipe (``PACKS``)
+in the same SINDy surrogate (fitted once, ``PACKS``), and each trained policy plays
 ``--episodes`` deterministic episodes in that surrogate (``ModelEnv.step``, numpy, the same reset
 draws for every policy). Printed: per seed, both returns; their medians, IQMs and a Mann-Whitney
 test (``scipy.stats``).
 
     .venv/bin/python studies/compiled_ppo_parity.py [--env lunar_lander] [--seeds 0-15] [--steps 262144]
+    .venv/bin/python studies/compiled_ppo_parity.py --env cartpole_swingup --steps 1048576
 
 Measured (LunarLander, seeds 0-15, 262,144 steps, 20 episodes; about 6 min on this 2-core
 machine beside another job): SB3 median 230.7, IQM 226.4, lowest 47.9; compiled median 232.1, IQM
@@ -47,17 +48,26 @@ def surrogate_return(policy, menv: ModelEnv, episodes: int, seed: int) -> float:
     return float(ret.mean())
 
 
+PACKS = {
+    "lunar_lander": (["experiment=fast_lunar_lander", "collector=heuristic"], ["experiment=fast_lunar_lander"]),
+    "mountain_car": (["experiment=fast_mountain_car", "collector=heuristic"], ["experiment=fast_mountain_car"]),
+    "cartpole_swingup": (["env=cartpole_swingup", "collector=random"], ["experiment=dyna_cartpole_swingup"]),
+}
+"""Per env: the surrogate's fit (the env's heuristic, or for the swing-up 8,000 uniform-random steps
+as ``benchmarks/compiled_ppo.py`` fits it) and the recipe (the fast pack's; the swing-up's Dyna pack)."""
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--env", default="lunar_lander", choices=["lunar_lander", "mountain_car"])
+    ap.add_argument("--env", default="lunar_lander", choices=list(PACKS))
     ap.add_argument("--seeds", default="0-15")
     ap.add_argument("--steps", type=int, default=262_144)
     ap.add_argument("--episodes", type=int, default=20)
     args = ap.parse_args()
     lo, _, hi = args.seeds.partition("-")
     seeds = list(range(int(lo), int(hi or lo) + 1))
-    pack = [f"experiment=fast_{args.env}", "collector=heuristic"]
-    cfg = compose(pack)
+    fit_overrides, pack = PACKS[args.env]
+    cfg = compose(fit_overrides)
     torch.set_num_threads(int(cfg.torch_threads))  # as the harness trains SB3 (cli.train.prepare)
     fit = fit_dynamics(build_fit_job(cfg))
     menv = ModelEnv(fit.model, fit.spec, seed=0)
