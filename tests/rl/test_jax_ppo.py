@@ -345,19 +345,29 @@ def test_the_hand_written_layer_gradient_is_autodiffs():
     net["log_std"] = jnp.full((64, 3), -0.5, jnp.float32)  # gSDE: the latent features' path too
     obs = jax.random.normal(jax.random.key(1), (257, 5), jnp.float32)
 
-    def plain(layers, x):
+    def hidden(layers, x):
         for w, b in layers[:-1]:
             x = jnp.tanh(x @ w + b)
-        w, b = layers[-1]
-        return x @ w + b
+        return x
 
-    def loss(mlp, net):
-        return jnp.sum(jnp.sin(mlp(net["actor"], obs))) + jnp.sum(mlp(net["critic"], obs) ** 2)
+    def plain(layers, x):
+        w, b = layers[-1]
+        return hidden(layers, x) @ w + b
+
+    def plain_std(net):  # gSDE's std, samples-major, as SB3 computes it
+        latent = jax.lax.stop_gradient(hidden(net["actor"], obs))
+        return jnp.sqrt(latent**2 @ jnp.exp(net["log_std"]) ** 2 + jax_ppo.SDE_EPS)
+
+    def loss(mlp, std, net):
+        return (jnp.sum(jnp.sin(mlp(net["actor"], obs))) + jnp.sum(mlp(net["critic"], obs) ** 2)
+                + jnp.sum(jnp.log(std(net))))
 
     np.testing.assert_allclose(jax_ppo.action_mean(net, obs), plain(net["actor"], obs), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(jax_ppo.value(net, obs), plain(net["critic"], obs)[:, 0], rtol=1e-5, atol=1e-6)
-    got = jax.grad(lambda n: loss(jax_ppo._mlp, n))(net)
-    want = jax.grad(lambda n: loss(plain, n))(net)
+    np.testing.assert_allclose(jax_ppo.policy(net, obs)[1], plain_std(net), rtol=1e-5, atol=1e-6)
+    got = jax.grad(lambda n: loss(jax_ppo._mlp, lambda m: jax_ppo.policy(m, obs)[1], n))(net)
+    want = jax.grad(lambda n: loss(plain, plain_std, n))(net)
+    assert float(jnp.abs(want["log_std"]).max()) > 1.0  # the std's path carries a gradient
     for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
         np.testing.assert_allclose(g, w, rtol=1e-4, atol=1e-5)
     assert max(float(jnp.abs(g).max()) for g in jax.tree_util.tree_leaves(got)) > 1.0  # gradients that could differ
