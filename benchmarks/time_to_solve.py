@@ -1,6 +1,6 @@
 """Time to solve: what a surrogate buys in wall-clock time, beside the controls that say why.
 
-Per env and seed, four arms (and a fifth), each trained until its first real evaluation at the env's solved
+Per env and seed, these arms, each trained until its first real evaluation at the env's solved
 threshold (``rl.stop_when_solved=true``, 10 real episodes per evaluation):
 
   (a) the zoo recipe in the real env           (the paper's real arm)
@@ -10,8 +10,9 @@ threshold (``rl.stop_when_solved=true``, 10 real episodes per evaluation):
   (e) (d) with the surrogate fitted on the env's heuristic controller's data (no expert needed)
   (d') (d) trained by the compiled PPO (``agent=ppo_jax``, ``rl.jax_agent``): rollout and update in jax
   (b') (b) trained by the same compiled PPO, its rollout in real envs (the control of (d'))
+  (e') (e) trained by the compiled PPO
 
-(d') and (b') need the optional ``[jax]`` extra; their compile seconds (``compile_wall_seconds``, inside
+(b'), (d') and (e') need the optional ``[jax]`` extra; their compile seconds (``compile_wall_seconds``, inside
 the training wall) are printed apart, and the ratios with the compiled arms are given with and without them.
 
 For each: training wall and CPU seconds to the first solved evaluation (the surrogate arms'
@@ -25,6 +26,9 @@ Every arm is an ordinary ``sdrl-bench -m`` sweep into one MLflow store (the pack
 resumes where a stopped one left off; ``--report-only`` prints the table from the store.
 
     .venv/bin/python benchmarks/time_to_solve.py --env mountain_car --seeds 0-4 --workdir /tmp/tts
+
+``--transitions N`` fits the surrogate arms on N real transitions in place of the pack's (the
+table then reads only surrogate runs of that size; the real arms are shared).
 
 The surrogate arms' expert collector is trained (and timed) once, before any arm, and cached
 under ``<workdir>/mlruns/experts``: its one-time cost is printed apart, not added to (c) or (d); (e) shows the surrogate arm
@@ -52,15 +56,15 @@ AGENTS = {"mountain_car": {"zoo": "sac", "fast": "ppo_fast", "jax": "ppo_jax"},
           "lunar_lander": {"zoo": "ppo", "fast": "ppo_fast", "jax": "ppo_jax"}}
 """The packs' agent names: how the runs of each recipe are told apart in the store."""
 ARMS = {"a": ("zoo", "real"), "b": ("fast", "real"), "c": ("zoo", "surrogate"), "d": ("fast", "surrogate"),
-        "e": ("fast", "surrogate"), "B": ("jax", "real"), "D": ("jax", "surrogate")}
-"""Arm letters; B and D are (b') and (d'): the fast pack with ``agent=ppo_jax``."""
-COLLECTOR = {"c": "expert", "d": "expert", "e": "heuristic", "D": "expert"}
+        "e": ("fast", "surrogate"), "B": ("jax", "real"), "D": ("jax", "surrogate"), "E": ("jax", "surrogate")}
+"""Arm letters; B, D and E are (b'), (d') and (e'): the fast pack with ``agent=ppo_jax``."""
+COLLECTOR = {"c": "expert", "d": "expert", "e": "heuristic", "D": "expert", "E": "heuristic"}
 """The surrogate arms' data: the paper's (the pack's expert, eps = 0.2), or (e) the env's
 hand-written controller with the same eps, which needs no trained expert at all."""
 LABELS = {"a": "(a) zoo recipe, real env", "b": "(b) fast recipe, real envs (control)",
           "c": "(c) zoo recipe, surrogate (paper)", "d": "(d) fast recipe, surrogate",
           "e": "(e) = (d), heuristic data", "B": "(b') = (b), compiled PPO (control of d')",
-          "D": "(d') = (d), compiled PPO"}
+          "D": "(d') = (d), compiled PPO", "E": "(e') = (e), compiled PPO"}
 # learning-curve cadence of the zoo recipes here (the fast packs set their own: one rollout):
 # finer than the paper packs' so the first solved point is not rounded up by a coarse grid
 ZOO_EVAL_EVERY = {"mountain_car": 1000, "lunar_lander": 16384}
@@ -82,7 +86,10 @@ def cli(workdir: Path, overrides: list[str], multirun: bool = True) -> None:
     subprocess.run(cmd, cwd=workdir, env=env, check=True, stdout=subprocess.DEVNULL)
 
 
-def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int, rerun: bool = False) -> list[str]:
+def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int, rerun: bool = False,
+                  transitions: int | None = None) -> list[str]:
+    """The arm's ``sdrl-bench -m`` overrides; ``transitions``: the surrogate arms' model data
+    (``n_transitions``; None: the pack's)."""
     recipe, where = ARMS[arm]
     pack = PACKS[env]["fast" if recipe == "jax" else recipe]  # the compiled arms run the fast pack
     out = [f"experiment={pack}", f"rl.arms=[{where}]", f"seed={','.join(map(str, seeds))}",
@@ -94,6 +101,8 @@ def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int, rer
         out.append(f"agent={AGENTS[env]['jax']}")
     if arm in COLLECTOR:
         out.append(f"collector={COLLECTOR[arm]}")
+        if transitions is not None:
+            out.append(f"n_transitions={transitions}")
     return out
 
 
@@ -108,9 +117,18 @@ def pretrain_expert(env: str, workdir: Path, uri: str) -> float | None:
     return time.perf_counter() - t0
 
 
-def collect(uri: str, env: str) -> dict[str, dict[int, dict[str, float]]]:
+def pack_transitions(env: str) -> int:
+    """The fast pack's model data (``n_transitions``), the surrogate arms' default."""
+    from sdrl_bench.cli.build import compose  # noqa: PLC0415  (Hydra's compose: only when a table is made)
+
+    return int(compose([f"experiment={PACKS[env]['fast']}"]).n_transitions)
+
+
+def collect(uri: str, env: str, transitions: int | None = None) -> dict[str, dict[int, dict[str, float]]]:
     """{arm letter: {seed: metrics of that arm}} from the finished time-to-solve runs (stopped
-    when solved, 10 episodes per evaluation) of ``env``; the latest run of a seed wins."""
+    when solved, 10 episodes per evaluation) of ``env``, the surrogate arms' among those fitted on
+    ``transitions`` real transitions (None: the pack's); the latest run of a seed wins."""
+    want = str(transitions if transitions is not None else pack_transitions(env))
     out: dict[str, dict[int, dict[str, float]]] = {k: {} for k in ARMS}
     for r in find_runs(uri, "sdrl-bench", "tags.`sdrl.kind` = 'transfer'"):
         p, t = r["params"], r["tags"]
@@ -121,7 +139,7 @@ def collect(uri: str, env: str) -> dict[str, dict[int, dict[str, float]]]:
         where = t.get("arms")
         collector = p.get("collector.name")
         letter = next((k for k, v in ARMS.items() if v == (recipe, where) and COLLECTOR.get(k) == collector), None)
-        if letter is None:
+        if letter is None or (where == "surrogate" and p.get("n_transitions") != want):
             continue
         m = {k.split("/", 1)[1]: v for k, v in r["metrics"].items() if k.startswith(f"{where}/")}
         m["run_id"] = r["run_id"]
@@ -164,10 +182,11 @@ def fmt(v: float, spec: str = ".3g") -> str:
     return format(v, spec)
 
 
-def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None) -> None:
-    data = collect(uri, env)
+def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, transitions: int | None = None) -> None:
+    data = collect(uri, env, transitions)
     print(f"\n{env}: time to a first real evaluation at the solved threshold ({EVAL_EPISODES} episodes), "
-          f"seeds {seeds}")
+          f"seeds {seeds}; the surrogate arms' model data: "
+          f"{transitions if transitions is not None else pack_transitions(env):,} real transitions")
     per_seed = []
     for s in seeds:
         per_seed.append([s] + [fmt(data[k].get(s, {}).get("solved_wall_seconds", math.inf)) if s in data[k] else "-"
@@ -195,6 +214,10 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None) -
         print(f"compiled: wall (d')/(b) = {ratio('D', 'b', 'wall')} (compile excluded: {ratio('D', 'b', 'wall_ex_compile')}), "
               f"(d')/(b') = {ratio('D', 'B', 'wall')} (compile excluded: {ratio('D', 'B', 'wall_ex_compile')}), "
               f"(d')/(d) = {ratio('D', 'd', 'wall')}")
+    if rows["E"]["seeds"]:
+        print(f"compiled: wall (e')/(b) = {ratio('E', 'b', 'wall')} (compile excluded: {ratio('E', 'b', 'wall_ex_compile')}), "
+              f"(e')/(b') = {ratio('E', 'B', 'wall')} (compile excluded: {ratio('E', 'B', 'wall_ex_compile')}), "
+              f"(e')/(e) = {ratio('E', 'e', 'wall')}")
     if expert_seconds is not None:
         print(f"expert collector trained once before the arms: {expert_seconds:.0f} s wall (not in (c) or (d))")
 
@@ -205,9 +228,11 @@ def main() -> None:
     ap.add_argument("--seeds", default="0-4", help="e.g. 0-4 or 0,2")
     ap.add_argument("--workdir", default=".", help="where mlruns/ (store, experts cache) lives")
     ap.add_argument("--uri", default=None, help="tracking URI (default: <workdir>/mlruns/mlflow.db)")
-    ap.add_argument("--arms", default="abcde", help="which arms to run, e.g. bd; B and D: (b') and (d'), the "
+    ap.add_argument("--arms", default="abcde", help="which arms to run, e.g. bd; B, D and E: (b'), (d') and (e'), the "
                     "compiled PPO (the [jax] extra)")
     ap.add_argument("--jobs", type=int, default=2, help="jobs in parallel within an arm's sweep")
+    ap.add_argument("--transitions", type=int, default=None, help="the surrogate arms' model data, real "
+                    "transitions (n_transitions; default: the fast pack's)")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--rerun", action="store_true", help="run the arms again (resume=false); the table takes "
                     "each seed's latest run (e.g. after a code change the config does not show)")
@@ -222,8 +247,8 @@ def main() -> None:
         if any(COLLECTOR.get(k) == "expert" for k in args.arms):
             expert = pretrain_expert(args.env, workdir, uri)
         for k in args.arms:
-            cli(workdir, arm_overrides(args.env, k, seeds, uri, args.jobs, args.rerun))
-    report(uri, args.env, seeds, expert)
+            cli(workdir, arm_overrides(args.env, k, seeds, uri, args.jobs, args.rerun, args.transitions))
+    report(uri, args.env, seeds, expert, args.transitions)
 
 
 if __name__ == "__main__":
