@@ -19,7 +19,10 @@ For each: training wall and CPU seconds to the first solved evaluation (the surr
 collection and fit included, every evaluation's time excluded and reported apart), real
 transitions used (model data, or real training steps), surrogate steps; medians over the seeds
 and the ratios (d)/(a), (d)/(b) (wall) and (d)/(b) (real transitions). An arm that never solves
-within its budget counts as infinitely slow.
+within its budget counts as infinitely slow. The first evaluation at the threshold stops the
+training, a selection on 10 episodes; each run's final evaluation (fresh episodes, seeds nothing
+trained or chose on) then judges it. "judged solved" counts the seeds it confirms, and the
+"judged" medians and ratios count the others as unsolved (a * marks them in the per-seed table).
 
 Every arm is an ordinary ``sdrl-bench -m`` sweep into one MLflow store (the packs
 ``experiment=paper_<env>`` and ``experiment=fast_<env>``), so a rerun adopts finished jobs and
@@ -151,23 +154,40 @@ def collect(uri: str, env: str, transitions: int | None = None) -> dict[str, dic
     return out
 
 
+def judged(m: dict[str, float]) -> bool:
+    """Whether a run that met the threshold at an evaluation is also judged solved by its final
+    evaluation (``judged_solved``: fresh episodes on seeds that nothing trained or chose on). The
+    first evaluation at the threshold stops the training: a selection on a noisy estimate (10
+    episodes), which a policy just below the threshold passes by chance."""
+    return "solved_wall_seconds" in m and m.get("judged_solved", 0.0) >= 1.0
+
+
 def arm_row(metrics: dict[int, dict[str, float]], seeds: list[int]) -> dict[str, float]:
-    """Medians over the seeds (unsolved: infinite time and transitions)."""
+    """Medians over the seeds (unsolved: infinite time and transitions); ``*_judged``: the same
+    with a seed its final evaluation does not judge solved counted as unsolved."""
     rows = [metrics[s] for s in seeds if s in metrics]
     solved = [m for m in rows if "solved_wall_seconds" in m]
+
+    def wall(m: dict[str, float], need_judge: bool, compile_too: bool = True) -> float:
+        if "solved_wall_seconds" not in m or (need_judge and not judged(m)):
+            return math.inf
+        return m["solved_wall_seconds"] - (0.0 if compile_too else m.get("compile_wall_seconds", 0.0))
+
+    def med_wall(need_judge: bool, compile_too: bool = True) -> float:
+        return float(np.median([wall(m, need_judge, compile_too) for m in rows])) if rows else math.nan
 
     def med(key: str, default: float = math.inf) -> float:
         vals = [m.get(key, default) for m in rows]
         return float(np.median(vals)) if vals else math.nan
 
     return {
-        "seeds": len(rows), "solved": len(solved),
+        "seeds": len(rows), "solved": len(solved), "judged": sum(judged(m) for m in rows),
+        "wall_judged": med_wall(True), "wall_judged_ex_compile": med_wall(True, compile_too=False),
         "wall": med("solved_wall_seconds"), "cpu": med("solved_cpu_seconds"),
         "real": med("solved_real_steps"), "surrogate": med("solved_surrogate_steps") if solved else math.nan,
         "eval_wall": med("curve_eval_wall_seconds", math.nan), "final": med("final_return_mean", math.nan),
         "compile": med("compile_wall_seconds", math.nan),
-        "wall_ex_compile": float(np.median([m.get("solved_wall_seconds", math.inf) - m.get("compile_wall_seconds", 0.0)
-                                            for m in rows])) if rows else math.nan,
+        "wall_ex_compile": med_wall(False, compile_too=False),
         "rollout_share": float(np.median([m["solved_rollout_wall_seconds"] / m["solved_train_wall"]
                                           for m in solved if "solved_rollout_wall_seconds" in m and m["solved_train_wall"] > 0]))
         if any("solved_rollout_wall_seconds" in m for m in solved) else math.nan,
@@ -189,35 +209,39 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, t
           f"{transitions if transitions is not None else pack_transitions(env):,} real transitions")
     per_seed = []
     for s in seeds:
-        per_seed.append([s] + [fmt(data[k].get(s, {}).get("solved_wall_seconds", math.inf)) if s in data[k] else "-"
-                                for k in ARMS])
+        cells = []
+        for k in ARMS:
+            m = data[k].get(s)
+            cell = "-" if m is None else fmt(m.get("solved_wall_seconds", math.inf))
+            cells.append(cell + ("*" if m is not None and "solved_wall_seconds" in m and not judged(m) else ""))
+        per_seed.append([s, *cells])
     print(tabulate(per_seed, headers=["seed", *(f"({k}) wall s" for k in ARMS)], stralign="right"))
+    print("*: met the threshold at an evaluation, but its final evaluation (fresh episodes) does not judge it solved")
     rows = {k: arm_row(data[k], seeds) for k in ARMS}
-    table = [[LABELS[k], f"{r['solved']}/{r['seeds']}", fmt(r["wall"]), fmt(r["compile"]), fmt(r["cpu"]),
-              fmt(r["real"], ",.0f"), fmt(r["surrogate"], ",.0f"), fmt(r["rollout_share"], ".0%"), fmt(r["eval_wall"]),
-              fmt(r["final"], ".1f")]
+    table = [[LABELS[k], f"{r['solved']}/{r['seeds']}", f"{r['judged']}/{r['seeds']}", fmt(r["wall"]), fmt(r["wall_judged"]),
+              fmt(r["compile"]), fmt(r["cpu"]), fmt(r["real"], ",.0f"), fmt(r["surrogate"], ",.0f"),
+              fmt(r["rollout_share"], ".0%"), fmt(r["eval_wall"]), fmt(r["final"], ".1f")]
              for k, r in rows.items() if r["seeds"]]
-    print(tabulate(table, headers=["arm", "solved", "median wall s", "of it compile s", "median CPU s",
-                                   "real transitions", "surrogate steps", "rollouts' share of training",
-                                   "eval wall s (apart)", "final real return"],
+    print(tabulate(table, headers=["arm", "solved", "judged solved", "median wall s", "median wall s, judged",
+                                   "of it compile s", "median CPU s", "real transitions", "surrogate steps",
+                                   "rollouts' share of training", "eval wall s (apart)", "final real return"],
                    stralign="right"))
 
     def ratio(num: str, den: str, key: str) -> str:
         a, b = rows[num][key], rows[den][key]
         if not (math.isfinite(a) and math.isfinite(b)) or b == 0:
-            return "n/a (an arm did not solve in most seeds)"
+            return "n/a (unsolved in most seeds)"
         return f"{a / b:.3g}"
 
     print(f"wall (d)/(a) = {ratio('d', 'a', 'wall')}, (d)/(b) = {ratio('d', 'b', 'wall')}, "
           f"(b)/(a) = {ratio('b', 'a', 'wall')}; real transitions (d)/(b) = {ratio('d', 'b', 'real')}")
-    if rows["D"]["seeds"]:
-        print(f"compiled: wall (d')/(b) = {ratio('D', 'b', 'wall')} (compile excluded: {ratio('D', 'b', 'wall_ex_compile')}), "
-              f"(d')/(b') = {ratio('D', 'B', 'wall')} (compile excluded: {ratio('D', 'B', 'wall_ex_compile')}), "
-              f"(d')/(d) = {ratio('D', 'd', 'wall')}")
-    if rows["E"]["seeds"]:
-        print(f"compiled: wall (e')/(b) = {ratio('E', 'b', 'wall')} (compile excluded: {ratio('E', 'b', 'wall_ex_compile')}), "
-              f"(e')/(b') = {ratio('E', 'B', 'wall')} (compile excluded: {ratio('E', 'B', 'wall_ex_compile')}), "
-              f"(e')/(e) = {ratio('E', 'e', 'wall')}")
+    for k, name, sb3 in (("D", "(d')", "d"), ("E", "(e')", "e")):
+        if not rows[k]["seeds"]:
+            continue
+        for label, key in (("", "wall"), (", judged", "wall_judged")):
+            print(f"compiled{label}: wall {name}/(b) = {ratio(k, 'b', key)} (compile excluded: {ratio(k, 'b', key + '_ex_compile')}), "
+                  f"{name}/(b') = {ratio(k, 'B', key)} (compile excluded: {ratio(k, 'B', key + '_ex_compile')}), "
+                  f"{name}/({sb3}) = {ratio(k, sb3, key)}")
     if expert_seconds is not None:
         print(f"expert collector trained once before the arms: {expert_seconds:.0f} s wall (not in (c) or (d))")
 
