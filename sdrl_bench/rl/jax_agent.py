@@ -21,7 +21,9 @@ Where it steps:
   (``rollout_swaps``), another structure compiles again (``rollout_compiles``); the episodes
   under way go on. ``compile_seconds`` sums the compile times (ahead-of-time, timed apart; they are inside the
   training wall the callbacks see).
-* **Python** (the real env's control, or a surrogate ``jax_step`` does not cover): the rollout
+* **Python** (the real env's control, a surrogate ``jax_step`` does not cover, or
+  ``compiled_rollout=False``: ``agent.algo.compiled_rollout=false``, an ablation that keeps the
+  networks and the update and steps the surrogate's vector env in Python instead): the rollout
   steps the vector env in Python as SB3's ``collect_rollouts`` does (the sampled action stored
   unclipped and stepped clipped; the timeout bootstrap from ``terminal_observation``;
   ``VecNormalize``'s own reward scaling); the update is the same compiled one.
@@ -80,6 +82,15 @@ def _surrogate_of(env: Any) -> tuple[Any, Any]:
     return getattr(inner, "surrogate", None), norm
 
 
+def _compiled_rollout(kwargs: dict[str, Any]) -> bool:
+    """Pops ``compiled_rollout`` (this class's own setting, not SB3's) from ``kwargs``: a bool,
+    True unless given; anything else is one line naming the key."""
+    value = kwargs.pop("compiled_rollout", True)
+    if not isinstance(value, bool):
+        raise ConfigError(f"agent.algo.compiled_rollout: true or false, got {value!r}")
+    return value
+
+
 class JaxPPO:
     """PPO with the rollout and the update compiled by jax, behind SB3's interface (module
     docstring)."""
@@ -89,6 +100,9 @@ class JaxPPO:
         if policy != "MlpPolicy":
             raise ConfigError(f"agent.algo.policy: JaxPPO has MlpPolicy only, got {policy!r}")
         self._kwargs = dict(kwargs)
+        self.compiled_rollout = _compiled_rollout(self._kwargs)
+        """Whether a surrogate the compiled step covers is stepped compiled (the default) or in
+        Python like a real env (``agent.algo.compiled_rollout=false``)."""
         self.env = env
         self.seed = int(seed or 0)
         self.verbose = verbose
@@ -128,7 +142,9 @@ class JaxPPO:
             jax_ppo._modules()
         except ImportError as exc:
             raise ConfigError(f"agent.algo: {exc}") from None
-        PPOConfig.from_kwargs(dict(kwargs), n_envs, False, "agent.algo")
+        kwargs = dict(kwargs)
+        _compiled_rollout(kwargs)
+        PPOConfig.from_kwargs(kwargs, n_envs, False, "agent.algo")
 
     # ------------------------------------------------------------------ set-up
     def _split(self) -> Any:
@@ -219,7 +235,7 @@ class JaxPPO:
         target = self.num_timesteps + int(total_timesteps)
         callback.on_training_start(locals(), globals())
         menv, _ = _surrogate_of(self.env)
-        compiled = menv is not None and self._compile_for(menv)
+        compiled = self.compiled_rollout and menv is not None and self._compile_for(menv)
         self.rollout_backend = "compiled" if compiled else "python"
         while self.num_timesteps < target:
             got = self._rollout_compiled(callback) if compiled else self._rollout_python(callback)

@@ -150,7 +150,8 @@ class PPOConfig:
         ``policy_kwargs={"log_std_init": ...}``, ...); what this PPO does not have is refused in
         one line naming ``who``."""
         kw = dict(kw)
-        ignored = {"policy": "MlpPolicy", "device": None, "verbose": None, "sde_sample_freq": -1}
+        # accepted, not PPO's math: SB3's plumbing, and where JaxPPO steps a surrogate (rl.jax_agent)
+        ignored = {"policy": "MlpPolicy", "device": None, "verbose": None, "sde_sample_freq": -1, "compiled_rollout": None}
         policy_kwargs = dict(kw.pop("policy_kwargs", None) or {})
         names = {f.name for f in fields(cls)} - {"n_envs", "log_std_init", "normalize_reward", "clip_reward"}
         bad = [k for k, v in kw.items() if k not in names and not (k in ignored and ignored[k] in (None, v))]

@@ -155,3 +155,24 @@ def test_discrete_actions_get_a_categorical_policy_that_learns_cartpole(tmp_path
     control = make_agent(agent, real_vec_env(res.spec, agent.n_envs, 7, counts), seed=0, env_seed=7)
     control.learn(4096)
     assert control.rollout_backend == "python" and counts["train"] == 4096
+
+
+def test_compiled_rollout_false_steps_the_surrogate_in_python_with_the_same_update(fitted, store, tmp_path):
+    """``agent.algo.compiled_rollout=false``: the ablation that keeps the compiled update and
+    steps the surrogate's vector env in Python, as in a real env; a value that is not a bool is
+    one line naming the key, before any run."""
+    cfg, model, spec = fitted
+    agent = instantiate_key(compose_cfg(*SMALL, "agent.algo.compiled_rollout=false").agent, "agent")
+    venv = surrogate_vec_env(model, spec, agent.n_envs, seed=0)
+    ppo = make_agent(agent, venv, seed=0, env_seed=0)
+    before = np.asarray(ppo.net["actor"][0][0]).copy()
+    ppo.learn(1024)
+    assert ppo.compiled_rollout is False and ppo.rollout_backend == "python" and ppo.rollout_compiles == 0
+    assert ppo.num_timesteps == 1024 and not np.array_equal(before, ppo.net["actor"][0][0])
+    # the surrogate's vector env was stepped (its step counters moved), which the compiled path never does
+    assert np.all(np.asarray(venv.get_attr("elapsed_steps")) > 0)
+    res = run_cli(*SMALL, "task=train", "agent.algo.compiled_rollout=maybe", f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode == 2, res.stderr[-2000:]
+    err = res.stderr.strip().splitlines()
+    assert len(err) == 1 and "agent.algo.compiled_rollout: true or false, got 'maybe'" in err[0]
+    assert not (tmp_path / "mlruns" / "mlflow.db").exists() or search(store).empty  # no run was started
