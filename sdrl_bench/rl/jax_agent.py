@@ -360,7 +360,7 @@ class JaxPPO:
         low, high = self._bounds
         meta = {"format": FORMAT, "config": asdict(self.cfg), "n_obs": self._n_obs, "n_act": self._n_act,
                 "action_low": None if low is None else low.tolist(), "action_high": None if high is None else high.tolist(),
-                "num_timesteps": int(self.num_timesteps), "seed": self.seed}
+                "num_timesteps": int(self.num_timesteps), "seed": self.seed, "compiled_rollout": self.compiled_rollout}
         buf = io.BytesIO()
         np.savez(buf, *[np.asarray(x) for x in leaves])
         with zipfile.ZipFile(path, "w") as zf:
@@ -376,7 +376,7 @@ class JaxPPO:
             leaves = [arrays[f"arr_{i}"] for i in range(len(arrays.files))]
         if meta.get("format") != FORMAT:
             raise ValueError(f"{path}: not a JaxPPO agent ({meta.get('format')!r})")
-        agent = cls(seed=meta["seed"])
+        agent = cls(seed=meta["seed"], compiled_rollout=bool(meta.get("compiled_rollout", True)))
         cfg = PPOConfig(**meta["config"])
         bounds = [None if meta[k] is None else np.asarray(meta[k], np.float32) for k in ("action_low", "action_high")]
         agent._init(cfg, meta["n_obs"], meta["n_act"], *bounds)

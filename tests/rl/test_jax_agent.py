@@ -171,6 +171,11 @@ def test_compiled_rollout_false_steps_the_surrogate_in_python_with_the_same_upda
     assert ppo.num_timesteps == 1024 and not np.array_equal(before, ppo.net["actor"][0][0])
     # the surrogate's vector env was stepped (its step counters moved), which the compiled path never does
     assert np.all(np.asarray(venv.get_attr("elapsed_steps")) > 0)
+    ppo.save(tmp_path / "agent.zip")
+    loaded = JaxPPO.load(tmp_path / "agent.zip", env=venv)
+    assert loaded.compiled_rollout is False  # a saved agent keeps where it steps
+    loaded.learn(512, reset_num_timesteps=False)
+    assert loaded.rollout_backend == "python" and loaded.num_timesteps == 1536
     res = run_cli(*SMALL, "task=train", "agent.algo.compiled_rollout=maybe", f"tracking.uri={store}", cwd=tmp_path)
     assert res.returncode == 2, res.stderr[-2000:]
     err = res.stderr.strip().splitlines()
