@@ -203,10 +203,10 @@ def fmt(v: float, spec: str = ".3g") -> str:
 
 
 def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, transitions: int | None = None) -> None:
+    transitions = transitions if transitions is not None else pack_transitions(env)  # composed once
     data = collect(uri, env, transitions)
     print(f"\n{env}: time to a first real evaluation at the solved threshold ({EVAL_EPISODES} episodes), "
-          f"seeds {seeds}; the surrogate arms' model data: "
-          f"{transitions if transitions is not None else pack_transitions(env):,} real transitions")
+          f"seeds {seeds}; the surrogate arms' model data: {transitions:,} real transitions")
     per_seed = []
     for s in seeds:
         cells = []

@@ -83,9 +83,9 @@ def _surrogate_of(env: Any) -> tuple[Any, Any]:
 
 
 def _compiled_rollout(kwargs: dict[str, Any]) -> bool:
-    """Pops ``compiled_rollout`` (this class's own setting, not SB3's) from ``kwargs``: a bool,
-    True unless given; anything else is one line naming the key."""
-    value = kwargs.pop("compiled_rollout", True)
+    """``compiled_rollout`` in ``kwargs`` (this class's own setting, not SB3's; ``PPOConfig``
+    passes over it): a bool, True unless given; anything else is one line naming the key."""
+    value = kwargs.get("compiled_rollout", True)
     if not isinstance(value, bool):
         raise ConfigError(f"agent.algo.compiled_rollout: true or false, got {value!r}")
     return value
@@ -142,9 +142,8 @@ class JaxPPO:
             jax_ppo._modules()
         except ImportError as exc:
             raise ConfigError(f"agent.algo: {exc}") from None
-        kwargs = dict(kwargs)
         _compiled_rollout(kwargs)
-        PPOConfig.from_kwargs(kwargs, n_envs, False, "agent.algo")
+        PPOConfig.from_kwargs(dict(kwargs), n_envs, False, "agent.algo")
 
     # ------------------------------------------------------------------ set-up
     def _split(self) -> Any:
