@@ -10,7 +10,12 @@ the first touchdown and the median |slope| of the ground there, for crashed and 
 touchdowns (a crash below the surrogate's touchdown speed, 3.05 m/s, on a slope is one the
 surrogate cannot teach). Across seeds the IQM with a 95% bootstrap CI.
 
-    .venv/bin/python studies/lunar_lander_terrain.py --uri sqlite:///path/mlruns/mlflow.db
+Any saved agent: each run's ``agent`` tag names its config group (``agent=ppo``, ``agent=ppo_jax``,
+...), whose ``algo`` class loads the run's ``agents/surrogate.zip``. ``--where KEY=VALUE``
+(repeatable) keeps the runs whose param or tag KEY is VALUE, for a store that holds several
+packs (e.g. ``--where agent.name=ppo_jax --where collector.name=expert``).
+
+    .venv/bin/python studies/lunar_lander_terrain.py --uri sqlite:///path/mlruns/mlflow.db [--where KEY=VALUE]
 """
 
 from __future__ import annotations
@@ -21,9 +26,10 @@ from pathlib import Path
 import gymnasium as gym
 import numpy as np
 from gymnasium.envs.box2d.lunar_lander import VIEWPORT_H, LunarLander, SCALE
-from stable_baselines3 import PPO
+from hydra.utils import get_class
 
 from sdrl_bench import seeds
+from sdrl_bench.cli.build import compose
 from sdrl_bench.tracking.read import find_runs
 
 _PAD_HEIGHT = VIEWPORT_H / SCALE / 4  # the real env's helipad_y
@@ -61,8 +67,8 @@ class FlatLunarLander(LunarLander):
             self._np_random = self._np_random._rng
 
 
-def _slope(env, x_obs: float) -> float:
-    """The real ground's slope under x (observation units; world x = 10 x + 10 m)."""
+def ground_slope(env, x_obs: float) -> float:
+    """The real ground's slope under x (observation units; world x = 10 x + 10 m): its chunk's."""
     polys = env.unwrapped.sky_polys  # one per chunk: [(x1, y1), (x2, y2), ...]
     wx = 10.0 * x_obs + 10.0
     for p in polys:
@@ -84,9 +90,14 @@ def play(agent, env, seed: int) -> tuple[float, str, float | None, float, float]
         done = term or trunc
         hit = obs[6] > 0.5 or obs[7] > 0.5 or (term and r == -100 and abs(obs[0]) < 1)
         if x_td is None and hit:
-            x_td, speed, slope = float(obs[0]), -float(before[3]) * 7.5, abs(_slope(env, float(obs[0])))
+            x_td, speed, slope = float(obs[0]), -float(before[3]) * 7.5, abs(ground_slope(env, float(obs[0])))
     end = "truncated" if not term else ("rest" if r == 100 else ("out" if abs(obs[0]) >= 1 else "crash"))
     return total, end, x_td, speed, slope
+
+
+def agent_class(name: str):
+    """The class that saves and loads agents of the config group ``agent=<name>``."""
+    return get_class(compose([f"agent={name}"]).agent.algo._target_)
 
 
 def iqm_ci(v: np.ndarray) -> str:
@@ -105,10 +116,17 @@ def main() -> None:
     ap.add_argument("--uri", default="sqlite:///mlruns/mlflow.db")
     ap.add_argument("--experiment", default="sdrl-bench")
     ap.add_argument("--episodes", type=int, default=20)
+    ap.add_argument("--where", action="append", default=[], metavar="KEY=VALUE",
+                    help="keep runs whose param or tag KEY equals VALUE, case aside (repeatable)")
     args = ap.parse_args()
+    bad = [w for w in args.where if "=" not in w]
+    if bad:
+        ap.error(f"--where takes KEY=VALUE, got {bad[0]!r}")
+    where = dict(w.split("=", 1) for w in args.where)
     store = Path(args.uri.removeprefix("sqlite:///")).parent
     runs = [r for r in find_runs(args.uri, args.experiment) if r["tags"].get("env") == "lunar_lander"
-            and r["status"] == "FINISHED" and "surrogate/final_return_mean" in r["metrics"]]
+            and r["status"] == "FINISHED" and "surrogate/final_return_mean" in r["metrics"]
+            and all(str(r["params"].get(k, r["tags"].get(k))).lower() == v.lower() for k, v in where.items())]
     # both with the registered env's 1000-step limit, as the logged final evaluation
     envs = {"real terrain": gym.make("LunarLander-v3"),
             "flat terrain": gym.wrappers.TimeLimit(FlatLunarLander(), max_episode_steps=1000)}
@@ -122,7 +140,7 @@ def main() -> None:
         if not zips:
             print(f"{seed:>4} no agents/surrogate.zip under {store / 'artifacts'}")
             continue
-        agent = PPO.load(zips[0], device="cpu")
+        agent = agent_class(r["tags"].get("agent", "ppo")).load(zips[0], device="cpu")
         for name, env in envs.items():
             res = [play(agent, env, seeds.reset_seed(seed, "final_eval", i)) for i in range(args.episodes)]
             rets = np.array([t[0] for t in res])

@@ -151,6 +151,34 @@ def test_terrain_is_drawn_as_the_real_env_draws_it(seed):
     env.close()
 
 
+@pytest.mark.parametrize("seed", [0, 3])
+def test_the_slope_rule_reads_the_real_grounds_slope_in_metres(seed):
+    """``kernels.slope_crash`` on the ground the real env draws (``draw_terrain`` from its seed)
+    fires exactly where the real terrain's polygons rise more than ``slope_crash`` m per m
+    between the legs, for an upright lander across the screen."""
+    import gymnasium as gym
+
+    from sdrl_bench.envs.lunar_lander.kernels import LEG_X, ground_at, slope_crash
+
+    env = gym.make("LunarLander-v3").unwrapped
+    env.reset(seed=seed)
+    edges = [p[0] for p in env.sky_polys] + [env.sky_polys[-1][1]]  # (x, y) in metres
+    wx, wy = np.array([e[0] for e in edges]), np.array([e[1] for e in edges])
+    g = task.draw_terrain(np.random.default_rng(seed), 1)[0]
+    k = task.rules_vector(task.LanderRules(slope_crash=0.1))
+    fired, slopes = [], []
+    for x in np.linspace(-0.9, 0.9, 181):
+        xl, xr = x - LEG_X, x + LEG_X
+        real = abs(np.interp(10 * xr + 10, wx, wy) - np.interp(10 * xl + 10, wx, wy)) / (10 * (xr - xl))
+        if abs(real - 0.1) > 1e-6:  # off the threshold itself
+            fired.append(slope_crash(ground_at(g, xl), ground_at(g, xr), 0.0, k))
+            slopes.append(real)
+    assert fired == [v > 0.1 for v in slopes] and any(fired) and not all(fired)
+    off = task.rules_vector(task.LanderRules())  # the default: the slope is ignored
+    assert not any(slope_crash(ground_at(g, x - LEG_X), ground_at(g, x + LEG_X), 0.0, off) for x in np.linspace(-0.9, 0.9, 19))
+    env.close()
+
+
 def test_with_terrain_a_lander_touches_down_on_the_ground_under_its_legs(flight_model):
     """A lander sinking slowly at x = -0.6 (off the pad) touches down at the ground's height
     there, stands on it (the floor follows the ground), and a new episode draws new ground;
@@ -195,3 +223,43 @@ def test_with_terrain_a_lander_touches_down_on_the_ground_under_its_legs(flight_
     fresh = np.array([[0.3, 1.2, 0, 0, 0, 0, 0, 0]])  # a state the step did not return: a new episode
     sur._step_batch(fresh, np.zeros((1, 1)), fresh[:, :6].T.copy())
     assert not np.array_equal(sur._step_batch.memory["ground"][0], g)
+
+
+@pytest.mark.parametrize("x0", [-0.6, 0.0])
+def test_with_the_slope_rule_a_touchdown_on_a_hill_crashes(flight_model, x0):
+    """With ``slope_crash`` set, the slow touchdown that survives on a hill above (x = -0.6)
+    ends the episode with -100 there, and still survives on the flat pad (x = 0); the same
+    states and the same terrain, only the rule differs."""
+    from sdrl_bench.envs.lunar_lander.kernels import LEG_X, ground_at
+    from sdrl_bench.surrogate.model_env import ModelEnv
+
+    def touchdown(rules, seed):
+        sur = ModelEnv(flight_model, LunarLanderSpec(fit_regime="flight", terrain=True, rules=rules))
+        sur.seed(seed)
+        s = np.array([[x0, 1.0, 0, 0, 0, 0, 0, 0]])
+        s = sur._step_batch(s, np.zeros((1, 1)), s[:, :6].T.copy())[0]  # draws the episode's ground
+        g = sur._step_batch.memory["ground"][0].copy()
+        pred = s[:, :6].T.copy()
+        pred[1] = max(ground_at(g, x0 - LEG_X), ground_at(g, x0 + LEG_X)) + 0.03
+        s = sur._step_batch(s, np.zeros((1, 1)), pred)[0]
+        for _ in range(20):
+            pred = s[:, :6].T.copy()
+            pred[1] -= 0.004
+            s, r, term, _ = sur._step_batch(s, np.zeros((1, 1)), pred)
+            if s[0, 6] or s[0, 7] or term[0]:
+                assert np.array_equal(sur._step_batch.memory["ground"][0], g)  # the same episode
+                return g, float(r[0]), bool(term[0])
+        raise AssertionError("no touchdown")
+
+    def hill(seed):  # ground that slopes over 0.1 (metres) under the legs at x = -0.6
+        g = touchdown(task.LanderRules(), seed)[0]
+        return abs(ground_at(g, -0.6 + LEG_X) - ground_at(g, -0.6 - LEG_X)) / (2 * LEG_X) / 1.5 > 0.1
+
+    seed = next(sd for sd in range(50) if hill(sd))
+    g, r, term = touchdown(task.LanderRules(slope_crash=0.1), seed)
+    g0, r0, term0 = touchdown(task.LanderRules(), seed)
+    assert np.array_equal(g, g0) and not term0 and r0 > -100.0
+    if x0 == 0.0:  # the pad is flat: the rule does not fire
+        assert not term and r == r0
+    else:
+        assert term and r == -100.0

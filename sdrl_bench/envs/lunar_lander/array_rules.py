@@ -42,7 +42,7 @@ def _constants(rules: LanderRules) -> dict[str, Any]:
     """The rules vector's values by the kernels' names (the same floats the kernels read)."""
     k = task.rules_vector(rules)
     names = ("TILT", "TOUCH", "RELEASE", "FLOOR", "V_FREE", "TIP", "REST_V2", "REST_W", "INV_VX", "INV_VY",
-             "INV_W", "FRAMES", "COULOMB", "STICK")
+             "INV_W", "FRAMES", "COULOMB", "STICK", "SLOPE")
     out: dict[str, Any] = {n: float(k[getattr(kn, n)]) for n in names}
     out["SETTLE"] = tuple(float(v) for v in k[kn.SETTLE:])
     return out

@@ -23,12 +23,14 @@ from numba import njit
 
 # Positions in the rules vector (see task.rules_vector).
 (TILT, TOUCH, RELEASE, FLOOR, V_FREE, TIP, REST_V2, REST_W, INV_VX, INV_VY, INV_W,
- FRAMES, COULOMB, STICK) = range(14)
-SETTLE = 14  # 14 settle coefficients follow (task.SETTLE_TERMS)
+ FRAMES, COULOMB, STICK, SLOPE) = range(15)
+SETTLE = 15  # 14 settle coefficients follow (task.SETTLE_TERMS)
 
 # Terrain (``task.draw_terrain``): ground heights at 11 chunk edges x = -1, -0.8, ..., 1
 # (observation units, relative to the pad); the legs stand LEG_X either side of the centre.
 CHUNK_X0, CHUNK_DX, LEG_X = -1.0, 0.2, 20.0 / 30.0 / 10.0
+X_PER_Y = 1.5  # metres per observation unit of x (10) over those per unit of y (20 / 3): rise / run in metres
+# = (rise / run in observation units) / X_PER_Y
 
 
 @njit(cache=True)
@@ -43,6 +45,13 @@ def touchdown_crash(vy, angle, k):
     """The touchdown event from the pre-impact state: the hull reaches the ground when the
     downward speed exceeds ``v_free`` (m/s) or the lander arrives lying on its side."""
     return -vy * k[INV_VY] > k[V_FREE] or abs(angle) > k[TIP]
+
+
+@njit(cache=True)
+def slope_crash(gl, gr, angle, k):
+    """A touchdown on ground that slopes more than ``slope_crash`` (metres) under the legs, whose
+    heights there are ``gl`` and ``gr`` (observation units) at attitude ``angle``."""
+    return abs(gr - gl) > k[SLOPE] * 2.0 * LEG_X * abs(math.cos(angle)) * X_PER_Y
 
 
 @njit(cache=True)
@@ -245,6 +254,8 @@ def step(states, pred, cost, limit, low, high, k, last, count, nxt, reward, term
         legs = ll > 0.5 or lr > 0.5
         q = _quiet(vx, vy, w, legs, cost[i], k)
         crash, out, _ = _outcome(s, x, an, legs, down, cost[i], q, k)
+        if terrain and down and slope_crash(gl, gr, an, k):
+            crash = True
         count[i] = count[i] + 1 if q else 0
         rest = count[i] >= k[FRAMES]
         r = _reward(s, x, y, vx, vy, an, w, ll, lr, cost[i], crash, out, rest)

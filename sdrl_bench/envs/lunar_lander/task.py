@@ -96,6 +96,13 @@ class LanderRules:
     to zero. Provenance: studies/touchdown_set.py (`.venv/bin/python studies/touchdown_set.py`); data: lunar_lander-touchdowns-v1, 400 real episodes from reset seed 30000 (102,914 steps; 51 of them played by the PPO expert, 1,000,000 training steps), calibration half = even seeds."""
     tip_angle: float = 1.0
     """|angle| (rad) beyond which the lander lies on its side: a crash (prior)."""
+    slope_crash: float = math.inf
+    """With terrain (``LunarLanderSpec.terrain``): a touchdown where the ground under the legs
+    slopes more than this (|rise / run| in metres) crashes; inf (the default): the slope is
+    ignored. A pessimistic design rule, not a fit: in the real env a touchdown on such ground
+    crashes more often than on the pad, not always (``studies/lunar_lander_touchdown_probe.py``:
+    under 1 m/s, 1 in 5 on slopes over 0.15). Set (0.1, with ``touchdown_speed`` 1.5) by
+    ``experiment=fast_lunar_lander_terrain``, whose agents learn to land on the pad."""
     rest_speed: float = _B2_LINEAR_SLEEP_TOL
     """Box2D's linear sleep tolerance (m/s; prior)."""
     rest_angvel: float = _B2_ANGULAR_SLEEP_TOL
@@ -148,7 +155,7 @@ def rules_vector(rules: LanderRules) -> np.ndarray:
     k = np.array([rules.leg_tilt, rules.touch_height, rules.release_height, rules.floor,
                   rules.touchdown_speed, rules.tip_angle, rules.rest_speed**2, rules.rest_angvel,
                   1.0 / _VX_PER_MPS, 1.0 / _VY_PER_MPS, 1.0 / _W_PER_RADPS, float(rules.rest_frames),
-                  rules.coulomb, rules.stick, *rules.settle])
+                  rules.coulomb, rules.stick, rules.slope_crash, *rules.settle])
     k.setflags(write=False)
     return k
 

@@ -101,7 +101,10 @@ def _policy(kind: dict, env, rng: np.random.Generator, expert: Callable | None) 
     return policy
 
 
-def _play(kind: dict, seed: int, expert: Callable | None) -> dict | None:
+def play(kind: dict, seed: int, expert: Callable | None = None) -> dict | None:
+    """One real episode of config ``kind`` from reset seed ``seed`` (the exploration generator
+    seeded the same): its first touchdown's record (None without one); ``steps``: the real
+    steps played."""
     env = gym.make("LunarLander-v3").unwrapped
     rng = np.random.default_rng(seed)
     obs, _ = env.reset(seed=seed)
@@ -127,7 +130,7 @@ def _play(kind: dict, seed: int, expert: Callable | None) -> dict | None:
     rest_t = next((t for t in range(first, len(s)) if term[t] and r[t] == 100), None)
     return {"pre": s[first], "action": a[first], "crash": crash_t is not None and crash_t - first < CRASH_WINDOW,
             "rest_after": -1 if rest_t is None else rest_t - first,
-            "post_states": np.asarray(ns[first:]), "post_actions": np.asarray(a[first:])}
+            "post_states": np.asarray(ns[first:]), "post_actions": np.asarray(a[first:]), "steps": len(s)}
 
 
 def generate(n_episodes: int = EPISODES, seed: int = SEED0, expert: Callable | None = None) -> TouchdownSet:
@@ -136,7 +139,7 @@ def generate(n_episodes: int = EPISODES, seed: int = SEED0, expert: Callable | N
     recs, seeds, names = [], [], []
     for i in range(n_episodes):
         kind = configs[i % len(configs)]
-        rec = _play(kind, seed + i, expert)
+        rec = play(kind, seed + i, expert)
         if rec is not None:
             recs.append(rec), seeds.append(seed + i), names.append(json.dumps(kind, sort_keys=True))
     lens = np.array([len(r["post_states"]) for r in recs])
