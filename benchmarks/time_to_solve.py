@@ -11,6 +11,8 @@ threshold (``rl.stop_when_solved=true``, 10 real episodes per evaluation):
   (d') (d) trained by the compiled PPO (``agent=ppo_jax``, ``rl.jax_agent``): rollout and update in jax
   (b') (b) trained by the same compiled PPO, its rollout in real envs (the control of (d'))
   (e') (e) trained by the compiled PPO
+  (t') (d') in the fast pack's terrain variant (``experiment=fast_<env>_terrain``, where the env has
+       one: LunarLander's surrogate with the real env's terrain and its touchdown rules)
 
 (b'), (d') and (e') need the optional ``[jax]`` extra; their compile seconds (``compile_wall_seconds``, inside
 the training wall) are printed apart, and the ratios with the compiled arms are given with and without them.
@@ -54,20 +56,26 @@ from tabulate import tabulate
 from sdrl_bench.tracking.read import find_runs
 
 PACKS = {"mountain_car": {"zoo": "paper_mountain_car", "fast": "fast_mountain_car"},
-         "lunar_lander": {"zoo": "paper_lunar_lander", "fast": "fast_lunar_lander"}}
+         "lunar_lander": {"zoo": "paper_lunar_lander", "fast": "fast_lunar_lander",
+                          "terrain": "fast_lunar_lander_terrain"}}
 AGENTS = {"mountain_car": {"zoo": "sac", "fast": "ppo_fast", "jax": "ppo_jax"},
           "lunar_lander": {"zoo": "ppo", "fast": "ppo_fast", "jax": "ppo_jax"}}
 """The packs' agent names: how the runs of each recipe are told apart in the store."""
 ARMS = {"a": ("zoo", "real"), "b": ("fast", "real"), "c": ("zoo", "surrogate"), "d": ("fast", "surrogate"),
-        "e": ("fast", "surrogate"), "B": ("jax", "real"), "D": ("jax", "surrogate"), "E": ("jax", "surrogate")}
-"""Arm letters; B, D and E are (b'), (d') and (e'): the fast pack with ``agent=ppo_jax``."""
-COLLECTOR = {"c": "expert", "d": "expert", "e": "heuristic", "D": "expert", "E": "heuristic"}
+        "e": ("fast", "surrogate"), "B": ("jax", "real"), "D": ("jax", "surrogate"), "E": ("jax", "surrogate"),
+        "T": ("jax", "surrogate")}
+"""Arm letters; B, D and E are (b'), (d') and (e'): the fast pack with ``agent=ppo_jax``; T is (t'):
+(d') in the terrain pack."""
+PACK_KIND = {"a": "zoo", "c": "zoo", "T": "terrain"}
+"""Each arm's pack (``PACKS``) where it is not the fast one."""
+COLLECTOR = {"c": "expert", "d": "expert", "e": "heuristic", "D": "expert", "E": "heuristic", "T": "expert"}
 """The surrogate arms' data: the paper's (the pack's expert, eps = 0.2), or (e) the env's
 hand-written controller with the same eps, which needs no trained expert at all."""
 LABELS = {"a": "(a) zoo recipe, real env", "b": "(b) fast recipe, real envs (control)",
           "c": "(c) zoo recipe, surrogate (paper)", "d": "(d) fast recipe, surrogate",
           "e": "(e) = (d), heuristic data", "B": "(b') = (b), compiled PPO (control of d')",
-          "D": "(d') = (d), compiled PPO", "E": "(e') = (e), compiled PPO"}
+          "D": "(d') = (d), compiled PPO", "E": "(e') = (e), compiled PPO",
+          "T": "(t') = (d'), terrain pack"}
 # learning-curve cadence of the zoo recipes here (the fast packs set their own: one rollout):
 # finer than the paper packs' so the first solved point is not rounded up by a coarse grid
 ZOO_EVAL_EVERY = {"mountain_car": 1000, "lunar_lander": 16384}
@@ -94,7 +102,7 @@ def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int, rer
     """The arm's ``sdrl-bench -m`` overrides; ``transitions``: the surrogate arms' model data
     (``n_transitions``; None: the pack's)."""
     recipe, where = ARMS[arm]
-    pack = PACKS[env]["fast" if recipe == "jax" else recipe]  # the compiled arms run the fast pack
+    pack = pack_of(env, arm)
     out = [f"experiment={pack}", f"rl.arms=[{where}]", f"seed={','.join(map(str, seeds))}",
            "rl.stop_when_solved=true", "rl.reuse_real_arm=false", f"rl.eval_episodes={EVAL_EPISODES}",
            f"tracking.uri={uri}", f"hydra.launcher.n_jobs={jobs}", *(["resume=false"] if rerun else [])]
@@ -107,6 +115,14 @@ def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int, rer
         if transitions is not None:
             out.append(f"n_transitions={transitions}")
     return out
+
+
+def pack_of(env: str, arm: str) -> str:
+    """The pack an arm runs (the compiled arms run the fast pack, or its terrain variant)."""
+    kind = PACK_KIND.get(arm, "fast")
+    if kind not in PACKS[env]:
+        raise SystemExit(f"--arms {arm}: env {env} has no {kind} pack ({', '.join(PACKS[env].values())})")
+    return PACKS[env][kind]
 
 
 def pretrain_expert(env: str, workdir: Path, uri: str) -> float | None:
@@ -141,7 +157,8 @@ def collect(uri: str, env: str, transitions: int | None = None) -> dict[str, dic
         recipe = next((k for k, v in AGENTS[env].items() if v == t.get("agent")), None)
         where = t.get("arms")
         collector = p.get("collector.name")
-        letter = next((k for k, v in ARMS.items() if v == (recipe, where) and COLLECTOR.get(k) == collector), None)
+        letter = next((k for k, v in ARMS.items() if v == (recipe, where) and COLLECTOR.get(k) == collector
+                       and t.get("sdrl.experiment") == PACKS[env].get(PACK_KIND.get(k, "fast"))), None)
         if letter is None or (where == "surrogate" and p.get("n_transitions") != want):
             continue
         m = {k.split("/", 1)[1]: v for k, v in r["metrics"].items() if k.startswith(f"{where}/")}
@@ -235,7 +252,7 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, t
 
     print(f"wall (d)/(a) = {ratio('d', 'a', 'wall')}, (d)/(b) = {ratio('d', 'b', 'wall')}, "
           f"(b)/(a) = {ratio('b', 'a', 'wall')}; real transitions (d)/(b) = {ratio('d', 'b', 'real')}")
-    for k, name, sb3 in (("D", "(d')", "d"), ("E", "(e')", "e")):
+    for k, name, sb3 in (("D", "(d')", "d"), ("E", "(e')", "e"), ("T", "(t')", "d")):
         if not rows[k]["seeds"]:
             continue
         for label, key in (("", "wall"), (", judged", "wall_judged")):
@@ -253,7 +270,7 @@ def main() -> None:
     ap.add_argument("--workdir", default=".", help="where mlruns/ (store, experts cache) lives")
     ap.add_argument("--uri", default=None, help="tracking URI (default: <workdir>/mlruns/mlflow.db)")
     ap.add_argument("--arms", default="abcde", help="which arms to run, e.g. bd; B, D and E: (b'), (d') and (e'), the "
-                    "compiled PPO (the [jax] extra)")
+                    "compiled PPO (the [jax] extra); T: (t'), (d') in the env's terrain pack")
     ap.add_argument("--jobs", type=int, default=2, help="jobs in parallel within an arm's sweep")
     ap.add_argument("--transitions", type=int, default=None, help="the surrogate arms' model data, real "
                     "transitions (n_transitions; default: the fast pack's)")

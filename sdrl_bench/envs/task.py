@@ -166,14 +166,16 @@ class ArrayStep:
     """A task's kernels as array functions (``envs.functional.array_namespace``: numpy or jax),
     for a step compiled by jax (``surrogate.jax_step``). Predictions are (N, n_target) here (the
     jax step's layout); the per-row memory a compiled kernel keeps between calls (``step_batch``:
-    a counter per row) is ``aux`` (N,), passed in and out, fresh per episode (``init_aux``)."""
+    a counter per row) is ``aux`` (N,) or a tuple of such per-row arrays, passed in and out, fresh
+    per episode (``init_aux``)."""
 
     step: Callable[..., Callable]
     """``step(limit, obs_low, obs_high) -> f(s, a, predicted, aux) -> (s', reward (N,),
     terminated (N,) bool, diverged (N,) bool, aux)``: ``step_batch``'s step for predictions with
     ``regime_dynamics`` applied (a diverged row keeps its state and memory, reward 0)."""
-    init_aux: Callable[[int], np.ndarray]
-    """``init_aux(n) -> (n,)``: the memory of n fresh episodes."""
+    init_aux: Callable[..., Any]
+    """``init_aux(n, key=None)``: the memory of n fresh episodes; ``key`` (a numpy Generator or a
+    jax PRNG key) where that memory is drawn at random (e.g. a terrain per episode)."""
     regime_dynamics: Callable[..., Any] | None = None
     """``(s, a, predicted (N, n_target)) -> (N, n_target)``: ``Task.regime_dynamics``; None: the model everywhere."""
 

@@ -64,7 +64,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from sdrl_bench import ConfigError
-from sdrl_bench.surrogate.jax_step import jax_observe, jax_reset, jax_stepper, noise_of
+from sdrl_bench.surrogate.jax_step import jax_observe, jax_reset, jax_stepper, noise_of, reset_aux
 
 HIDDEN = (64, 64)
 """SB3's default ``net_arch`` for PPO's MlpPolicy: separate actor and critic MLPs."""
@@ -454,7 +454,8 @@ class Surrogate(NamedTuple):
     max_steps: int
     discrete: bool = False
     init_aux: Callable | None = None
-    """``init_aux(n)``: the task's memory of n fresh episodes."""
+    """``init_aux(n, key=None)``: the task's memory of n fresh episodes (drawn from ``key`` where
+    it is random: ``aux_key``)."""
     params: Any = None
     """The ModelEnv's model as numbers (``JaxStepper.params``): an argument of the compiled rollout."""
     key: tuple = ()
@@ -499,12 +500,22 @@ def surrogate(model_env: Any) -> Surrogate:
                      params, key)
 
 
+def aux_key(key: Any) -> Any:
+    """The key a fresh episode's task memory is drawn from (a terrain), derived from the key its
+    states are drawn from. Folded in rather than split off, so that the states' keys, and every
+    run of a task whose memory is not drawn, stay what they were (and the unused fold compiles
+    away)."""
+    jax, _, _ = _modules()
+    return jax.random.fold_in(key, 1)
+
+
 def init_env(sur: Surrogate, key: Any, n_envs: int, cfg: PPOConfig | None = None) -> tuple[EnvState, Any]:
     """Fresh episodes in every copy: (env state, float32 observations)."""
     _, jnp, _ = _modules()
     states = sur.reset(key, n_envs)
     norm = RewardNorm.init(n_envs) if cfg is not None and cfg.normalize_reward else None
-    env = EnvState(states, jnp.zeros(n_envs, jnp.int32), jnp.zeros(n_envs, jnp.float64), norm, sur.init_aux(n_envs))
+    env = EnvState(states, jnp.zeros(n_envs, jnp.int32), jnp.zeros(n_envs, jnp.float64), norm,
+                   sur.init_aux(n_envs, aux_key(key)))
     return env, sur.observe(states).astype(jnp.float32)
 
 
@@ -538,7 +549,7 @@ def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
         states = jnp.where(done[:, None], fresh, nxt)
         new_obs = jnp.where(done[:, None], sur.observe(fresh).astype(jnp.float32), final_obs)
         new_env = EnvState(states, jnp.where(done, 0, t), jnp.where(done, 0.0, ep_return), norm,
-                           jnp.where(done, sur.init_aux(n), aux))
+                           reset_aux(done, sur.init_aux(n, aux_key(k_reset)), aux))
         tr = Transition(obs, action, logp, v, learn_reward, done, env.states, env_action, nxt, reward, terminated,
                         diverged, t, jnp.where(done, ep_return, 0.0))
         return (new_env, new_obs), tr
@@ -546,7 +557,7 @@ def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
     def rollout(net, env, obs, key, params=None):
         params = sur.params if params is None else params
         if env.aux is None:  # a state built without the task's memory: fresh episodes
-            env = env._replace(aux=sur.init_aux(n))
+            env = env._replace(aux=sur.init_aux(n, aux_key(key)))
         k_explore, k_steps = jax.random.split(key)
         explore = exploration_matrices(net, k_explore, n)  # gSDE: drawn once per rollout (sde_sample_freq=-1)
         (env, obs), traj = jax.lax.scan(lambda c, k: one_step(net, explore, params, c, k), (env, obs),
@@ -754,7 +765,7 @@ def evaluate_surrogate(model_env: Any, params: dict[str, Any], n_episodes: int, 
             return (nxt, aux, ret + jnp.where(live, r, 0.0), live & ~term & ~div), None
 
         k_reset, k_steps = jax.random.split(key)
-        init = (sur.reset(k_reset, n_episodes), sur.init_aux(n_episodes), jnp.zeros(n_episodes),
+        init = (sur.reset(k_reset, n_episodes), sur.init_aux(n_episodes, aux_key(k_reset)), jnp.zeros(n_episodes),
                 jnp.ones(n_episodes, bool))
         (_, _, ret, _), _ = jax.lax.scan(body, init, jax.random.split(k_steps, sur.max_steps))
         return ret

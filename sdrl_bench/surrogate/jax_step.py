@@ -18,8 +18,10 @@ Layout (N rows, batched; numpy or jax arrays in, jax arrays out):
 * ``aux`` (N,) int64: the task's per-row memory (``task.array_step``: e.g. a sleep counter that
   the compiled kernel keeps per row between calls); ``init_aux(n)`` is that of n fresh episodes
   (zeros; zeros throughout for a task without memory). Pass the returned ``aux`` to the next
-  step and reset the rows whose episode ends: ``jnp.where(done, init_aux(n), aux)``. ModelEnv's
-  kernel does this itself (a row whose state is not the one it returned last counts from 0);
+  step and reset the rows whose episode ends: ``reset_aux(done, init_aux(n), aux)``. ModelEnv's
+  kernel does this itself (a row whose state is not the one it returned last counts from 0). A
+  task whose fresh memory is drawn (LunarLander with terrain: a ground per episode) has a tuple
+  of per-row arrays as ``aux`` and draws it from a jax key, ``init_aux(n, key)``;
 * ``noise``: None (no step noise) or (N, n_targets), the already-scaled noise added to the
   model's prediction of the regressed states (``spec.target_names`` order), i.e. the transpose of
   what ``ModelEnv._add_noise`` adds to its rows. ``step_noise(model_env, actions)`` gives exactly
@@ -199,8 +201,10 @@ class JaxStepper(NamedTuple):
     step: Callable[..., tuple[Any, Any, Any, Any, Any]]
     """``step(states, actions, aux, noise=None, event_u=None, params=None) -> (next_states,
     rewards, terminated, diverged, aux)``; ``params`` None: this stepper's own."""
-    init_aux: Callable[[int], Any]
-    """``init_aux(n) -> (n,)`` int64: the memory of n fresh episodes (zeros for a task without)."""
+    init_aux: Callable[..., Any]
+    """``init_aux(n, key=None)``: the memory of n fresh episodes, (n,) int64 (zeros for a task
+    without), or a tuple of per-row arrays for a task whose memory is drawn (LunarLander's
+    terrain: counts and ground, drawn from the jax ``key``)."""
     n_event_draws: int
     """Columns of ``event_u``: one uniform per row and learned event."""
     params: dict[str, Any] | None = None
@@ -247,6 +251,22 @@ def _composed(model_env: Any, jax: Any, jnp: Any) -> Callable:
     return composed
 
 
+def _as_jax(aux: Any, jnp: Any) -> Any:
+    """The task's memory as jax arrays: an array, or a tuple of them, each of its own dtype."""
+    return tuple(jnp.asarray(a) for a in aux) if isinstance(aux, tuple) else jnp.asarray(aux)
+
+
+def reset_aux(done: Any, fresh: Any, aux: Any) -> Any:
+    """``aux`` with the rows where ``done`` (N,) replaced by ``fresh``'s, for an array or a tuple
+    of per-row arrays (e.g. a sleep count (N,) and a terrain (N, 11))."""
+    _, jnp = jax_modules("sdrl_bench.surrogate.jax_step")
+
+    def one(f, a):
+        return jnp.where(jnp.reshape(done, (-1,) + (1,) * (jnp.ndim(a) - 1)), f, a)
+
+    return tuple(one(f, a) for f, a in zip(fresh, aux, strict=True)) if isinstance(aux, tuple) else one(fresh, aux)
+
+
 def _kernel(model_env: Any, jnp: Any) -> Callable:
     """The task's kernels in their array form (``task.array_step``) for the ModelEnv's
     divergence limit and observation bounds, outputs as jax arrays of fixed dtypes."""
@@ -255,7 +275,7 @@ def _kernel(model_env: Any, jnp: Any) -> Callable:
     def kernel(states, actions, rows, aux):
         nxt, rewards, terminated, diverged, aux = fn(states, actions, rows, aux)
         return (jnp.asarray(nxt, dtype=jnp.float64), jnp.asarray(rewards, dtype=jnp.float64),
-                jnp.asarray(terminated, dtype=bool), jnp.asarray(diverged, dtype=bool), jnp.asarray(aux, dtype=jnp.int64))
+                jnp.asarray(terminated, dtype=bool), jnp.asarray(diverged, dtype=bool), _as_jax(aux, jnp))
 
     return kernel
 
@@ -352,7 +372,7 @@ def jax_stepper(model_env: Any) -> JaxStepper:
     kernel = model_env._step_batch is not None
     after = _kernel(model_env, jnp) if kernel else _composed(model_env, jax, jnp)
     regime = task.array_step.regime_dynamics if task.regime_dynamics is not None else None
-    fresh = task.array_step.init_aux if kernel else (lambda n: np.zeros(n, dtype=np.int64))
+    fresh = task.array_step.init_aux if kernel else (lambda n, key=None: np.zeros(n, dtype=np.int64))
     pessimism = _pessimism(model_env, lin, jax, jnp)
     draws = _event_draws(model_env, jax, jnp)
     own = {"coef": columns(model.coef_), "members": members,
@@ -371,7 +391,7 @@ def jax_stepper(model_env: Any) -> JaxStepper:
             rows = rows + jnp.asarray(noise, dtype=jnp.float64)
         if regime is not None:
             rows = jnp.asarray(regime(states, actions, rows), dtype=jnp.float64)
-        nxt, rewards, terminated, diverged, aux = after(states, actions, rows, jnp.asarray(aux))
+        nxt, rewards, terminated, diverged, aux = after(states, actions, rows, _as_jax(aux, jnp))
         if pessimism is not None:
             rewards, terminated = pessimism(states, z, rewards, terminated, diverged, params["members"])
         if draws and event_u is not None:
@@ -380,7 +400,7 @@ def jax_stepper(model_env: Any) -> JaxStepper:
                 rewards, terminated = draw(states, actions, nxt, rewards, terminated, diverged, u[:, j], params["events"][j])
         return nxt, rewards, terminated, diverged, aux
 
-    return JaxStepper(step, lambda n: jnp.asarray(fresh(n), dtype=jnp.int64), len(draws), own, key)
+    return JaxStepper(step, lambda n, key=None: _as_jax(fresh(n, key), jnp), len(draws), own, key)
 
 
 def noise_of(chol: Any, actions: Any, eps: Any) -> Any:

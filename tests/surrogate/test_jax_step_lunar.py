@@ -87,15 +87,17 @@ def lander_states(data: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarr
     return s, a, rng.integers(0, 31, size=N)
 
 
-def prime(menv: ModelEnv, s: np.ndarray, counts: np.ndarray) -> None:
-    """The ModelEnv's kernel memory as if it had returned ``s`` with these sleep counts."""
-    menv._step_batch.memory.update(last=s.copy(), count=counts.copy(), ground=np.zeros((len(s), 0)))
+def prime(menv: ModelEnv, s: np.ndarray, counts: np.ndarray, ground: np.ndarray | None = None) -> None:
+    """The ModelEnv's kernel memory as if it had returned ``s`` with these sleep counts (and,
+    with terrain, these grounds)."""
+    menv._step_batch.memory.update(last=s.copy(), count=counts.copy(),
+                                   ground=np.zeros((len(s), 0)) if ground is None else ground.copy())
 
 
-def model_env_step(menv: ModelEnv, s, a, counts):
+def model_env_step(menv: ModelEnv, s, a, counts, ground=None):
     """``menv.step`` from primed memory -> (its outputs and counts, the noise and the event
     uniforms it drew, the event rows and outcomes)."""
-    prime(menv, s, counts)
+    prime(menv, s, counts, ground)
     eps = copy.deepcopy(menv.noise_rng).standard_normal((len(s), 6))
     erng = copy.deepcopy(menv._rngs["events"])
     menv.last_events = {}
@@ -155,6 +157,43 @@ def test_the_jax_stepper_is_the_model_envs_step(fit):
     assert min(counts_of.values()) >= 10, counts_of
     assert np.all(terminated[cases["event crash"]]) and np.all(rewards[cases["event crash"]] == -100.0)
     print(f"lunar_lander: max |jax - numpy| (next states, rewards): {diffs}; rows of {N}: {counts_of}")
+
+
+def test_with_terrain_and_the_slope_rule_the_jax_stepper_is_the_model_envs_step(fit):
+    """Terrain on (``env.spec.terrain``) and the slope rule set: each row stands on its own
+    ground (drawn as the real env draws it), its height taken over the ground under it, so that
+    the touchdowns, the legs and the floor meet hills; ModelEnv's kernel primed with those
+    grounds. Noise and event draws fed in, pessimism on, eager and jit; the ground comes back
+    unchanged, and the slope rule ends dozens of touchdowns, alike in both."""
+    res, em = fit
+    base = res.job.spec
+    spec = dataclasses.replace(base, terrain=True, rules=dataclasses.replace(base.rules, slope_crash=0.1))
+    s, a, counts = lander_states(res.data.states, seed=1)
+    ground = task.draw_terrain(np.random.default_rng(5), N)
+    under = np.array([kernels.ground_at(ground[i], float(np.clip(np.nan_to_num(x), -2.0, 2.0))) for i, x in enumerate(s[:, 0])])
+    s[:, 1] += under
+    ok_aux = ~np.isnan(s).any(axis=1)
+    menv = ModelEnv(res.model, spec, noise=True, events={"touchdown": em}, seed=0)
+    assert unsupported(menv) == []
+    stepper = jax_stepper(menv)
+    fresh = stepper.init_aux(4, jax.random.key(0))
+    assert fresh[0].dtype == np.int64 and np.array_equal(fresh[0], np.zeros(4)) and fresh[1].shape == (4, 11)
+    assert np.all(np.asarray(fresh[1])[:, 4:7] == 0.0) and np.ptp(np.asarray(fresh[1])) > 0.05  # the pad, hills off it
+    with pytest.raises(ValueError, match="a key is needed"):
+        stepper.init_aux(4)
+    ref, eps, u, _, _ = model_env_step(menv, s, a, counts, ground)
+    for fn in (stepper.step, jax.jit(stepper.step)):
+        nxt, rewards, terminated, diverged, (after, g) = fn(s, a, (counts, ground), eps, u)
+        compare((nxt, rewards, terminated, diverged, after), ref, ok_aux)
+        assert np.array_equal(np.asarray(g), ground)
+    no_rule = ModelEnv(res.model, dataclasses.replace(spec, rules=base.rules), noise=True, events={"touchdown": em}, seed=0)
+    plain = model_env_step(no_rule, s, a, counts, ground)[0]
+    slope = ref[2] & ~plain[2]  # ended by the slope rule alone
+    assert slope.sum() >= 20 and np.all(ref[1][slope] == -100.0)
+    down = ~ref[3] & (s[:, 6] < 0.5) & (s[:, 7] < 0.5) & ((ref[0][:, 6] > 0.5) | (ref[0][:, 7] > 0.5))
+    on_hills = down & (np.abs(under) > 0.02)
+    assert (on_hills & ~ref[2]).sum() >= 5  # touchdowns off the pad that the rule lets survive (gentle slopes)
+    print(f"lunar_lander with terrain: {int(down.sum())} touchdowns, {int(slope.sum())} ended by the slope rule")
 
 
 def test_the_pessimism_penalty_and_limit(fit):
@@ -281,8 +320,8 @@ def test_the_array_rules_on_numpy_are_the_kernels(fit):
 
 
 def test_the_continuous_lander_and_terrain():
-    """The continuous lander (throttles clipped in jax too) is ModelEnv's step; with terrain its
-    kernels have no array form: one line."""
+    """The continuous lander (throttles clipped in jax too) is ModelEnv's step, on flat ground
+    and with terrain."""
     res = fit_dynamics(build_fit_job(compose_cfg("env=lunar_lander_continuous", "collector=random",
                                                  "n_transitions=1500")))
     spec = res.job.spec
@@ -293,7 +332,8 @@ def test_the_continuous_lander_and_terrain():
     diffs = compare(jax.jit(jax_stepper(menv).step)(s, a, counts), ref, ~np.isnan(s).any(axis=1))
     print(f"lunar_lander_continuous: max |jax - numpy| {diffs}")
     hilly = ModelEnv(res.model, dataclasses.replace(spec, terrain=True), seed=0)
-    with pytest.raises(NotImplementedError) as err:
-        jax_stepper(hilly)
-    assert str(err.value) == ("jax_step: env 'lunar_lander_continuous': not covered yet: compiled kernels and regime "
-                              "dynamics without an array form (task.step_batch, task.regime_dynamics; no task.array_step)")
+    ground = task.draw_terrain(np.random.default_rng(3), N)
+    ref, _, _, _, _ = model_env_step(hilly, s, a, counts, ground)
+    nxt, rewards, terminated, diverged, (after, _) = jax.jit(jax_stepper(hilly).step)(s, a, (counts, ground))
+    diffs = compare((nxt, rewards, terminated, diverged, after), ref, ~np.isnan(s).any(axis=1))
+    print(f"lunar_lander_continuous with terrain: max |jax - numpy| {diffs}")

@@ -5,16 +5,18 @@ count in the step's own memory; a jax step (``surrogate.jax_step``) needs the sa
 whole-array operations with the memory passed in and out. These are those rules, written once with
 ``envs.functional.array_namespace`` (numpy arrays in: numpy; jax arrays or tracers in: jax.numpy),
 in the kernels' operations and order (``kernels.settle``, ``_legs``, ``_quiet``, ``_outcome``,
-``_reward``, ``step``), the flat world only (terrain lives in the compiled step):
+``_reward``, ``step``), on flat ground or on each row's terrain:
 
 * ``regime_dynamics(rules, discrete, states, actions, pred)``: the settle step on the legs,
   predictions in the jax step's layout (N, 6);
-* ``make_step(rules, discrete, limit, obs_low, obs_high)`` -> ``step(states, actions, pred, aux)``
+* ``make_step(rules, discrete, limit, obs_low, obs_high, terrain=False)`` -> ``step(states, actions, pred, aux)``
   -> (next states (N, 8), rewards, terminated, diverged, aux): the divergence guard, float32
   rounding, leg flags with hysteresis, the touchdown prior, clipping, the sleep count, crash,
   out of bounds, rest and the shaped reward. ``aux`` (N,) int is each row's sleep count (0 for a
   fresh episode: ``init_aux``); the kernel's ``last``/``count`` memory made explicit, so the
-  caller resets it where an episode ends.
+  caller resets it where an episode ends. With terrain, ``aux`` also holds each row's ground
+  (the kernel's ``ground`` memory), drawn for a fresh episode from a key (``init_aux(n, key,
+  terrain=True)``), and the slope rule (``rules.slope_crash``) applies.
 
 Branches become ``where``; the float32 observation is ``astype(float32).astype(float64)``. The
 constants are ``task.rules_vector``'s, indexed by the kernels' names. The tests check these against
@@ -102,21 +104,42 @@ def _phi(x, y, vx, vy, an, ll, lr, xp: Any) -> Any:
             - 100.0 * xp.abs(an) + 10.0 * ll + 10.0 * lr)
 
 
-def init_aux(n: int) -> np.ndarray:
-    """(n,) int64: the sleep count of fresh episodes (0)."""
-    return np.zeros(n, dtype=np.int64)
+def init_aux(n: int, key: Any = None, terrain: bool = False) -> Any:
+    """The memory of n fresh episodes: (n,) int64 sleep counts (0); with ``terrain`` the pair
+    (counts, (n, 11) ground heights drawn from ``key``: ``task.draw_terrain``, a numpy Generator
+    or a jax key, required)."""
+    count = np.zeros(n, dtype=np.int64)
+    if not terrain:
+        return count
+    if key is None:
+        raise ValueError("init_aux: with terrain each fresh episode draws its ground: a key is needed")
+    return count, task.draw_terrain(key, n)
 
 
-def make_step(rules: LanderRules, discrete: bool, limit: Any, obs_low: Any, obs_high: Any):
+def ground_at(ground: Any, x: Any) -> Any:
+    """``kernels.ground_at`` on columns: each row's ground (N, chunks) at its x (N,)."""
+    xp = array_namespace(ground, x)
+    n = ground.shape[1]
+    u = xp.minimum(xp.maximum((x - kn.CHUNK_X0) / kn.CHUNK_DX, 0.0), n - 1.0)
+    i = xp.minimum(xp.floor(u), n - 2.0)  # the kernel's int(u) (u >= 0), at most n - 2
+    at = i.astype(np.int64)[:, None]
+    g0 = xp.take_along_axis(ground, at, axis=1)[:, 0]
+    return g0 + (u - i) * (xp.take_along_axis(ground, at + 1, axis=1)[:, 0] - g0)
+
+
+def make_step(rules: LanderRules, discrete: bool, limit: Any, obs_low: Any, obs_high: Any, terrain: bool = False):
     """``step(states, actions, pred, aux) -> (next states, rewards, terminated, diverged, aux)``:
-    ``kernels.step`` in the flat world for predictions ``pred`` (N, 6; ``regime_dynamics``
-    applied), with the sleep count ``aux`` (N,) in and out. Diverged rows keep their state and
-    count, reward 0, not terminated."""
+    ``kernels.step`` for predictions ``pred`` (N, 6; ``regime_dynamics`` applied), with the
+    sleep count ``aux`` (N,) in and out; with ``terrain``, ``aux`` is (counts, ground (N, 11))
+    and the legs, the floor on them and the slope rule read each row's ground, as the kernel's
+    (``init_aux`` draws it; the ground passes through unchanged). Diverged rows keep their state
+    and count, reward 0, not terminated."""
     c = _constants(rules)
     limit = np.asarray(limit, dtype=float)
     low, high = np.asarray(obs_low, dtype=float), np.asarray(obs_high, dtype=float)
 
     def step(states, actions, pred, aux):
+        aux, ground = aux if terrain else (aux, None)
         xp = array_namespace(states, actions, pred, aux)
         s = xp.asarray(states, dtype=xp.float64)
         pred = xp.asarray(pred, dtype=xp.float64)
@@ -125,7 +148,13 @@ def make_step(rules: LanderRules, discrete: bool, limit: Any, obs_low: Any, obs_
         obs = xp.where(ok[:, None], pred, 0.0).astype(np.float32).astype(xp.float64)
         x, y, vx, vy, an, w = (obs[:, j] for j in range(6))
         t = c["TILT"] * xp.sin(an)
-        hl, hr = y + t, y - t
+        if terrain:
+            cos = xp.cos(an)
+            gl, gr = ground_at(ground, x - kn.LEG_X * cos), ground_at(ground, x + kn.LEG_X * cos)
+            y = xp.where(on_legs(s), xp.maximum(y, c["FLOOR"] + 0.5 * (gl + gr)), y)
+            hl, hr = y + t - gl, y - t - gr
+        else:
+            hl, hr = y + t, y - t
         ll = xp.where((hl <= c["TOUCH"]) | ((s[:, 6] > 0.5) & (hl <= c["RELEASE"])), 1.0, 0.0)
         lr = xp.where((hr <= c["TOUCH"]) | ((s[:, 7] > 0.5) & (hr <= c["RELEASE"])), 1.0, 0.0)
         down = ~on_legs(s) & ((ll > 0.5) | (lr > 0.5))
@@ -136,13 +165,16 @@ def make_step(rules: LanderRules, discrete: bool, limit: Any, obs_low: Any, obs_
         rvx, rvy = vx * c["INV_VX"], vy * c["INV_VY"]
         quiet = legs & (cost == 0.0) & (rvx * rvx + rvy * rvy <= c["REST_V2"]) & (xp.abs(w * c["INV_W"]) <= c["REST_W"])
         crash = xp.where(down, touchdown_crash(s[:, 3], s[:, 4], rules), legs & (xp.abs(an) > c["TIP"]))
+        if terrain:  # kernels.slope_crash, on the clipped attitude as there
+            crash = crash | (down & (xp.abs(gr - gl) > c["SLOPE"] * 2.0 * kn.LEG_X * xp.abs(xp.cos(an)) * kn.X_PER_Y))
         out = xp.abs(x) >= 1.0
         count = xp.where(quiet, xp.asarray(aux) + 1, 0)
         rest = count >= c["FRAMES"]
         shaped = _phi(x, y, vx, vy, an, ll, lr, xp) - _phi(*(s[:, j] for j in (0, 1, 2, 3, 4, 6, 7)), xp) - cost
         reward = xp.where(rest, REST_REWARD, xp.where(crash | out, CRASH_REWARD, shaped))
         nxt = xp.stack([x, y, vx, vy, an, w, ll, lr], axis=1)
+        count = xp.where(ok, count, aux).astype(np.int64)
         return (xp.where(ok[:, None], nxt, s), xp.where(ok, reward, 0.0), (crash | out | rest) & ok, ~ok,
-                xp.where(ok, count, aux).astype(np.int64))
+                (count, ground) if terrain else count)
 
     return step

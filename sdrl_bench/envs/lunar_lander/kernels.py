@@ -240,8 +240,10 @@ def step(states, pred, cost, limit, low, high, k, last, count, nxt, reward, term
             terminated[i] = False
             continue
         # the real env's float32 observation
-        x, y, vx, vy = float(np.float32(pred[0, i])), float(np.float32(pred[1, i])), float(np.float32(pred[2, i])), float(np.float32(pred[3, i]))
-        an, w = float(np.float32(pred[4, i])), float(np.float32(pred[5, i]))
+        # (np.float64: numba types float(np.float32(v)) as float32, and a float64 later assigned to
+        # such a variable, the ground's floor below, would be rounded to float32)
+        x, y, vx, vy = np.float64(np.float32(pred[0, i])), np.float64(np.float32(pred[1, i])), np.float64(np.float32(pred[2, i])), np.float64(np.float32(pred[3, i]))
+        an, w = np.float64(np.float32(pred[4, i])), np.float64(np.float32(pred[5, i]))
         gl = gr = 0.0
         if terrain:
             c = math.cos(an)

@@ -95,12 +95,14 @@ class LunarLanderSpec(EnvSpec):
 
     def array_step(self) -> ArrayStep | None:
         """The kernels' step and the settle step as array functions (``array_rules``: numpy or
-        jax), for a jax step; None with terrain (its per-episode ground lives in the compiled step)."""
-        if self.terrain:
-            return None
+        jax), for a jax step; with terrain each episode's ground is its memory, drawn from a key
+        (``init_aux(n, key)``), and the settle step has no floor of its own (the step's is the
+        ground's), as ``regime_dynamics`` below."""
         discrete = bool(self.n_discrete_actions)
-        return ArrayStep(step=partial(array_rules.make_step, self.rules, discrete), init_aux=array_rules.init_aux,
-                         regime_dynamics=partial(array_rules.regime_dynamics, self.rules, discrete))
+        settle = replace(self.rules, floor=-np.inf) if self.terrain else self.rules
+        return ArrayStep(step=partial(array_rules.make_step, self.rules, discrete, terrain=self.terrain),
+                         init_aux=partial(array_rules.init_aux, terrain=self.terrain),
+                         regime_dynamics=partial(array_rules.regime_dynamics, settle, discrete))
 
     def learned_constants(self, data) -> tuple[dict, dict[str, float]]:
         """The contact rules the run's own transitions identify (``own_data.learn_rules``): the

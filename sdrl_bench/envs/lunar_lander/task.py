@@ -59,10 +59,11 @@ from dataclasses import dataclass
 from functools import cache
 from operator import le
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
-from sdrl_bench.envs.functional import array_namespace
+from sdrl_bench.envs.functional import array_namespace, uniform
 
 # Observation units per SI unit, from the real env's observation formula (VIEWPORT_W = 600,
 # VIEWPORT_H = 400, SCALE = 30, FPS = 50): vx = 0.2 v_x, vy = (2/15) v_y, angvel = 0.4 omega.
@@ -232,12 +233,15 @@ def terminated(rules: LanderRules, states, actions, next_states) -> np.ndarray:
 _H, _CHUNKS = 400.0 / 30.0, 11
 
 
-def draw_terrain(rng: np.random.Generator, n: int) -> np.ndarray:
+def draw_terrain(rng: Any, n: int) -> Any:
     """(n, 11) ground heights at the chunk edges x = -1, -0.8, ..., 1 in observation units,
-    relative to the pad (0 on the pad), drawn as the real env draws its terrain (a prior)."""
-    h = rng.uniform(0.0, _H / 2, size=(n, _CHUNKS + 1))
-    h[:, _CHUNKS // 2 - 2:_CHUNKS // 2 + 3] = _H / 4
-    smooth = 0.33 * (np.roll(h, 1, axis=1) + h + np.roll(h, -1, axis=1))[:, :_CHUNKS]
+    relative to the pad (0 on the pad), drawn as the real env draws its terrain (a prior); from a
+    numpy ``Generator`` or a jax PRNG key (``envs.functional.uniform``)."""
+    h = uniform(rng, 0.0, _H / 2, (n, _CHUNKS + 1))
+    xp = array_namespace(h)
+    edge = np.arange(_CHUNKS + 1)
+    h = xp.where((edge >= _CHUNKS // 2 - 2) & (edge < _CHUNKS // 2 + 3), _H / 4, h)
+    smooth = 0.33 * (xp.roll(h, 1, axis=1) + h + xp.roll(h, -1, axis=1))[:, :_CHUNKS]
     return (smooth - 0.99 * _H / 4) / (_H / 2)
 
 
