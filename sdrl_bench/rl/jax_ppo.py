@@ -46,7 +46,7 @@ clipping); the PPO loop itself is what no installed library offers over the harn
 step (rejax and PureJaxRL expect their own env API).
 
 Covered: the surrogates ``jax_step.jax_stepper`` covers (Pendulum, MountainCar, CartPole, the
-swing-up, LunarLander's flat world), with their step noise, pessimism, learned events and per-row
+swing-up, LunarLander on flat ground or terrain), with their step noise, pessimism, learned events and per-row
 memory, the noise and event draws made from jax keys inside the loop (the same distributions as
 ``ModelEnv``'s, other draws). Box actions get the Gaussian above; discrete actions a categorical policy over the actor's logits
 (SB3's ``CategoricalDistribution``). jax and optax are the optional ``jax`` extra (``pip install

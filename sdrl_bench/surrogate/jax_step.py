@@ -20,7 +20,7 @@ Layout (N rows, batched; numpy or jax arrays in, jax arrays out):
   (zeros; zeros throughout for a task without memory). Pass the returned ``aux`` to the next
   step and reset the rows whose episode ends: ``reset_aux(done, init_aux(n), aux)``. ModelEnv's
   kernel does this itself (a row whose state is not the one it returned last counts from 0). A
-  task whose fresh memory is drawn (LunarLander with terrain: a ground per episode) has a tuple
+  task whose fresh memory is drawn (e.g. a random terrain per episode) has a tuple
   of per-row arrays as ``aux`` and draws it from a jax key, ``init_aux(n, key)``;
 * ``noise``: None (no step noise) or (N, n_targets), the already-scaled noise added to the
   model's prediction of the regressed states (``spec.target_names`` order), i.e. the transpose of
@@ -203,8 +203,8 @@ class JaxStepper(NamedTuple):
     rewards, terminated, diverged, aux)``; ``params`` None: this stepper's own."""
     init_aux: Callable[..., Any]
     """``init_aux(n, key=None)``: the memory of n fresh episodes, (n,) int64 (zeros for a task
-    without), or a tuple of per-row arrays for a task whose memory is drawn (LunarLander's
-    terrain: counts and ground, drawn from the jax ``key``)."""
+    without), or a tuple of per-row arrays for a task whose memory is drawn (e.g. a counter and
+    a random terrain per episode, drawn from the jax ``key``)."""
     n_event_draws: int
     """Columns of ``event_u``: one uniform per row and learned event."""
     params: dict[str, Any] | None = None

@@ -39,9 +39,12 @@ with where it comes from (prior: the real env's source or Box2D's; fitted: on wh
   agents that land well on the pad but crash where real hills rise off it
   (``studies/lunar_lander_terrain.py``: real crashes are slow landings on slopes). Heights
   alone did not help (paper pack, 5 seeds: IQM 121 against 149 flat; README), since the
-  touchdown event ignores the slope. The agent does not observe the terrain (nor does it in the
-  real env). Terrain needs the fused batched step (``make_step_batch``); the composed numpy
-  path (``Surrogate(fused=False)``) has no ground to stand on.
+  touchdown event ignores the slope; ``LanderRules.slope_crash`` (off by default) ends a
+  touchdown on a slope, and with it the one-shot fast pack's agents land on the pad
+  (``experiment=fast_lunar_lander_terrain``, docs/compiled.md). The agent does not observe the
+  terrain (nor does it in the real env). Terrain needs the fused batched step
+  (``make_step_batch``; in jax ``array_rules``, the ground a per-episode memory); the composed
+  numpy path (``Surrogate(fused=False)``) has no ground to stand on.
 
 The batched functions run compiled loops (``kernels``, numba); ``make_step_one`` is the same
 step for one state in plain Python; the tests check that the two agree. The pure functions of
