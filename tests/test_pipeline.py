@@ -45,11 +45,11 @@ def ten_fits():
 def test_exact_law_recovered_in_at_least_9_of_10_seeds_including_wall_hits(ten_fits):
     ok = [recovered(r.model) for r in ten_fits]
     wall = [bool(np.any(r.data.next_states[:, 0] <= -1.2)) for r in ten_fits]
-    assert sum(ok) >= 9, [r.model.equations() for r, good in zip(ten_fits, ok) if not good]
+    assert sum(ok) >= 9, [r.model.equations() for r, good in zip(ten_fits, ok, strict=True) if not good]
     assert any(wall), "no seed hit the wall: the test would not exercise bound handling"
-    assert all(good for good, w in zip(ok, wall) if w)
+    assert all(good for good, w in zip(ok, wall, strict=True) if w)
     # the wall rows were excluded from the fit, not silently kept
-    for r, w in zip(ten_fits, wall):
+    for r, w in zip(ten_fits, wall, strict=True):
         assert r.n_fit_rows < len(r.data) if w else True
 
 

@@ -24,7 +24,7 @@ def test_six_job_multirun_lands_six_children_under_one_parent(store, tmp_path):
     assert parents.iloc[0]["status"] == "FINISHED"
     assert set(children["tags.mlflow.parentRunId"]) == {parent_id}
     assert set(children["status"]) == {"FINISHED"}
-    assert set(zip(children["tags.env"], children["tags.library"])) == {
+    assert set(zip(children["tags.env"], children["tags.library"], strict=True)) == {
         (e, lib) for e in ("mountain_car", "lunar_lander") for lib in ("polynomial", "poly_trig", "rational")}
     # the UI's runs table cuts names short (about 18 characters): the children's differ in their first 18
     names = children["tags.mlflow.runName"].tolist()

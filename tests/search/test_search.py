@@ -386,7 +386,7 @@ def test_search_against_a_real_mlflow_server(tmp_path):
         tags = [{t["key"]: t["value"] for t in r["data"].get("tags", [])} for r in runs]
         kinds = sorted(t.get("sdrl.kind") for t in tags)
         assert kinds == ["fit", "study"] + ["trial"] * 4
-        parent = next(r for r, t in zip(runs, tags) if t.get("sdrl.kind") == "study")
+        parent = next(r for r, t in zip(runs, tags, strict=True) if t.get("sdrl.kind") == "study")
         metrics = {m["key"]: m["value"] for m in parent["data"]["metrics"]}
         assert metrics["best_error"] == pytest.approx(summary.best_error, rel=1e-12) and metrics["n_trials"] == 4
         listed = _get(f"{base}/api/2.0/mlflow/artifacts/list?run_id={result.parent_run_id}&path=figures")["files"]

@@ -342,7 +342,7 @@ def test_vecenv_is_reproducible_under_a_seed_and_has_the_attribute_api(ll_model)
             out += [obs, rew, done]
         return out
     a, b = SurrogateVecEnv(ll_model, "lunar_lander", 16), SurrogateVecEnv(ll_model, "lunar_lander", 16)
-    assert all(np.array_equal(x, y) for x, y in zip(run(a), run(b)))
+    assert all(np.array_equal(x, y) for x, y in zip(run(a), run(b), strict=True))
     assert any(x.any() for x in run(a)[3::3])  # some episodes ended and were reset
     assert a.get_attr("render_mode") == [None] * 16 and a.env_is_wrapped(gym.Wrapper) == [False] * 16
     assert a.get_attr("env_spec", 0)[0].name == "lunar_lander" and len(a.get_attr("n_diverged")) == 16
@@ -380,7 +380,7 @@ def unstable_mc_model(growth: float = 3.0) -> SindyModel:
 def test_divergence_guard_truncates_without_nan_single_and_vectorized():
     env = SurrogateEnv(unstable_mc_model(), "mountain_car")
     obs, _ = env.reset(seed=0)
-    for t in range(50):
+    for t in range(50):  # noqa: B007 (the step it broke at is read after the loop)
         nxt, reward, terminated, truncated, info = env.step(np.array([0.0], np.float32))
         assert np.all(np.isfinite(nxt)) and np.isfinite(reward)
         if truncated:
