@@ -252,8 +252,9 @@ def _composed(model_env: Any, jax: Any, jnp: Any) -> Callable:
 
 
 def _as_jax(aux: Any, jnp: Any) -> Any:
-    """The task's memory as jax arrays: an array, or a tuple of them, each of its own dtype."""
-    return tuple(jnp.asarray(a) for a in aux) if isinstance(aux, tuple) else jnp.asarray(aux)
+    """The task's memory as jax arrays: one int64 array (a counter per row), or a tuple of
+    per-row arrays, each of its own dtype."""
+    return tuple(jnp.asarray(a) for a in aux) if isinstance(aux, tuple) else jnp.asarray(aux, dtype=jnp.int64)
 
 
 def reset_aux(done: Any, fresh: Any, aux: Any) -> Any:
