@@ -58,6 +58,13 @@ def touchdown_crash(vy: Any, angle: Any, rules: LanderRules) -> Any:
     return (-vy * c["INV_VY"] > c["V_FREE"]) | (xp.abs(angle) > c["TIP"])
 
 
+def slope_crash(gl: Any, gr: Any, angle: Any, rules: LanderRules) -> Any:
+    """``kernels.slope_crash`` on columns: the ground under the legs (heights ``gl``, ``gr``)
+    slopes more than ``rules.slope_crash`` (metres) at attitude ``angle``."""
+    xp = array_namespace(gl, gr, angle)
+    return xp.abs(gr - gl) > _constants(rules)["SLOPE"] * 2.0 * kn.LEG_X * xp.abs(xp.cos(angle)) * kn.X_PER_Y
+
+
 def _sign(xp: Any, v: Any) -> Any:
     """``kernels._sign``: 0 for 0 and NaN (``xp.sign`` gives NaN there)."""
     return xp.where(v > 0.0, 1.0, xp.where(v < 0.0, -1.0, 0.0))
@@ -165,8 +172,8 @@ def make_step(rules: LanderRules, discrete: bool, limit: Any, obs_low: Any, obs_
         rvx, rvy = vx * c["INV_VX"], vy * c["INV_VY"]
         quiet = legs & (cost == 0.0) & (rvx * rvx + rvy * rvy <= c["REST_V2"]) & (xp.abs(w * c["INV_W"]) <= c["REST_W"])
         crash = xp.where(down, touchdown_crash(s[:, 3], s[:, 4], rules), legs & (xp.abs(an) > c["TIP"]))
-        if terrain:  # kernels.slope_crash, on the clipped attitude as there
-            crash = crash | (down & (xp.abs(gr - gl) > c["SLOPE"] * 2.0 * kn.LEG_X * xp.abs(xp.cos(an)) * kn.X_PER_Y))
+        if terrain:  # on the clipped attitude, as the kernel
+            crash = crash | (down & slope_crash(gl, gr, an, rules))
         out = xp.abs(x) >= 1.0
         count = xp.where(quiet, xp.asarray(aux) + 1, 0)
         rest = count >= c["FRAMES"]
