@@ -98,14 +98,15 @@ def cli(workdir: Path, overrides: list[str], multirun: bool = True) -> None:
 
 
 def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int, rerun: bool = False,
-                  transitions: int | None = None) -> list[str]:
+                  transitions: int | None = None, confirm: int = 0) -> list[str]:
     """The arm's ``sdrl-bench -m`` overrides; ``transitions``: the surrogate arms' model data
-    (``n_transitions``; None: the pack's)."""
+    (``n_transitions``; None: the pack's); ``confirm``: ``rl.confirm_episodes`` (0: none)."""
     recipe, where = ARMS[arm]
     pack = pack_of(env, arm)
     out = [f"experiment={pack}", f"rl.arms=[{where}]", f"seed={','.join(map(str, seeds))}",
            "rl.stop_when_solved=true", "rl.reuse_real_arm=false", f"rl.eval_episodes={EVAL_EPISODES}",
-           f"tracking.uri={uri}", f"hydra.launcher.n_jobs={jobs}", *(["resume=false"] if rerun else [])]
+           f"tracking.uri={uri}", f"hydra.launcher.n_jobs={jobs}", *(["resume=false"] if rerun else []),
+           *([f"rl.confirm_episodes={confirm}"] if confirm else [])]
     if recipe == "zoo":
         out.append(f"rl.eval_every={ZOO_EVAL_EVERY[env]}")
     if recipe == "jax":
@@ -143,16 +144,17 @@ def pack_transitions(env: str) -> int:
     return int(compose([f"experiment={PACKS[env]['fast']}"]).n_transitions)
 
 
-def collect(uri: str, env: str, transitions: int | None = None) -> dict[str, dict[int, dict[str, float]]]:
+def collect(uri: str, env: str, transitions: int | None = None, confirm: int = 0) -> dict[str, dict[int, dict[str, float]]]:
     """{arm letter: {seed: metrics of that arm}} from the finished time-to-solve runs (stopped
-    when solved, 10 episodes per evaluation) of ``env``, the surrogate arms' among those fitted on
-    ``transitions`` real transitions (None: the pack's); the latest run of a seed wins."""
+    when solved, 10 episodes per evaluation, ``confirm`` confirmation episodes) of ``env``, the
+    surrogate arms' among those fitted on ``transitions`` real transitions (None: the pack's);
+    the latest run of a seed wins."""
     want = str(transitions if transitions is not None else pack_transitions(env))
     out: dict[str, dict[int, dict[str, float]]] = {k: {} for k in ARMS}
     for r in find_runs(uri, "sdrl-bench", "tags.`sdrl.kind` = 'transfer'"):
         p, t = r["params"], r["tags"]
         if (r["status"] != "FINISHED" or t.get("env") != env or p.get("rl.stop_when_solved") != "True"
-                or p.get("rl.eval_episodes") != str(EVAL_EPISODES)):
+                or p.get("rl.eval_episodes") != str(EVAL_EPISODES) or p.get("rl.confirm_episodes", "0") != str(confirm)):
             continue
         recipe = next((k for k, v in AGENTS[env].items() if v == t.get("agent")), None)
         where = t.get("arms")
@@ -219,10 +221,12 @@ def fmt(v: float, spec: str = ".3g") -> str:
     return format(v, spec)
 
 
-def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, transitions: int | None = None) -> None:
+def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, transitions: int | None = None,
+           confirm: int = 0) -> None:
     transitions = transitions if transitions is not None else pack_transitions(env)  # composed once
-    data = collect(uri, env, transitions)
-    print(f"\n{env}: time to a first real evaluation at the solved threshold ({EVAL_EPISODES} episodes), "
+    data = collect(uri, env, transitions, confirm)
+    confirmed = f", confirmed on {confirm} fresh episodes" if confirm else ""
+    print(f"\n{env}: time to a first real evaluation at the solved threshold ({EVAL_EPISODES} episodes{confirmed}), "
           f"seeds {seeds}; the surrogate arms' model data: {transitions:,} real transitions")
     per_seed = []
     for s in seeds:
@@ -274,6 +278,9 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2, help="jobs in parallel within an arm's sweep")
     ap.add_argument("--transitions", type=int, default=None, help="the surrogate arms' model data, real "
                     "transitions (n_transitions; default: the fast pack's)")
+    ap.add_argument("--confirm", type=int, default=0, help="rl.confirm_episodes for every arm: an evaluation at the "
+                    "threshold stops training only if this many fresh real episodes reach it too (0: none; the "
+                    "table reads only runs with the same value)")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--rerun", action="store_true", help="run the arms again (resume=false); the table takes "
                     "each seed's latest run (e.g. after a code change the config does not show)")
@@ -288,8 +295,8 @@ def main() -> None:
         if any(COLLECTOR.get(k) == "expert" for k in args.arms):
             expert = pretrain_expert(args.env, workdir, uri)
         for k in args.arms:
-            cli(workdir, arm_overrides(args.env, k, seeds, uri, args.jobs, args.rerun, args.transitions))
-    report(uri, args.env, seeds, expert, args.transitions)
+            cli(workdir, arm_overrides(args.env, k, seeds, uri, args.jobs, args.rerun, args.transitions, args.confirm))
+    report(uri, args.env, seeds, expert, args.transitions, args.confirm)
 
 
 if __name__ == "__main__":

@@ -45,6 +45,7 @@ PURPOSES: dict[str, int] = {
     "data_noise": 16,      # the fidelity study's observation noise on a cluster's data
     "fidelity_reference": 17,  # the fidelity study's reference policy in the real env
     "fidelity_onpolicy": 18,   # the fidelity study's agents' own real episodes (on-policy errors)
+    "curve_confirm": 19,   # confirmations of a learning-curve evaluation at the threshold (they may stop training)
 }
 __doc__ += "".join(f"\n* ``{name}`` ({code})" for name, code in PURPOSES.items())
 

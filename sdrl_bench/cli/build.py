@@ -178,8 +178,9 @@ def build_transfer_job(cfg: DictConfig, fit_job) -> TransferJob:
     stop = rl.get("stop_when_solved", False)
     if not isinstance(stop, bool):
         raise ConfigError(f"rl.stop_when_solved: true or false, got {stop!r}")
+    confirm = int_key(cfg, "rl.confirm_episodes", minimum=0) if "confirm_episodes" in rl else 0
     return TransferJob(fit=fit_job, agent=agent, arms=arms, seed=int_key(cfg, "seed", minimum=0),
-                       progress_bar=bool(cfg.progress_bar), stop_when_solved=stop, **steps)
+                       progress_bar=bool(cfg.progress_bar), stop_when_solved=stop, confirm_episodes=confirm, **steps)
 
 
 def build_dyna_job(cfg: DictConfig, fit_job: FitJob) -> DynaJob:
@@ -210,6 +211,8 @@ def real_arm_key(cfg: DictConfig) -> str:
     }
     if cfg.rl.get("stop_when_solved", False):  # only when set: keys of earlier runs stay as they were
         parts["rl"]["stop_when_solved"] = True
+    if cfg.rl.get("confirm_episodes", 0):  # likewise
+        parts["rl"]["confirm_episodes"] = cfg.rl.confirm_episodes
     parts["env"].pop("own_data", None)  # shapes only the surrogate: a Dyna variant shares its base's real arm
     return hashlib.sha256(json.dumps(parts, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
@@ -231,6 +234,8 @@ def config_key(cfg: DictConfig) -> str:
     body = OmegaConf.to_container(cfg, resolve=True)
     for key in ("hydra", "progress_bar", "resume"):
         body.pop(key, None)
+    if isinstance(body.get("rl"), dict) and body["rl"].get("confirm_episodes") == 0:
+        body["rl"].pop("confirm_episodes")  # the default (added later): earlier runs' keys stay as they were
     return hashlib.sha256(json.dumps(body, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 

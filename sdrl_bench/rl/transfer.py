@@ -52,6 +52,9 @@ class TransferJob:
     stop_when_solved: bool = False
     """End an arm's training at its first learning-curve evaluation at the solved threshold
     (time-to-solve runs; the final evaluation still follows)."""
+    confirm_episodes: int = 0
+    """Real episodes that confirm a learning-curve evaluation at the threshold before it counts
+    as solved (``RealEvalCallback``; 0: none)."""
     seed: int = 0
     """The run seed: every stream of the run derives from it (``seeds``: the agent, the real
     arm's envs, the curve's and the final evaluation's reset seeds; the fit has its own seed,
@@ -76,6 +79,8 @@ class TransferJob:
             check_budget("rl.real_steps", self.real_steps)
         for key in ("eval_every", "eval_episodes", "final_episodes"):
             check_budget(f"rl.{key}", getattr(self, key))
+        if self.confirm_episodes < 0:
+            raise ConfigError(f"rl.confirm_episodes: an integer >= 0, got {self.confirm_episodes}")
         return check(self.fit) if "surrogate" in self.arms else (None, None)
 
 
@@ -109,6 +114,7 @@ class ArmResult:
             "total_steps": real_model + real_train + (train_steps if self.arm == "surrogate" else 0),
             "eval_episodes": self.counts.get("eval_episodes", 0),
             "eval_steps": self.counts.get("evaluate", 0),
+            **({"confirmations": self.counts["confirmations"]} if "confirmations" in self.counts else {}),
             "final_eval_episodes": len(rets),
             "final_eval_steps": self.final_steps,
             "final_return_mean": float(rets.mean()),
@@ -197,12 +203,16 @@ def run_arm(
     callback = RealEvalCallback(
         spec, job.eval_every, job.eval_episodes, seed=seeds.reset_seed(job.seed, "curve_eval"), counts=counts,
         on_point=(lambda s, m, sd: on_point(arm, s, m, sd)) if on_point else None,
-        stop_when_solved=job.stop_when_solved,
+        stop_when_solved=job.stop_when_solved, confirm_episodes=job.confirm_episodes,
+        confirm_seed=seeds.reset_seed(job.seed, "curve_confirm") if job.confirm_episodes else None,
     )
     logger = logger_factory(arm) if logger_factory else None
     bar = f"{arm} arm, {job.agent.name.upper()}" if job.progress_bar else False
     result = train(job.agent, venv, steps, seeds.int_seed(job.seed, "agent"), callback, logger, bar, env_seed=env_seed)
-    counts["eval_episodes"] = job.eval_episodes * len(result.curve.steps)
+    counts["eval_episodes"] = (job.eval_episodes * len(result.curve.steps)
+                               + job.confirm_episodes * len(result.curve.confirm_means))
+    if job.confirm_episodes:
+        counts["confirmations"] = len(result.curve.confirm_means)
     seconds.update(train_wall=result.wall_seconds, train_cpu=result.cpu_seconds, curve_eval_wall=result.eval_wall_seconds,
                    train_rollout_wall=result.rollout_wall_seconds)
     if hasattr(result.model, "compile_seconds"):  # a compiled agent (rl.jax_agent): its compiles, inside train_wall

@@ -17,7 +17,7 @@ from sdrl_bench import ConfigError
 from sdrl_bench.cli.build import build_fit_job
 from sdrl_bench.cli.train import run_train
 from sdrl_bench.envs.mountain_car import MountainCarSpec
-from sdrl_bench.rl.agents import AgentConfig, RealEvalCallback, real_vec_env, train
+from sdrl_bench.rl.agents import AgentConfig, RealEvalCallback, evaluate_real, real_vec_env, train
 
 TINY_FAST = [
     "collector=heuristic", "agent.n_envs=4", "agent.algo.n_steps=16", "agent.algo.batch_size=32",
@@ -102,3 +102,59 @@ def test_a_bad_stop_when_solved_is_one_line_naming_the_key(store, value):
     cfg = compose_cfg("task=train", f"tracking.uri={store}", f"rl.stop_when_solved={value}")
     with pytest.raises(ConfigError, match=r"^rl\.stop_when_solved: true or false, got"):
         run_train(cfg, build_fit_job(cfg), None)
+
+
+def test_a_confirmation_on_fresh_episodes_decides_whether_an_evaluation_at_the_threshold_counts():
+    """``confirm_episodes``: an evaluation at the threshold stops training only if that many more
+    real episodes, from reset seeds of their own, reach it too. The untrained policy's returns
+    differ a little from start to start (its action costs), so a threshold between its curve
+    mean and its confirmation mean makes the first hit fail its confirmation."""
+    spec = dataclasses.replace(MountainCarSpec(), solved_threshold=-1e9)
+    counts: Counter = Counter()
+    wall = lambda: 0.001 * counts["train"] + 1.0 * counts["evaluate"]  # noqa: E731
+
+    def run(spec, confirm_seed, budget=64):
+        counts.clear()
+        cb = RealEvalCallback(spec, every=10**6, episodes=2, seed=0, counts=counts, stop_when_solved=True,
+                              clock=wall, cpu_clock=wall, confirm_episodes=3, confirm_seed=confirm_seed)
+        res = train(tiny_ppo(), real_vec_env(spec, 2, 0, counts, "train"), budget, 0, cb)
+        return cb, res
+
+    # any policy solves: the step-0 evaluation is confirmed on 3 more episodes and stops training
+    cb, res = run(spec, 1000)
+    assert cb.curve.first_solved_step == 0 and res.model.num_timesteps == 2 and len(cb.curve.confirm_means) == 1
+    # 2 curve + 3 confirmation episodes at step 0, 2 at the training's end (step 2: no confirmation
+    # once solved), each to MountainCar's time limit
+    assert counts["evaluate"] == 7 * 999 and len(cb.curve.means) == 2
+    assert res.wall_seconds == pytest.approx(0.001 * 2)  # the confirmation's time is evaluation time
+    # a confirmation start where the untrained policy does worse than on the curve's own two starts
+    curve_mean = cb.curve.means[0]
+    confirm_seed = next(s for s in range(1000, 1100, 3) if run(spec, s)[0].curve.confirm_means[0] < curve_mean)
+    low = run(spec, confirm_seed)[0].curve.confirm_means[0]
+    threshold = (curve_mean + low) / 2
+    cb, res = run(dataclasses.replace(spec, solved_threshold=threshold), confirm_seed)
+    assert cb.curve.means[0] >= threshold > cb.curve.confirm_means[0]  # a hit, not confirmed
+    assert res.model.num_timesteps == 64  # so training went on to its budget
+    assert (cb.curve.first_solved_step == 64) == (len(cb.curve.confirm_means) == 2 and cb.curve.confirm_means[1] >= threshold)
+    # the k-th confirmation plays its own starts: the second one begins 3 seeds further on
+    if len(cb.curve.confirm_means) == 2:
+        again = evaluate_real(res.model, spec, 3, confirm_seed + 3).mean
+        assert again == pytest.approx(cb.curve.confirm_means[1], abs=1e-9)
+
+
+def test_confirm_episodes_reaches_the_run_and_a_bad_value_is_one_line(store):
+    from sdrl_bench.cli.build import build_transfer_job, config_key, real_arm_key
+
+    cfg = compose_cfg("experiment=fast_mountain_car", f"tracking.uri={store}", *TINY_FAST, "rl.confirm_episodes=2")
+    assert build_transfer_job(cfg, build_fit_job(cfg)).confirm_episodes == 2
+    plain = compose_cfg("experiment=fast_mountain_car", f"tracking.uri={store}", *TINY_FAST)
+    # the default leaves every earlier run's keys as they were; a confirmation makes other runs
+    assert config_key(plain) != config_key(cfg) and real_arm_key(plain) != real_arm_key(cfg)
+    stripped = compose_cfg("experiment=fast_mountain_car", f"tracking.uri={store}", *TINY_FAST, "~rl.confirm_episodes")
+    assert config_key(stripped) == config_key(plain) and real_arm_key(stripped) == real_arm_key(plain)
+    run_train(cfg, build_fit_job(cfg), None)
+    run = search(store).iloc[0]
+    assert run["status"] == "FINISHED" and run["params.rl.confirm_episodes"] == "2"
+    bad = compose_cfg("experiment=fast_mountain_car", f"tracking.uri={store}", *TINY_FAST, "rl.confirm_episodes=-1")
+    with pytest.raises(ConfigError, match=r"^rl\.confirm_episodes must be >= 0, got -1$"):
+        build_transfer_job(bad, build_fit_job(bad))
