@@ -446,11 +446,14 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
         shown = {r["agent"] for r in rows if r["env"] == env and r["method"] == "real arm"}
         others = [r for r in real if r["tags"].get("env") == env and r["tags"].get("agent") not in shown
                   and r.get("params", {}).get("rl.stop_when_solved") == "True"]
-        arms = sorted({(r["tags"].get("agent", "?"), r["tags"].get("sdrl.experiment") or "") for r in others})
-        for agent, pack in arms:
+        # a stop confirmed on fresh episodes (rl.confirm_episodes) is another procedure: rows of its own
+        confirm = lambda r: r.get("params", {}).get("rl.confirm_episodes", "0")  # noqa: E731
+        arms = sorted({(r["tags"].get("agent", "?"), r["tags"].get("sdrl.experiment") or "", confirm(r)) for r in others})
+        for agent, pack, n in arms:
             group = newest_per_seed(r for r in others if r["tags"].get("agent") == agent
-                                    and (r["tags"].get("sdrl.experiment") or "") == pack)
-            rows.append(_real_arm_row(env, agent, group, seed, f"real arm, {pack}" if pack else "real arm"))
+                                    and (r["tags"].get("sdrl.experiment") or "") == pack and confirm(r) == n)
+            label = ", ".join(["real arm", *([pack] if pack else []), *([f"confirmed on {n}"] if n != "0" else [])])
+            rows.append(_real_arm_row(env, agent, group, seed, label))
     for row in rows:  # each method's median real steps to solve over the best real arm's on its env
         best = [r["median_to_solve"] for r in rows if r["env"] == row["env"] and r["method"].startswith("real arm")
                 and math.isfinite(r["median_to_solve"])]

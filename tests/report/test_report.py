@@ -368,9 +368,14 @@ def test_another_agents_real_arm_that_stopped_at_the_threshold_is_a_row_and_the_
     other_pack = _real_arm(store, 0, 300_000.0)  # the same agent in another pack: an arm of its own
     tracking.Run(store, other_pack).set_tags({"agent": "ppo", "sdrl.experiment": "other_pack"})
     tracking.Run(store, other_pack).log_params({"rl.stop_when_solved": "True"})
+    confirmed = _real_arm(store, 0, 150_000.0)  # the same pack, its stops confirmed: another procedure, another row
+    tracking.Run(store, confirmed).set_tags({"agent": "ppo", "sdrl.experiment": "real_pack"})
+    tracking.Run(store, confirmed).log_params({"rl.stop_when_solved": "True", "rl.confirm_episodes": "20"})
     dy = rt.dyna_table(tracking.find_runs(store, EXP))
-    assert list(dy[dy["agent"] == "ppo"]["method"]) == ["real arm, other_pack", "real arm, real_pack"]
+    assert list(dy[dy["agent"] == "ppo"]["method"]) == ["real arm, other_pack", "real arm, real_pack",
+                                                        "real arm, real_pack, confirmed on 20"]
     assert dy[dy["method"] == "real arm, other_pack"].iloc[0]["runs"] == [other_pack]
+    assert dy[dy["method"] == "real arm, real_pack, confirmed on 20"].iloc[0]["runs"] == [confirmed]
     real = dy[dy["method"].isin(["real arm", "real arm, real_pack"])].set_index("agent")
     assert sorted(real.index) == ["ppo", "ppo_fast"] and sorted(real.loc["ppo", "runs"]) == sorted(stopped)
     best = np.median([93_000, 113_000])  # training steps to solve plus the 3,000 evaluation steps
