@@ -205,7 +205,7 @@ def arm_row(metrics: dict[int, dict[str, float]], seeds: list[int]) -> dict[str,
         "wall": med("solved_wall_seconds"), "cpu": med("solved_cpu_seconds"),
         "real": med("solved_real_steps"), "surrogate": med("solved_surrogate_steps") if solved else math.nan,
         "eval_wall": med("curve_eval_wall_seconds", math.nan), "final": med("final_return_mean", math.nan),
-        "compile": med("compile_wall_seconds", math.nan),
+        "compile": med("compile_wall_seconds", math.nan), "confirmations": med("confirmations", math.nan),
         "wall_ex_compile": med_wall(False, compile_too=False),
         "rollout_share": float(np.median([m["solved_rollout_wall_seconds"] / m["solved_train_wall"]
                                           for m in solved if "solved_rollout_wall_seconds" in m and m["solved_train_wall"] > 0]))
@@ -241,11 +241,13 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, t
     rows = {k: arm_row(data[k], seeds) for k in ARMS}
     table = [[LABELS[k], f"{r['solved']}/{r['seeds']}", f"{r['judged']}/{r['seeds']}", fmt(r["wall"]), fmt(r["wall_judged"]),
               fmt(r["compile"]), fmt(r["cpu"]), fmt(r["real"], ",.0f"), fmt(r["surrogate"], ",.0f"),
-              fmt(r["rollout_share"], ".0%"), fmt(r["eval_wall"]), fmt(r["final"], ".1f")]
+              fmt(r["rollout_share"], ".0%"), fmt(r["eval_wall"]), fmt(r["final"], ".1f"),
+              *([fmt(r["confirmations"])] if confirm else [])]
              for k, r in rows.items() if r["seeds"]]
     print(tabulate(table, headers=["arm", "solved", "judged solved", "median wall s", "median wall s, judged",
                                    "of it compile s", "median CPU s", "real transitions", "surrogate steps",
-                                   "rollouts' share of training", "eval wall s (apart)", "final real return"],
+                                   "rollouts' share of training", "eval wall s (apart)", "final real return",
+                                   *(["confirmations played (median)"] if confirm else [])],
                    stralign="right"))
 
     def ratio(num: str, den: str, key: str) -> str:
