@@ -83,10 +83,12 @@ EVAL_EPISODES = 10
 
 
 def parse_seeds(text: str) -> list[int]:
-    if "-" in text:
-        lo, hi = text.split("-")
-        return list(range(int(lo), int(hi) + 1))
-    return [int(s) for s in text.split(",")]
+    """``0-4``, ``0,2`` or both (``0-4,20-24``)."""
+    out: list[int] = []
+    for part in text.split(","):
+        lo, _, hi = part.partition("-")
+        out += list(range(int(lo), int(hi or lo) + 1))
+    return out
 
 
 def cli(workdir: Path, overrides: list[str], multirun: bool = True) -> None:

@@ -277,8 +277,11 @@ class JaxPPO:
             if held is not None and held[1] is menv.spec and held[3].key == sur.key:
                 exe = held[2]  # a refit: new numbers (sur.params), the same program
                 self.rollout_swaps += 1
-        if self._cenv is None:  # fresh episodes (first learn, or one that resets)
-            self._cenv, self._cobs = jax_ppo.init_env(sur, self._split(), self.cfg.n_envs, self.cfg)
+        if self._cenv is None:  # fresh episodes (first learn, or one that resets): one program, not op by op
+            cfg = self.cfg
+            init = self._jax.jit(lambda key, params: jax_ppo.init_env(sur, key, cfg.n_envs, cfg, params))
+            key = self._split()
+            self._cenv, self._cobs = self._timed_compile(init, key, sur.params)(key, sur.params)
         if exe is None:
             rollout = self._jax.jit(jax_ppo.make_rollout(sur, self.cfg))
             exe = self._timed_compile(rollout, self.net, self._cenv, self._cobs, self._split(), sur.params)
