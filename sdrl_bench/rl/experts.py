@@ -79,10 +79,29 @@ class ExpertPolicy:
     def __call__(self, spec: EnvSpec, env: gym.Env) -> Policy:
         if self._model is None:
             self._model, _ = self.load_or_train(spec)
-        model = self._model
+        return deterministic_policy(self._model, bool(spec.n_discrete_actions))
 
-        def policy(obs: np.ndarray):
-            action, _ = model.predict(obs, deterministic=True)
-            return action.item() if spec.n_discrete_actions else action
 
-        return policy
+def deterministic_policy(model: Any, discrete: bool) -> Policy:
+    """``model``'s deterministic action for one observation, as SB3's ``predict(obs,
+    deterministic=True)`` computes it (the same torch ops: the policy's ``_predict`` on the
+    observation as a float32 batch of one, then SB3's unscaling or clipping of a Box action), less
+    ``predict``'s per-call checks and conversions. Why not ``predict``: a collector calls it once
+    per real step, and it cost 96 us against 53 us here (3,000 LunarLander steps, measured; the
+    actions were the same). ``tests/rl/test_experts.py`` holds the two to equal actions."""
+    import torch as th  # noqa: PLC0415  (SB3's own dependency)
+
+    policy = model.policy
+    policy.set_training_mode(False)
+    space = policy.action_space
+    box = isinstance(space, gym.spaces.Box)
+
+    def act(obs: np.ndarray):
+        with th.no_grad():
+            action = policy._predict(th.as_tensor(np.asarray(obs, dtype=np.float32)[None], device=policy.device),
+                                     deterministic=True).cpu().numpy().reshape((-1, *space.shape))[0]
+        if box:
+            action = policy.unscale_action(action) if policy.squash_output else np.clip(action, space.low, space.high)
+        return action.item() if discrete else action
+
+    return act

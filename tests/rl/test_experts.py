@@ -1,0 +1,43 @@
+"""The expert collector's per-step action (``experts.deterministic_policy``) against SB3's own
+``predict(obs, deterministic=True)``: the same actions, bit for bit, for the three kinds of
+policy the packs' experts are (a categorical PPO, a Gaussian PPO clipped to its Box, a squashed
+SAC unscaled to its Box)."""
+
+from __future__ import annotations
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from stable_baselines3 import PPO, SAC
+
+from sdrl_bench.rl.experts import deterministic_policy
+
+
+@pytest.mark.parametrize("env_id,algo,discrete", [
+    ("LunarLander-v3", PPO, True),
+    ("Pendulum-v1", PPO, False),
+    ("MountainCarContinuous-v0", SAC, False),
+])
+def test_the_collectors_action_is_sb3s_predict(env_id, algo, discrete):
+    env = gym.make(env_id)
+    model = algo("MlpPolicy", env, seed=3, device="cpu", policy_kwargs={"net_arch": [32, 32]})
+    # weights away from their initialisation, so the actions spread over the space
+    noise = np.random.default_rng(0)
+    with torch.no_grad():
+        for p in model.policy.parameters():
+            p.add_(torch.as_tensor(0.5 * noise.standard_normal(tuple(p.shape)), dtype=torch.float32))
+    rng = np.random.default_rng(1)
+    low, high = env.observation_space.low, env.observation_space.high
+    obs = rng.uniform(np.maximum(low, -3), np.minimum(high, 3), size=(400, *low.shape)).astype(np.float32)
+    act = deterministic_policy(model, discrete)
+    ours = [act(o) for o in obs]
+    sb3 = [model.predict(o, deterministic=True)[0] for o in obs]
+    if discrete:
+        assert all(isinstance(a, int) for a in ours)
+        assert ours == [int(a) for a in sb3] and len(set(ours)) > 1
+    else:
+        assert all(a.shape == env.action_space.shape and a.dtype == np.float32 for a in ours)
+        assert np.array_equal(np.stack(ours), np.stack(sb3))
+        spread = np.ptp(np.stack(ours))
+        assert spread > 0.1 and np.all(np.stack(ours) <= env.action_space.high)
