@@ -25,6 +25,8 @@ within its budget counts as infinitely slow. The first evaluation at the thresho
 training, a selection on 10 episodes; each run's final evaluation (fresh episodes, seeds nothing
 trained or chose on) then judges it. "judged solved" counts the seeds it confirms, and the
 "judged" medians and ratios count the others as unsolved (a * marks them in the per-seed table).
+``--confirm N`` has every arm confirm a hit on N fresh real episodes before it stops
+(``rl.confirm_episodes``); those runs are kept apart from unconfirmed ones.
 
 Every arm is an ordinary ``sdrl-bench -m`` sweep into one MLflow store (the packs
 ``experiment=paper_<env>`` and ``experiment=fast_<env>``), so a rerun adopts finished jobs and
