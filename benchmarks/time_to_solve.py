@@ -287,6 +287,9 @@ def main() -> None:
     ap.add_argument("--confirm", type=int, default=0, help="rl.confirm_episodes for every arm: an evaluation at the "
                     "threshold stops training only if this many fresh real episodes reach it too (0: none; the "
                     "table reads only runs with the same value)")
+    ap.add_argument("--interleave", action="store_true", help="run the arms seed by seed (each seed's arms one after "
+                    "the other, one sweep each) instead of arm by arm: a machine whose speed drifts over the run then "
+                    "slows every arm alike; use with --jobs 1 for timings")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--rerun", action="store_true", help="run the arms again (resume=false); the table takes "
                     "each seed's latest run (e.g. after a code change the config does not show)")
@@ -300,8 +303,9 @@ def main() -> None:
     if not args.report_only:
         if any(COLLECTOR.get(k) == "expert" for k in args.arms):
             expert = pretrain_expert(args.env, workdir, uri)
-        for k in args.arms:
-            cli(workdir, arm_overrides(args.env, k, seeds, uri, args.jobs, args.rerun, args.transitions, args.confirm))
+        order = [(k, [s]) for s in seeds for k in args.arms] if args.interleave else [(k, seeds) for k in args.arms]
+        for k, some in order:
+            cli(workdir, arm_overrides(args.env, k, some, uri, args.jobs, args.rerun, args.transitions, args.confirm))
     report(uri, args.env, seeds, expert, args.transitions, args.confirm)
 
 
