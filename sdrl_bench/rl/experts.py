@@ -49,15 +49,16 @@ class ExpertPolicy:
     def path(self, spec: EnvSpec) -> Path:
         return Path(self.cache_dir) / f"{spec.name}-{self.agent.name}-s{self.seed}-n{int(self.budget)}.zip"
 
-    def load_or_train(self, spec: EnvSpec) -> tuple[Any, bool]:
-        """(the SB3 model, whether it came from the cache)."""
+    def load_or_train(self, spec: EnvSpec, act_only: bool = False) -> tuple[Any, bool]:
+        """(the SB3 model, whether it came from the cache). ``act_only``: a cached expert is
+        loaded to act, not to train on (``act_only_load``)."""
         self.agent.check(spec)
         path = self.path(spec)
         algo_cls = self.agent.algo.func if hasattr(self.agent.algo, "func") else self.agent.algo
         if path.is_file():
             log.info("expert: using cached %s", path)
             try:
-                return algo_cls.load(path, device="cpu"), True
+                return (act_only_load(algo_cls, path) if act_only else algo_cls.load(path, device="cpu")), True
             except Exception as exc:
                 raise ConfigError(f"collector: cached expert {path} cannot be loaded ({exc}); delete it to retrain") from exc
         log.warning(
@@ -78,8 +79,42 @@ class ExpertPolicy:
 
     def __call__(self, spec: EnvSpec, env: gym.Env) -> Policy:
         if self._model is None:
-            self._model, _ = self.load_or_train(spec)
+            self._model, _ = self.load_or_train(spec, act_only=True)
         return deterministic_policy(self._model, bool(spec.n_discrete_actions))
+
+
+class _NoOptimizer:
+    """Stands in for a policy's optimizer in a model loaded to act (``act_only_load``): it takes
+    the optimizer's arguments and saved state and refuses a step."""
+
+    def __init__(self, params: Any, lr: Any = None, **kwargs: Any):
+        pass
+
+    def load_state_dict(self, state: Any, strict: bool = True) -> None:  # SB3 passes strict to what is no Optimizer
+        pass
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        pass
+
+    def step(self, closure: Any = None) -> None:
+        raise RuntimeError("experts: this expert was loaded to act only (act_only_load); load it with SB3 to train it")
+
+
+def act_only_load(algo_cls: Any, path: str | Path, device: str = "cpu") -> Any:
+    """The SB3 model (of class ``algo_cls``) at ``path`` with its policy's optimizer left out
+    (``_NoOptimizer``), for a collector that only asks it for actions. Why: SB3's ``load`` builds
+    the optimizer, and the first torch optimizer a process builds imports torch's compiler stack,
+    0.99 s measured in a fresh process (``torch.optim.Adam`` alone); a one-seed surrogate run paid
+    it inside its collection time. The weights and the actions are SB3's (tested). An algorithm
+    that builds other optimizers itself (SAC's entropy coefficient) still builds those."""
+    from stable_baselines3.common.save_util import load_from_zip_file  # noqa: PLC0415
+
+    data, _, _ = load_from_zip_file(path, device=device, load_data=True)
+    policy_kwargs = {**(data.get("policy_kwargs") or {}), "optimizer_class": _NoOptimizer}
+    return algo_cls.load(path, device=device, custom_objects={"policy_kwargs": policy_kwargs})
 
 
 def deterministic_policy(model: Any, discrete: bool) -> Policy:

@@ -11,7 +11,7 @@ import pytest
 import torch
 from stable_baselines3 import PPO, SAC
 
-from sdrl_bench.rl.experts import deterministic_policy
+from sdrl_bench.rl.experts import act_only_load, deterministic_policy
 
 
 @pytest.mark.parametrize("env_id,algo,discrete", [
@@ -41,3 +41,20 @@ def test_the_collectors_action_is_sb3s_predict(env_id, algo, discrete):
         assert np.array_equal(np.stack(ours), np.stack(sb3))
         spread = np.ptp(np.stack(ours))
         assert spread > 0.1 and np.all(np.stack(ours) <= env.action_space.high)
+
+
+@pytest.mark.parametrize("env_id,algo", [("LunarLander-v3", PPO), ("MountainCarContinuous-v0", SAC)])
+def test_an_expert_loaded_to_act_has_sb3s_weights_and_actions_and_refuses_to_train(tmp_path, env_id, algo):
+    env = gym.make(env_id)
+    saved = algo("MlpPolicy", env, seed=5, device="cpu", policy_kwargs={"net_arch": [16]})
+    saved.save(tmp_path / "expert.zip")
+    ours, sb3 = act_only_load(algo, tmp_path / "expert.zip"), algo.load(tmp_path / "expert.zip", device="cpu")
+    a, b = ours.policy.state_dict(), sb3.policy.state_dict()
+    assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+    obs = np.stack([env.reset(seed=i)[0] for i in range(50)])
+    discrete = algo is PPO
+    assert np.array_equal(np.stack([deterministic_policy(ours, discrete)(o) for o in obs]),
+                          np.stack([deterministic_policy(sb3, discrete)(o) for o in obs]))
+    optimizer = ours.policy.optimizer if algo is PPO else ours.actor.optimizer  # SAC: one per network
+    with pytest.raises(RuntimeError, match="loaded to act only"):
+        optimizer.step()
