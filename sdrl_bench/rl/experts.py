@@ -130,6 +130,13 @@ def deterministic_policy(model: Any, discrete: bool) -> Policy:
     policy.set_training_mode(False)
     space = policy.action_space
     box = isinstance(space, gym.spaces.Box)
+    if not isinstance(policy.observation_space, gym.spaces.Box):  # SB3 preprocesses others (one-hot, dicts)
+
+        def predict(obs: np.ndarray):
+            action, _ = model.predict(obs, deterministic=True)
+            return action.item() if discrete else action
+
+        return predict
 
     def act(obs: np.ndarray):
         with th.no_grad():
