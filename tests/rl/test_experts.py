@@ -58,3 +58,17 @@ def test_an_expert_loaded_to_act_has_sb3s_weights_and_actions_and_refuses_to_tra
     optimizer = ours.policy.optimizer if algo is PPO else ours.actor.optimizer  # SAC: one per network
     with pytest.raises(RuntimeError, match="loaded to act only"):
         optimizer.step()
+
+
+def test_observations_that_are_no_box_go_through_sb3s_predict():
+    """A Discrete observation is one-hot encoded by SB3's preprocessing: the collector's action
+    is then ``predict``'s own."""
+    env = gym.make("FrozenLake-v1")
+    model = PPO("MlpPolicy", env, seed=2, device="cpu", policy_kwargs={"net_arch": [8]})
+    with torch.no_grad():
+        for p in model.policy.parameters():
+            p.add_(torch.linspace(-2, 2, p.numel()).reshape(p.shape))
+    act = deterministic_policy(model, True)
+    ours = [act(np.int64(s)) for s in range(16)]
+    assert ours == [int(model.predict(np.int64(s), deterministic=True)[0]) for s in range(16)]
+    assert all(isinstance(a, int) for a in ours)
