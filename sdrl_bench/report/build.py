@@ -271,6 +271,9 @@ def _recipe(group: Sequence[Mapping[str, Any]]) -> str:
         f"budgets {' / '.join(budgets)} steps" if budgets else "budgets not recorded")
     if every and episodes:
         rule = "stopped at the first one at the threshold" if stop else "the budgets run out (no stop)"
+        confirm = one("rl.confirm_episodes")
+        if stop and confirm not in (None, "0"):
+            rule += f" that {confirm} fresh real episodes confirm"
         text += f", a real evaluation of {episodes} episodes every {every:,} steps, {rule}"
     if final:
         text += f", judged on {final} final real episodes"

@@ -596,8 +596,8 @@ def test_a_studys_best_refit_is_not_a_fit_of_the_tables(fits_store: str) -> None
     assert rt.fidelity_table(runs).set_index(["env", "state"]).loc[("mountain_car", "x"), "mse"] < 1
 
 
-@pytest.mark.parametrize("stop,budget", [(True, 96), (False, 128)])
-def test_what_the_runs_did_is_read_from_the_runs(store: str, tmp_path, stop: bool, budget: int) -> None:
+@pytest.mark.parametrize("stop,budget,confirm", [(True, 96, 0), (False, 128, 0), (True, 96, 3)])
+def test_what_the_runs_did_is_read_from_the_runs(store: str, tmp_path, stop: bool, budget: int, confirm: int) -> None:
     """The transfer section's sentence about what the runs did (budgets, stop rule, evaluations,
     the model's data, the machine's load) comes from the runs' own params and metrics: change the
     pack and the sentence changes."""
@@ -608,11 +608,12 @@ def test_what_the_runs_did_is_read_from_the_runs(store: str, tmp_path, stop: boo
                       f"rl.real_steps={budget}", "rl.eval_every=64", "rl.eval_episodes=1", "rl.final_episodes=2",
                       f"rl.stop_when_solved={str(stop).lower()}", "collector.epsilon=0.3", "n_transitions=60",
                       "agent.algo.train_freq=16", "agent.algo.gradient_steps=1", "agent.algo.batch_size=32",
-                      "agent.algo.policy_kwargs.net_arch=[16]", "progress_bar=false")
+                      "agent.algo.policy_kwargs.net_arch=[16]", "progress_bar=false", f"rl.confirm_episodes={confirm}")
     run_train(cfg, build_fit_job(cfg), None)
     res = build_report(ReportInput(store, EXP), "t", tmp_path)
     md = (res.folder / "report.md").read_text()
     rule = "stopped at the first one at the threshold" if stop else "the budgets run out (no stop)"
+    rule += f" that {confirm} fresh real episodes confirm" if confirm else ""
     assert (f"mountain_car, sac (1 seeds): budgets {budget:,} surrogate / {budget:,} real steps, a real evaluation "
             f"of 1 episodes every 64 steps, {rule}, judged on 2 final real episodes; the surrogate's model from 60 "
             "real transitions (heuristic collector, eps 0.3); load average when the runs started") in md
