@@ -43,7 +43,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from sdrl_bench.cli.build import build_fit_job, compose, instantiate_key
 from sdrl_bench.pipeline import fit_dynamics
-from sdrl_bench.rl import jax_ppo
+from sdrl_bench.rl import jax_agent, jax_ppo
 from sdrl_bench.rl.agents import make_agent
 from sdrl_bench.rl.transfer import surrogate_vec_env
 from sdrl_bench.surrogate.model_env import ModelEnv
@@ -247,6 +247,7 @@ def main() -> None:
     recipes = args.recipes or list(env["recipes"])
     cfg = compose(env["fit"])
     torch.set_num_threads(int(cfg.torch_threads))  # as the harness trains SB3 (cli.train.prepare)
+    pool = jax_agent.size_cpu_pool(int(cfg.jax_threads))  # as it trains the compiled PPO (ditto)
     t = time.perf_counter()
     fit = fit_dynamics(build_fit_job(cfg))
     print(f"fit: {args.env} SINDy model from {len(fit.data.states):,} transitions ({' '.join(env['fit'])}) "
@@ -259,7 +260,8 @@ def main() -> None:
     load = os.getloadavg()
     print(f"\nmedian of {args.repeats} interleaved runs; load average {load[0]:.1f} (a busy machine makes these noisy); "
           f"(a): torch {torch.get_num_threads()} thread(s) (the harness's torch_threads); (b): jax {jax.__version__} on "
-          f"{jax.devices()[0].platform}, {len(os.sched_getaffinity(0))} core(s) for XLA's thread pool")
+          f"{jax.devices()[0].platform}, {pool} thread(s) in XLA's CPU pool (the harness's jax_threads), "
+          f"{len(os.sched_getaffinity(0))} core(s) for the process")
     print(f"matmul peak (jax, 1024 x 1024): float32 {peaks['float32']:.1f} GFLOP/s, float64 {peaks['float64']:.1f} GFLOP/s; "
           f"the layers' shape (1024 x 64 @ 64 x 64 + tanh, chained): {peaks['layer']:.1f} GFLOP/s")
     head = (f"{'recipe':<10} {'arm':<26} {'steps':>8} {'steps/s':>10} {'(b)/(a)':>8} {'rollout':>8} "

@@ -11,7 +11,7 @@ import tempfile
 from omegaconf import DictConfig, OmegaConf
 
 from sdrl_bench import tracking
-from sdrl_bench.cli.build import build_transfer_job, real_arm_key, run_label
+from sdrl_bench.cli.build import build_transfer_job, int_key, real_arm_key, run_label
 from sdrl_bench.rl.transfer import TransferJob, run_transfer
 from sdrl_bench.tracking.transfer import RunRecorder
 
@@ -48,8 +48,13 @@ def prepare(cfg: DictConfig, job):
     import torch
 
     torch.set_num_threads(int(cfg.torch_threads))
+    compiled = getattr(getattr(job.agent.algo, "func", None), "__name__", None) == "JaxPPO"
+    if compiled:  # before anything creates JAX's backend (the job's check may)
+        from sdrl_bench.rl.jax_agent import size_cpu_pool
+
+        size_cpu_pool(int_key(cfg, "jax_threads", minimum=0))
     checked = job.check()
-    if cfg.get("jax_cache_dir") and getattr(getattr(job.agent.algo, "func", None), "__name__", None) == "JaxPPO":
+    if cfg.get("jax_cache_dir") and compiled:
         from sdrl_bench.rl.jax_agent import use_compilation_cache
 
         use_compilation_cache(cfg.jax_cache_dir)

@@ -114,7 +114,7 @@ class ArmResult:
             "total_steps": real_model + real_train + (train_steps if self.arm == "surrogate" else 0),
             "eval_episodes": self.counts.get("eval_episodes", 0),
             "eval_steps": self.counts.get("evaluate", 0),
-            **({"confirmations": self.counts["confirmations"]} if "confirmations" in self.counts else {}),
+            **{k: self.counts[k] for k in ("confirmations", "xla_pool_threads") if k in self.counts},
             "final_eval_episodes": len(rets),
             "final_eval_steps": self.final_steps,
             "final_return_mean": float(rets.mean()),
@@ -217,6 +217,8 @@ def run_arm(
                    train_rollout_wall=result.rollout_wall_seconds)
     if hasattr(result.model, "compile_seconds"):  # a compiled agent (rl.jax_agent): its compiles, inside train_wall
         seconds["compile_wall"] = float(result.model.compile_seconds)
+    if getattr(result.model, "pool_threads", None) is not None:  # ditto: the threads that ran its programs
+        counts["xla_pool_threads"] = result.model.pool_threads
     sur = getattr(venv, "surrogate", None)
     if arm == "surrogate" and sur is not None:
         # a compiled agent steps its own copy of the surrogate and counts its divergences itself

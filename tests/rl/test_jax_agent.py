@@ -6,6 +6,9 @@ Dyna's refits are compiled again and trained on."""
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
 from collections import Counter
 
 import numpy as np
@@ -95,6 +98,7 @@ def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path)
     for arm in ("surrogate", "real"):
         assert 0 < run[f"metrics.{arm}/compile_wall_seconds"] < run[f"metrics.{arm}/train_wall_seconds"]
         assert run[f"metrics.{arm}/sb3/train/value_loss"] >= 0
+        assert run[f"metrics.{arm}/xla_pool_threads"] == 1  # jax_threads' default
     assert run["metrics.real/real_transitions_train"] == 1024
     assert any((tmp_path / "mlruns" / "jax_cache").iterdir())  # jax_cache_dir: the compiled programs, for the next run
     from mlflow.tracking import MlflowClient
@@ -180,4 +184,31 @@ def test_compiled_rollout_false_steps_the_surrogate_in_python_with_the_same_upda
     assert res.returncode == 2, res.stderr[-2000:]
     err = res.stderr.strip().splitlines()
     assert len(err) == 1 and "agent.algo.compiled_rollout: true or false, got 'maybe'" in err[0]
+    assert not (tmp_path / "mlruns" / "mlflow.db").exists() or search(store).empty  # no run was started
+
+
+def test_jax_threads_sizes_xlas_cpu_pool_without_pinning_a_thread(tmp_path):
+    # a fresh interpreter: the pool is made with JAX's backend, once per process
+    code = ("import json, os\n"
+            "from sdrl_bench.rl import jax_agent\n"
+            "cpus = os.sched_getaffinity(0)\n"
+            "before = jax_agent.cpu_pool_threads()\n"
+            "got = jax_agent.size_cpu_pool(1)\n"
+            "aff = {os.sched_getaffinity(int(t)) == cpus for t in os.listdir('/proc/self/task')}\n"
+            "import jax, jax.numpy as jnp\n"
+            "x = float(jax.jit(lambda a: (a @ a).sum())(jnp.ones((64, 64))))\n"
+            "print(json.dumps([before, got, jax_agent.cpu_pool_threads(), sorted(aff), x]))\n")
+    res = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stderr[-2000:]
+    before, got, after, aff, x = json.loads(res.stdout.strip().splitlines()[-1])
+    assert (before, got, after) == (0, 1, 1)  # no pool before the backend, one thread in it after
+    assert aff == [True]  # every thread, the pool's too, may run on every CPU the process may
+    assert x == 64.0 * 64 * 64
+
+
+def test_a_negative_jax_threads_is_one_line_before_any_run(store, tmp_path):
+    res = run_cli(*SMALL, "task=train", "jax_threads=-1", f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode == 2, res.stderr[-2000:]
+    err = res.stderr.strip().splitlines()
+    assert len(err) == 1 and "jax_threads must be >= 0, got -1" in err[0]
     assert not (tmp_path / "mlruns" / "mlflow.db").exists() or search(store).empty  # no run was started
