@@ -123,7 +123,16 @@ def deterministic_policy(model: Any, discrete: bool) -> Policy:
     observation as a float32 batch of one, then SB3's unscaling or clipping of a Box action), less
     ``predict``'s per-call checks and conversions. Why not ``predict``: a collector calls it once
     per real step, and it cost 96 us against 53 us here (3,000 LunarLander steps, measured; the
-    actions were the same). ``tests/rl/test_experts.py`` holds the two to equal actions."""
+    actions were the same). ``tests/rl/test_experts.py`` holds the two to equal actions.
+
+    For an ``ActorCriticPolicy`` (PPO, A2C) with a categorical or diagonal Gaussian action, the
+    torch ops of ``_predict`` are called directly: the actor's features, latent and action net,
+    then for a categorical the mode as torch's ``Categorical`` and SB3's ``mode`` compute it
+    (softmax of the logits less their logsumexp, argmax), with no distribution object; a Gaussian's
+    mode is its mean, the action net's output. Why: building the distribution, with its argument
+    checks, and looking the policy's device up were a third of the call (LunarLander's expert,
+    2,000 steps on one core: 135 us per action through ``_predict``, 88 us here; the same
+    actions)."""
     import torch as th  # noqa: PLC0415  (SB3's own dependency)
 
     policy = model.policy
@@ -138,10 +147,24 @@ def deterministic_policy(model: Any, discrete: bool) -> Policy:
 
         return predict
 
+    from stable_baselines3.common.distributions import CategoricalDistribution, DiagGaussianDistribution  # noqa: PLC0415
+    from stable_baselines3.common.policies import ActorCriticPolicy, BaseModel  # noqa: PLC0415
+
+    cls = type(policy)
+    direct = (isinstance(policy, ActorCriticPolicy) and type(policy.action_dist) in (CategoricalDistribution, DiagGaussianDistribution)
+              and all(getattr(cls, f) is getattr(ActorCriticPolicy, f) for f in ("_predict", "get_distribution", "_get_action_dist_from_latent")))
+    categorical = direct and isinstance(policy.action_dist, CategoricalDistribution)
+    device = policy.device
+
+    def forward(x):
+        if not direct:
+            return policy._predict(x, deterministic=True)
+        out = policy.action_net(policy.mlp_extractor.forward_actor(BaseModel.extract_features(policy, x, policy.pi_features_extractor)))
+        return th.argmax(th.softmax(out - out.logsumexp(dim=-1, keepdim=True), dim=-1), dim=1) if categorical else out
+
     def act(obs: np.ndarray):
         with th.no_grad():
-            action = policy._predict(th.as_tensor(np.asarray(obs, dtype=np.float32)[None], device=policy.device),
-                                     deterministic=True).cpu().numpy().reshape((-1, *space.shape))[0]
+            action = forward(th.as_tensor(np.asarray(obs, dtype=np.float32)[None], device=device)).cpu().numpy().reshape((-1, *space.shape))[0]
         if box:
             action = policy.unscale_action(action) if policy.squash_output else np.clip(action, space.low, space.high)
         return action.item() if discrete else action

@@ -134,6 +134,7 @@ def test_dyna_refits_are_compiled_again_and_trained_on(store):
     s = outcome.summary  # recorded with the run's metrics
     assert (s["agent_rollout_compiles"], s["agent_rollout_swaps"]) == (ppo.rollout_compiles, ppo.rollout_swaps)
     assert 0 < s["agent_compile_seconds"] <= s["train_wall_seconds"]
+    assert s["agent_pool_threads"] == ppo.pool_threads >= 1  # XLA's CPU pool that ran its programs
 
 
 def test_discrete_actions_get_a_categorical_policy_that_learns_cartpole(tmp_path):
