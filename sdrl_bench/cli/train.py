@@ -48,11 +48,12 @@ def prepare(cfg: DictConfig, job):
     import torch
 
     torch.set_num_threads(int(cfg.torch_threads))
+    jax_threads = int_key(cfg, "jax_threads", minimum=0)  # checked whatever the agent
     compiled = getattr(getattr(job.agent.algo, "func", None), "__name__", None) == "JaxPPO"
     if compiled:  # before anything creates JAX's backend (the job's check may)
         from sdrl_bench.rl.jax_agent import size_cpu_pool
 
-        size_cpu_pool(int_key(cfg, "jax_threads", minimum=0))
+        size_cpu_pool(jax_threads)
     checked = job.check()
     if cfg.get("jax_cache_dir") and compiled:
         from sdrl_bench.rl.jax_agent import use_compilation_cache

@@ -107,11 +107,15 @@ def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path)
     assert JaxPPO.load(path).num_timesteps == 1024
 
 
-def test_a_setting_the_compiled_ppo_lacks_is_one_line_before_any_run(store, tmp_path):
-    res = run_cli(*SMALL, "task=train", "+agent.algo.target_kl=0.01", f"tracking.uri={store}", cwd=tmp_path)
+@pytest.mark.parametrize("override,message", [
+    ("+agent.algo.target_kl=0.01", "agent.algo sets ['target_kl']"),  # a setting the compiled PPO lacks
+    ("jax_threads=-1", "jax_threads must be >= 0, got -1"),
+])
+def test_a_bad_compiled_ppo_setting_is_one_line_before_any_run(store, tmp_path, override, message):
+    res = run_cli(*SMALL, "task=train", override, f"tracking.uri={store}", cwd=tmp_path)
     assert res.returncode == 2, res.stderr[-2000:]
     err = res.stderr.strip().splitlines()
-    assert len(err) == 1 and "agent.algo sets ['target_kl']" in err[0]
+    assert len(err) == 1 and message in err[0]
     assert not (tmp_path / "mlruns" / "mlflow.db").exists() or search(store).empty  # no run was started
 
 
@@ -205,11 +209,3 @@ def test_jax_threads_sizes_xlas_cpu_pool_without_pinning_a_thread(tmp_path):
     assert (before, got, after) == (0, 1, 1)  # no pool before the backend, one thread in it after
     assert aff == [True]  # every thread, the pool's too, may run on every CPU the process may
     assert x == 64.0 * 64 * 64
-
-
-def test_a_negative_jax_threads_is_one_line_before_any_run(store, tmp_path):
-    res = run_cli(*SMALL, "task=train", "jax_threads=-1", f"tracking.uri={store}", cwd=tmp_path)
-    assert res.returncode == 2, res.stderr[-2000:]
-    err = res.stderr.strip().splitlines()
-    assert len(err) == 1 and "jax_threads must be >= 0, got -1" in err[0]
-    assert not (tmp_path / "mlruns" / "mlflow.db").exists() or search(store).empty  # no run was started
