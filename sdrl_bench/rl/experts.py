@@ -131,8 +131,8 @@ def deterministic_policy(model: Any, discrete: bool) -> Policy:
     (softmax of the logits less their logsumexp, argmax), with no distribution object; a Gaussian's
     mode is its mean, the action net's output. Why: building the distribution, with its argument
     checks, and looking the policy's device up were a third of the call (LunarLander's expert,
-    2,000 steps on one core: 135 us per action through ``_predict``, 88 us here; the same
-    actions)."""
+    2,000 steps on one core of a slower host than the figures above: 135 us per action through
+    ``_predict``, 73-88 us here; the same actions)."""
     import torch as th  # noqa: PLC0415  (SB3's own dependency)
 
     policy = model.policy

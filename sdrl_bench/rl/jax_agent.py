@@ -169,10 +169,10 @@ class JaxPPO:
         self.verbose = verbose
         self.num_timesteps = 0
         self.compile_seconds = 0.0
+        """Seconds spent compiling (rollout and update; counted inside ``learn``'s wall)."""
         self.pool_threads: int | None = None
         """Threads in XLA's CPU pool when the networks were built (``cpu_pool_threads``; config
         ``jax_threads``): they run every compiled program."""
-        """Seconds spent compiling (rollout and update; counted inside ``learn``'s wall)."""
         self.rollout_compiles = 0
         """Rollouts compiled: one per surrogate structure trained in."""
         self.rollout_swaps = 0
