@@ -30,6 +30,9 @@ GFLOP/s); (a)'s are split by SB3's rollout callbacks. Wall-clock seconds: run it
 machine (other load slows both arms, not necessarily alike).
 
     .venv/bin/python benchmarks/compiled_ppo.py [--env mountain_car] [--steps 131072] [--repeats 3] [--quick]
+
+``--jax-threads 0`` gives XLA its default pool (one thread per core) in place of the harness's
+``jax_threads``: the pool is made once per process, so compare two runs.
 """
 
 from __future__ import annotations
@@ -231,6 +234,8 @@ def main() -> None:
     ap.add_argument("--recipes", nargs="+", default=None, help="default: all of the env's (ENVS)")
     ap.add_argument("--cores", type=int, default=None, help="pin this process to its first N cores (both arms; "
                     "e.g. 1 for a per-core comparison); default: all it may use")
+    ap.add_argument("--jax-threads", type=int, default=None, help="threads in XLA's CPU pool (default: the config's "
+                    "jax_threads, as the harness trains; 0: XLA's default, one per core)")
     ap.add_argument("--quick", action="store_true", help="a smoke run: 2^14 steps, 1 repeat, 2 eval episodes")
     args = ap.parse_args()
     if args.quick:
@@ -247,7 +252,7 @@ def main() -> None:
     recipes = args.recipes or list(env["recipes"])
     cfg = compose(env["fit"])
     torch.set_num_threads(int(cfg.torch_threads))  # as the harness trains SB3 (cli.train.prepare)
-    pool = jax_agent.size_cpu_pool(int(cfg.jax_threads))  # as it trains the compiled PPO (ditto)
+    pool = jax_agent.size_cpu_pool(int(cfg.jax_threads) if args.jax_threads is None else args.jax_threads)  # ditto
     t = time.perf_counter()
     fit = fit_dynamics(build_fit_job(cfg))
     print(f"fit: {args.env} SINDy model from {len(fit.data.states):,} transitions ({' '.join(env['fit'])}) "
@@ -260,7 +265,7 @@ def main() -> None:
     load = os.getloadavg()
     print(f"\nmedian of {args.repeats} interleaved runs; load average {load[0]:.1f} (a busy machine makes these noisy); "
           f"(a): torch {torch.get_num_threads()} thread(s) (the harness's torch_threads); (b): jax {jax.__version__} on "
-          f"{jax.devices()[0].platform}, {pool} thread(s) in XLA's CPU pool (the harness's jax_threads), "
+          f"{jax.devices()[0].platform}, {pool} thread(s) in XLA's CPU pool (--jax-threads, else the harness's jax_threads), "
           f"{len(os.sched_getaffinity(0))} core(s) for the process")
     print(f"matmul peak (jax, 1024 x 1024): float32 {peaks['float32']:.1f} GFLOP/s, float64 {peaks['float64']:.1f} GFLOP/s; "
           f"the layers' shape (1024 x 64 @ 64 x 64 + tanh, chained): {peaks['layer']:.1f} GFLOP/s")
