@@ -46,7 +46,9 @@ def test_the_collectors_action_is_sb3s_predict(env_id, algo, discrete):
 @pytest.mark.parametrize("env_id,algo", [("LunarLander-v3", PPO), ("MountainCarContinuous-v0", SAC)])
 def test_an_expert_loaded_to_act_has_sb3s_weights_and_actions_and_refuses_to_train(tmp_path, env_id, algo):
     env = gym.make(env_id)
-    saved = algo("MlpPolicy", env, seed=5, device="cpu", policy_kwargs={"net_arch": [16]})
+    saved = algo("MlpPolicy", env, seed=5, device="cpu", policy_kwargs={"net_arch": [16]},
+                 **({"n_steps": 64, "batch_size": 32} if algo is PPO else {"learning_starts": 10}))
+    saved.learn(64)  # optimizer states in the archive (SAC: its entropy coefficient's optimizer too)
     saved.save(tmp_path / "expert.zip")
     ours, sb3 = act_only_load(algo, tmp_path / "expert.zip"), algo.load(tmp_path / "expert.zip", device="cpu")
     a, b = ours.policy.state_dict(), sb3.policy.state_dict()
@@ -55,6 +57,10 @@ def test_an_expert_loaded_to_act_has_sb3s_weights_and_actions_and_refuses_to_tra
     discrete = algo is PPO
     assert np.array_equal(np.stack([deterministic_policy(ours, discrete)(o) for o in obs]),
                           np.stack([deterministic_policy(sb3, discrete)(o) for o in obs]))
+    if algo is SAC:  # an optimizer SB3 builds itself keeps its state
+        assert torch.equal(ours.log_ent_coef, sb3.log_ent_coef) and ours.log_ent_coef.item() != 0.0
+        a, b = ours.ent_coef_optimizer.state_dict()["state"], sb3.ent_coef_optimizer.state_dict()["state"]
+        assert a.keys() == b.keys() == {0} and all(torch.equal(a[0][k], b[0][k]) for k in b[0])
     optimizer = ours.policy.optimizer if algo is PPO else ours.actor.optimizer  # SAC: one per network
     with pytest.raises(RuntimeError, match="loaded to act only"):
         optimizer.step()
