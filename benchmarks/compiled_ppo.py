@@ -284,10 +284,18 @@ def main() -> None:
                                         f"compile ~ {r['first'] - r['later']:.1f} s" for r in rows))
     print("(b) with its compile (first call): " + "; ".join(
         f"{r['name']}: {r['steps'] / r['first']:,.0f} steps/s, {r['steps'] / r['first'] / r['a']['rate']:.1f}x (a)" for r in rows))
+    def at_rate(r: dict, gflops: float) -> float:
+        """(b)'s steps/s were its update's matmul FLOPs done at ``gflops`` and nothing else, plus its rollout."""
+        return r["rollout_size"] / (r["flops"] / (gflops * 1e9) + r["roll_s"])
+
     print("were the update at the layers' shape rate (its matmul FLOPs / that rate, plus (b)'s rollout; a forward-only "
           "micro-benchmark, not a bound: the update's products can run faster): " + "; ".join(
-        f"{r['name']}: {r['rollout_size'] / (r['flops'] / (peaks['layer'] * 1e9) + r['roll_s']):,.0f} steps/s, "
-        f"{r['rollout_size'] / (r['flops'] / (peaks['layer'] * 1e9) + r['roll_s']) / r['a']['rate']:.1f}x (a)" for r in rows))
+        f"{r['name']}: {at_rate(r, peaks['layer']):,.0f} steps/s, {at_rate(r, peaks['layer']) / r['a']['rate']:.1f}x (a)"
+        for r in rows))
+    print("ceiling of (b) on this machine (the update's matmul FLOPs at the float32 matmul peak, every other op of the "
+          "update free, plus (b)'s rollout): " + "; ".join(
+        f"{r['name']}: {at_rate(r, peaks['float32']):,.0f} steps/s, {at_rate(r, peaks['float32']) / r['a']['rate']:.1f}x "
+        f"(a); (b) reaches {r['b']['rate'] / at_rate(r, peaks['float32']):.0%} of it" for r in rows))
     print("rollout: share of training wall time in rollouts ((b): its rollout and update jitted and timed apart); "
           "update s: one iteration's update; sur. return: mean deterministic return in the surrogate after training")
 

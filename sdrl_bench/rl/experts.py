@@ -114,7 +114,7 @@ def act_only_load(algo_cls: Any, path: str | Path, device: str = "cpu") -> Any:
       surrogate run paid it inside its collection time;
     * it unpickles every saved state in the archive, the optimizers' too (Adam's two moments per
       weight: MountainCar's SAC expert keeps 124 kB of them beside 100 kB of weights), and the
-      policy's optimizer class has to be read from the archive before ``load`` reads it again.
+      policy's settings had to be read from the archive before ``load`` read it again.
 
     So the archive is read once: its ``data`` for the policy's settings, and SB3's ``load`` gets
     an uncompressed copy in memory in which each policy optimizer's state (``*.optimizer.pth``,
