@@ -192,6 +192,7 @@ class JaxPPO:
         self._cenv = self._cobs = None  # the compiled loop's env state and observations
         self._last_obs = None  # the Python loop's
         self._act = self._value = None
+        self._host: tuple | None = None  # (the net it was made of, jax_ppo.HostPolicy): predict's deterministic action
         self._bounds: tuple[np.ndarray, np.ndarray] | None = None
         if env is not None:
             self._setup(env)
@@ -234,7 +235,7 @@ class JaxPPO:
 
     def _init(self, cfg: PPOConfig, n_obs: int, n_act: int, low: np.ndarray | None, high: np.ndarray | None) -> None:
         """Networks (a categorical policy when ``low`` is None), optimiser, compiled functions."""
-        jax, jnp = self._jax, self._jnp
+        jax = self._jax
         self.cfg, self._bounds, self._n_obs, self._n_act = cfg, (low, high), n_obs, n_act
         self.discrete = low is None
         self.net = jax_ppo.init_net(self._split(), n_obs, n_act, cfg, self.discrete)
@@ -254,8 +255,6 @@ class JaxPPO:
 
         self._act = jax.jit(act)
         self._value = jax.jit(jax_ppo.value)
-        lo, hi = (None, None) if self.discrete else (jnp.asarray(low), jnp.asarray(high))
-        self._mean = jax.jit(lambda net, obs: jax_ppo.deterministic_action(net, obs, lo, hi))
         self._explore = jax.jit(lambda net, key: jax_ppo.exploration_matrices(net, key, cfg.n_envs))
 
     def _timed_compile(self, fn: Any, *args: Any) -> Any:
@@ -411,8 +410,10 @@ class JaxPPO:
         obs = np.asarray(observation, np.float32)
         single = obs.ndim == 1
         batch = obs.reshape(1 if single else obs.shape[0], -1)
-        if deterministic:
-            out = np.asarray(self._mean(self.net, batch))
+        if deterministic:  # on the host: an evaluation asks once per real step (jax_ppo.HostPolicy)
+            if self._host is None or self._host[0] is not self.net:
+                self._host = (self.net, jax_ppo.HostPolicy(self.net, *self._bounds))
+            out = self._host[1](batch)
         else:
             explore = jax_ppo.exploration_matrices(self.net, self._split(), batch.shape[0])
             action, _, _ = jax_ppo.sample_action(self.net, batch, self._split(), explore)

@@ -22,6 +22,7 @@ from helpers import compose_cfg, run_cli, search  # noqa: E402
 from sdrl_bench.cli.build import build_dyna_job, build_fit_job, instantiate_key  # noqa: E402
 from sdrl_bench.pipeline import fit_dynamics  # noqa: E402
 from sdrl_bench.rl.agents import RealEvalCallback, make_agent, real_vec_env, train  # noqa: E402
+from sdrl_bench.rl import jax_ppo  # noqa: E402
 from sdrl_bench.rl.jax_agent import JaxPPO  # noqa: E402
 from sdrl_bench.rl.transfer import surrogate_vec_env  # noqa: E402
 
@@ -54,8 +55,14 @@ def test_in_the_surrogate_it_trains_compiled_and_the_callback_sees_whole_rollout
     assert c.use_sde and c.log_std_init == -1.0 and c.normalize_reward and c.learning_rate == 3e-3
     assert ppo.net["log_std"].shape == (64, 1)
     before = np.asarray(ppo.net["actor"][0][0]).copy()
+    obs = np.random.default_rng(0).uniform([-1.2, -0.07], [0.6, 0.07], size=(50, 2)).astype(np.float32)
+    acted, _ = ppo.predict(obs, deterministic=True)
     ppo.learn(512, reset_num_timesteps=False)  # trains on: one more rollout and update
     assert ppo.num_timesteps == 2560 and ppo.rollout_compiles == 1 and not np.array_equal(before, ppo.net["actor"][0][0])
+    # the deterministic action (on the host) is the trained net's: the jitted action's, not the one before
+    now, _ = ppo.predict(obs, deterministic=True)
+    jitted = np.asarray(jax_ppo.deterministic_action(ppo.net, obs, *ppo._bounds))
+    assert np.allclose(now, jitted, rtol=0, atol=1e-6) and not np.allclose(now, acted, rtol=0, atol=1e-6)
     ppo.learn(512)  # SB3's default: the count starts again, from fresh episodes, with the same program
     assert ppo.num_timesteps == 512 and ppo.rollout_compiles == 1
 

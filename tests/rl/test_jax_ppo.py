@@ -156,7 +156,8 @@ def test_what_it_does_not_cover_is_refused_and_a_recipe_maps_onto_its_config(pen
 def test_the_policy_is_sb3s_policy_given_its_weights(pendulum, kind):
     """SB3's PPO policy (Gaussian, gSDE on Pendulum; categorical on CartPole) with its weights
     copied in: the same values, log-probabilities and entropies, and with gSDE the same action
-    for the same exploration matrices; the log-std has SB3's shape and initial value."""
+    for the same exploration matrices; the log-std has SB3's shape and initial value; the
+    deterministic action computed on the host (``HostPolicy``) is the jitted one's and SB3's."""
     import gymnasium as gym
     import torch as th
     from stable_baselines3 import PPO
@@ -191,11 +192,23 @@ def test_the_policy_is_sb3s_policy_given_its_weights(pendulum, kind):
     assert np.allclose(np.asarray(jax_ppo.value(net, jnp.asarray(obs))), v_sb3[:, 0], rtol=1e-5, atol=1e-5)
     assert np.allclose(np.asarray(logp), logp_sb3, rtol=1e-5, atol=1e-5)
     assert np.allclose(np.asarray(ent), ent_sb3, rtol=1e-5, atol=1e-5)
+    with th.no_grad():
+        best = pol.predict(obs, deterministic=True)[0]
     if discrete:
-        with th.no_grad():
-            best = pol.predict(obs, deterministic=True)[0]
         assert np.array_equal(np.asarray(jax_ppo.deterministic_action(net, jnp.asarray(obs))), best)
+        assert np.array_equal(jax_ppo.HostPolicy(net)(obs), best) and len(set(best.tolist())) == 2
         return
+    # the deterministic action on the host (numpy) is the jitted one's and SB3's, clipped where they clip it
+    low, high = env.action_space.low, env.action_space.high
+    host = jax_ppo.HostPolicy(net, low, high)(obs)
+    assert host.dtype == np.float32 and host.shape == (64, 1) and np.ptp(host) > 1e-3, np.ptp(host)
+    assert np.allclose(host, np.asarray(jax_ppo.deterministic_action(net, jnp.asarray(obs), low, high)), rtol=0, atol=1e-5)
+    assert np.allclose(host, best, rtol=0, atol=1e-5)
+    w, b = net["actor"][-1]
+    wide = {**net, "actor": [*net["actor"][:-1], (w * 1000.0, b)]}  # means across the bounds: some clipped, some not
+    host = jax_ppo.HostPolicy(wide, low, high)(obs)
+    assert 0 < np.sum(np.abs(host) == high[0]) < 60
+    assert np.allclose(host, np.asarray(jax_ppo.deterministic_action(wide, jnp.asarray(obs), low, high)), rtol=1e-6, atol=1e-5)
     mean, std, _ = jax_ppo.policy(net, jnp.asarray(obs))
     if use_sde:
         assert np.ptp(np.asarray(std)) > 0.1  # state-dependent
