@@ -752,18 +752,16 @@ class JaxPolicy:
     """The trained policy's deterministic action: the Gaussian's mean, clipped to the action
     space, or the most probable discrete action. ``policy(obs)`` for one observation (n_obs,) or
     a batch (N, n_obs) (numpy in, numpy out); ``predict(obs, deterministic=True)`` as SB3's, so
-    ``rl.agents.evaluate_real`` plays it in the real env."""
+    ``rl.agents.evaluate_real`` plays it in the real env. Computed on the host (``HostPolicy``)."""
 
     def __init__(self, params: dict[str, Any]):
-        jax, jnp, _ = _modules()
         self.params = params
-        low, high = params["action_low"], params["action_high"]
-        self._act = jax.jit(lambda net, obs: deterministic_action(net, obs, low, high))
+        self._act = HostPolicy(params["net"], params["action_low"], params["action_high"])
 
     def __call__(self, obs: Any) -> np.ndarray:
         obs = np.asarray(obs, dtype=np.float32)
         single = obs.ndim == 1
-        out = np.asarray(self._act(self.params["net"], obs[None] if single else obs))
+        out = self._act(obs[None] if single else obs)
         return out[0] if single else out
 
     def predict(self, obs: Any, state: Any = None, episode_start: Any = None, deterministic: bool = True):
