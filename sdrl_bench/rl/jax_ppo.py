@@ -640,10 +640,14 @@ def shuffles(key: Any, n_epochs: int, n: int) -> Any:
     return (jnp.sort(packed, axis=1) & ((1 << b) - 1)).astype(jnp.int32)
 
 
-def make_update(cfg: PPOConfig) -> Callable:
+def make_update(cfg: PPOConfig, shuffled_outside: bool = False) -> Callable:
     """``update(net, opt_state, batch, key) -> (net, opt_state, stats)``: ``cfg.n_epochs`` passes
     over ``batch`` (obs, action, log_prob, advantage, return; first axis the samples) in shuffled
-    minibatches of ``cfg.batch_size``, one Adam step each."""
+    minibatches of ``cfg.batch_size``, one Adam step each, each epoch's permutation drawn from
+    ``key`` (``shuffles``). ``shuffled_outside``: ``update(net, opt_state, batch, perms)`` takes
+    the epochs' permutations as an input instead, (n_epochs, n) int32, one permutation of range(n)
+    a row (``rl.jax_agent`` draws them on the host, where numpy shuffles 4 x 4,096 indices in
+    0.15 ms against the 0.53 ms of ``shuffles``' sort; measured on this 2-core machine)."""
     jax, jnp, optax = _modules()
     tx = optimizer(cfg)
     c = cfg.clip_range
@@ -674,12 +678,14 @@ def make_update(cfg: PPOConfig) -> Callable:
         mbs = jax.tree_util.tree_map(lambda x: x[perm].reshape(n // cfg.batch_size, cfg.batch_size, *x.shape[1:]), batch)
         return jax.lax.scan(minibatch, carry, mbs)
 
-    def update(net, opt_state, batch, key):
-        (net, opt_state), aux = jax.lax.scan(lambda c_, p: epoch(c_, p, batch), (net, opt_state),
-                                             shuffles(key, cfg.n_epochs, batch[0].shape[0]))
+    def update_on(net, opt_state, batch, perms):
+        (net, opt_state), aux = jax.lax.scan(lambda c_, p: epoch(c_, p, batch), (net, opt_state), perms)
         return net, opt_state, jax.tree_util.tree_map(jnp.mean, aux)
 
-    return update
+    def update(net, opt_state, batch, key):
+        return update_on(net, opt_state, batch, shuffles(key, cfg.n_epochs, batch[0].shape[0]))
+
+    return update_on if shuffled_outside else update
 
 
 def make_batch(cfg: PPOConfig, traj: Transition, last_value: Any) -> tuple:

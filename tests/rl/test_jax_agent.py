@@ -92,6 +92,13 @@ def test_a_saved_agent_loads_and_acts_the_same(fitted, tmp_path):
     assert one.shape == (1,) and np.allclose(one, a[0], rtol=0, atol=1e-6)  # a batch of one: rounding apart
     sampled, _ = again.predict(obs, deterministic=False)
     assert sampled.shape == a.shape and not np.array_equal(sampled, a) and np.abs(sampled).max() <= 1.0
+    # the same seed trains the same networks (jax keys and the host's draws alike); another seed others
+    twin = make_agent(agent, surrogate_vec_env(model, spec, agent.n_envs, seed=0), seed=3)
+    other = make_agent(agent, surrogate_vec_env(model, spec, agent.n_envs, seed=0), seed=4)
+    twin.learn(1024), other.learn(1024)
+    leaves = lambda p: jax.tree_util.tree_leaves(p.net)  # noqa: E731
+    assert all(np.array_equal(x, y) for x, y in zip(leaves(ppo), leaves(twin), strict=True))
+    assert not np.array_equal(leaves(ppo)[0], leaves(other)[0])
 
 
 def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path):

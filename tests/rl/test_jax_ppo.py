@@ -285,6 +285,10 @@ def test_gae_and_one_update_are_sb3s_given_its_rollout_and_weights(env_id):
     actions = flat(buf.actions[..., 0]).astype(jnp.int32) if discrete else flat(buf.actions)
     batch = (flat(buf.observations), actions, flat(buf.log_probs), flat(buf.advantages), flat(buf.returns))
     new, _, _ = jax.jit(jax_ppo.make_update(cfg))(net, jax_ppo.optimizer(cfg).init(net), batch, jax.random.key(0))
+    # the permutations given as an input (rl.jax_agent draws them on the host): the same update, bit for bit
+    perms = jax_ppo.shuffles(jax.random.key(0), cfg.n_epochs, batch[0].shape[0])
+    given, _, _ = jax.jit(jax_ppo.make_update(cfg, shuffled_outside=True))(net, jax_ppo.optimizer(cfg).init(net), batch, perms)
+    assert all(np.array_equal(a, b) for a, b in zip(jax.tree_util.tree_leaves(given), jax.tree_util.tree_leaves(new), strict=True))
     sb3.train()
     after = weights()
     for name in ("actor", "critic"):
