@@ -99,6 +99,8 @@ class ArmResult:
     maps: list[PolicyMap] = field(default_factory=list)
     fit: FitResult | None = None
     surrogate_stats: dict[str, float] = field(default_factory=dict)
+    xla_pool_threads: int | None = None
+    """A compiled agent's (``rl.jax_agent``): the threads of XLA's CPU pool that ran its programs."""
 
     def metrics(self, spec: EnvSpec, train_steps: int, stop_when_solved: bool = False, expert: str | None = None,
                 tuning: int = 0) -> dict[str, float]:
@@ -114,7 +116,8 @@ class ArmResult:
             "total_steps": real_model + real_train + (train_steps if self.arm == "surrogate" else 0),
             "eval_episodes": self.counts.get("eval_episodes", 0),
             "eval_steps": self.counts.get("evaluate", 0),
-            **{k: self.counts[k] for k in ("confirmations", "xla_pool_threads") if k in self.counts},
+            **({"confirmations": self.counts["confirmations"]} if "confirmations" in self.counts else {}),
+            **({"xla_pool_threads": self.xla_pool_threads} if self.xla_pool_threads is not None else {}),
             "final_eval_episodes": len(rets),
             "final_eval_steps": self.final_steps,
             "final_return_mean": float(rets.mean()),
@@ -217,8 +220,6 @@ def run_arm(
                    train_rollout_wall=result.rollout_wall_seconds)
     if hasattr(result.model, "compile_seconds"):  # a compiled agent (rl.jax_agent): its compiles, inside train_wall
         seconds["compile_wall"] = float(result.model.compile_seconds)
-    if getattr(result.model, "pool_threads", None) is not None:  # ditto: the threads that ran its programs
-        counts["xla_pool_threads"] = result.model.pool_threads
     sur = getattr(venv, "surrogate", None)
     if arm == "surrogate" and sur is not None:
         # a compiled agent steps its own copy of the surrogate and counts its divergences itself
@@ -239,6 +240,7 @@ def run_arm(
         arm=arm, model=result.model, curve=result.curve, final_returns=final.returns.tolist(),
         final_successes=final.successes.tolist(), final_steps=final.steps, counts=dict(counts),
         seconds=seconds, maps=maps, fit=fit_result, surrogate_stats=stats,
+        xla_pool_threads=getattr(result.model, "pool_threads", None),
     )
 
 
