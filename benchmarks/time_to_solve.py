@@ -16,6 +16,13 @@ threshold (``rl.stop_when_solved=true``, 10 real episodes per evaluation):
 
 (b'), (d') and (e') need the optional ``[jax]`` extra; their compile seconds (``compile_wall_seconds``, inside
 the training wall) are printed apart, and the ratios with the compiled arms are given with and without them.
+Before the timed runs, each compiled arm runs once, short and untimed, on a seed of its own (``WARM_SEED``):
+that warm-up fills JAX's persistent compilation cache (``jax_cache_dir``, under ``<workdir>/mlruns``), so
+every timed run loads its programs from the cache instead of the first seed alone paying the cold
+compile. The warm-up's compile is the cold one: it is printed apart (a one-time cost, as the expert's
+training is), with the judged ratios as they would be had every run compiled cold; each run records
+how many of its programs came from the cache (``compile_cache_hits`` of ``compile_programs``).
+``--no-warm-up`` skips it (the first run of each compiled arm then compiles cold).
 
 For each: training wall and CPU seconds to the first solved evaluation (the surrogate arms'
 collection and fit included, every evaluation's time excluded and reported apart), real
@@ -82,6 +89,9 @@ LABELS = {"a": "(a) zoo recipe, real env", "b": "(b) fast recipe, real envs (con
 # finer than the paper packs' so the first solved point is not rounded up by a coarse grid
 ZOO_EVAL_EVERY = {"mountain_car": 1000, "lunar_lander": 16384}
 EVAL_EPISODES = 10
+WARM_SEED = 1_000_000
+"""The compiled arms' warm-up runs' seed: none of a table's seeds (``collect`` reads only runs
+stopped when solved; the warm-ups are not)."""
 
 
 def parse_seeds(text: str) -> list[int]:
@@ -122,6 +132,15 @@ def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int, rer
     return out
 
 
+def warm_up(env: str, arm: str, workdir: Path, uri: str, transitions: int | None = None) -> None:
+    """One short untimed run of compiled arm ``arm`` (seed ``WARM_SEED``, one rollout, one final
+    episode, not stopped when solved): it compiles the arm's programs cold and leaves them in JAX's
+    persistent compilation cache for the timed runs. Its own real steps (model data, evaluations)
+    are counted in its run, as any run's; nothing of it reaches a timed run but the cache."""
+    over = [o for o in arm_overrides(env, arm, [WARM_SEED], uri, 1, True, transitions) if not o.startswith("rl.stop_when_solved")]
+    cli(workdir, [*over, "rl.stop_when_solved=false", "rl.surrogate_steps=1", "rl.real_steps=1", "rl.final_episodes=1"])
+
+
 def pack_of(env: str, arm: str) -> str:
     """The pack an arm runs (the compiled arms run the fast pack, or its terrain variant)."""
     kind = PACK_KIND.get(arm, "fast")
@@ -148,17 +167,23 @@ def pack_transitions(env: str) -> int:
     return int(compose([f"experiment={PACKS[env]['fast']}"]).n_transitions)
 
 
-def collect(uri: str, env: str, transitions: int | None = None, confirm: int = 0) -> dict[str, dict[int, dict[str, float]]]:
+def collect(uri: str, env: str, transitions: int | None = None, confirm: int = 0,
+            warm_ups: bool = False) -> dict[str, dict[int, dict[str, float]]]:
     """{arm letter: {seed: metrics of that arm}} from the finished time-to-solve runs (stopped
     when solved, 10 episodes per evaluation, ``confirm`` confirmation episodes) of ``env``, the
     surrogate arms' among those fitted on ``transitions`` real transitions (None: the pack's);
-    the latest run of a seed wins."""
+    the latest run of a seed wins. ``warm_ups``: the compiled arms' warm-up runs instead."""
     want = str(transitions if transitions is not None else pack_transitions(env))
     out: dict[str, dict[int, dict[str, float]]] = {k: {} for k in ARMS}
     for r in find_runs(uri, "sdrl-bench", "tags.`sdrl.kind` = 'transfer'"):
         p, t = r["params"], r["tags"]
-        if (r["status"] != "FINISHED" or t.get("env") != env or p.get("rl.stop_when_solved") != "True"
-                or p.get("rl.eval_episodes") != str(EVAL_EPISODES) or p.get("rl.confirm_episodes", "0") != str(confirm)):
+        if r["status"] != "FINISHED" or t.get("env") != env:
+            continue
+        if warm_ups:
+            if t.get("seed") != str(WARM_SEED) or p.get("rl.stop_when_solved") != "False":
+                continue
+        elif (p.get("rl.stop_when_solved") != "True" or p.get("rl.eval_episodes") != str(EVAL_EPISODES)
+              or p.get("rl.confirm_episodes", "0") != str(confirm)):
             continue
         recipe = next((k for k, v in AGENTS[env].items() if v == t.get("agent")), None)
         where = t.get("arms")
@@ -185,19 +210,24 @@ def judged(m: dict[str, float]) -> bool:
     return "solved_wall_seconds" in m and m.get("judged_solved", 0.0) >= 1.0
 
 
-def arm_row(metrics: dict[int, dict[str, float]], seeds: list[int]) -> dict[str, float]:
+def arm_row(metrics: dict[int, dict[str, float]], seeds: list[int], cold_compile: float = math.nan) -> dict[str, float]:
     """Medians over the seeds (unsolved: infinite time and transitions); ``*_judged``: the same
-    with a seed its final evaluation does not judge solved counted as unsolved."""
+    with a seed its final evaluation does not judge solved counted as unsolved;
+    ``wall_judged_cold``: with ``cold_compile`` seconds (the warm-up's) in place of each run's
+    compile, as if every run had compiled cold."""
     rows = [metrics[s] for s in seeds if s in metrics]
     solved = [m for m in rows if "solved_wall_seconds" in m]
 
-    def wall(m: dict[str, float], need_judge: bool, compile_too: bool = True) -> float:
+    def wall(m: dict[str, float], need_judge: bool, compile_too: bool = True, compile_as: float | None = None) -> float:
         if "solved_wall_seconds" not in m or (need_judge and not judged(m)):
             return math.inf
-        return m["solved_wall_seconds"] - (0.0 if compile_too else m.get("compile_wall_seconds", 0.0))
+        own = m.get("compile_wall_seconds", 0.0)
+        if compile_as is not None:
+            return m["solved_wall_seconds"] - own + compile_as
+        return m["solved_wall_seconds"] - (0.0 if compile_too else own)
 
-    def med_wall(need_judge: bool, compile_too: bool = True) -> float:
-        return float(np.median([wall(m, need_judge, compile_too) for m in rows])) if rows else math.nan
+    def med_wall(need_judge: bool, compile_too: bool = True, compile_as: float | None = None) -> float:
+        return float(np.median([wall(m, need_judge, compile_too, compile_as) for m in rows])) if rows else math.nan
 
     def med(key: str, default: float = math.inf) -> float:
         vals = [m.get(key, default) for m in rows]
@@ -211,6 +241,8 @@ def arm_row(metrics: dict[int, dict[str, float]], seeds: list[int]) -> dict[str,
         "eval_wall": med("curve_eval_wall_seconds", math.nan), "final": med("final_return_mean", math.nan),
         "compile": med("compile_wall_seconds", math.nan), "confirmations": med("confirmations", math.nan),
         "wall_ex_compile": med_wall(False, compile_too=False),
+        "wall_judged_cold": med_wall(True, compile_as=cold_compile) if math.isfinite(cold_compile) else math.nan,
+        "cache_hits": med("compile_cache_hits", math.nan), "programs": med("compile_programs", math.nan),
         "rollout_share": float(np.median([m["solved_rollout_wall_seconds"] / m["solved_train_wall"]
                                           for m in solved if "solved_rollout_wall_seconds" in m and m["solved_train_wall"] > 0]))
         if any("solved_rollout_wall_seconds" in m for m in solved) else math.nan,
@@ -229,6 +261,7 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, t
            confirm: int = 0) -> None:
     transitions = transitions if transitions is not None else pack_transitions(env)  # composed once
     data = collect(uri, env, transitions, confirm)
+    warm = {k: v[WARM_SEED] for k, v in collect(uri, env, transitions, warm_ups=True).items() if v}  # the latest
     confirmed = f", confirmed on {confirm} fresh episodes" if confirm else ""
     print(f"\n{env}: time to a first real evaluation at the solved threshold ({EVAL_EPISODES} episodes{confirmed}), "
           f"seeds {seeds}; the surrogate arms' model data: {transitions:,} real transitions")
@@ -242,7 +275,7 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, t
         per_seed.append([s, *cells])
     print(tabulate(per_seed, headers=["seed", *(f"({k}) wall s" for k in ARMS)], stralign="right"))
     print("*: met the threshold at an evaluation, but its final evaluation (fresh episodes) does not judge it solved")
-    rows = {k: arm_row(data[k], seeds) for k in ARMS}
+    rows = {k: arm_row(data[k], seeds, warm[k].get("compile_wall_seconds", math.nan) if k in warm else math.nan) for k in ARMS}
     table = [[LABELS[k], f"{r['solved']}/{r['seeds']}", f"{r['judged']}/{r['seeds']}", fmt(r["wall"]), fmt(r["wall_judged"]),
               fmt(r["compile"]), fmt(r["cpu"]), fmt(r["real"], ",.0f"), fmt(r["surrogate"], ",.0f"),
               fmt(r["rollout_share"], ".0%"), fmt(r["eval_wall"]), fmt(r["final"], ".1f"),
@@ -254,14 +287,22 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, t
                                    *(["confirmations played (median)"] if confirm else [])],
                    stralign="right"))
 
-    def ratio(num: str, den: str, key: str) -> str:
-        a, b = rows[num][key], rows[den][key]
+    def ratio(num: str, den: str, key: str, den_key: str | None = None) -> str:
+        a, b = rows[num][key], rows[den][den_key or key]
         if not (math.isfinite(a) and math.isfinite(b)) or b == 0:
             return "n/a (unsolved in most seeds)"
         return f"{a / b:.3g}"
 
     print(f"wall (d)/(a) = {ratio('d', 'a', 'wall')}, (d)/(b) = {ratio('d', 'b', 'wall')}, "
           f"(b)/(a) = {ratio('b', 'a', 'wall')}; real transitions (d)/(b) = {ratio('d', 'b', 'real')}")
+    for k in "BDET":
+        r = rows[k]
+        if r["seeds"] and math.isfinite(r["programs"]):
+            cold = (f"its warm-up (seed {WARM_SEED}) compiled {fmt(warm[k].get('compile_programs', math.nan))} programs in "
+                    f"{fmt(warm[k].get('compile_wall_seconds', math.nan))} s, {fmt(warm[k].get('compile_cache_hits', math.nan))} "
+                    "of them from the cache" if k in warm else "no warm-up run (the first run compiled cold)")
+            print(f"compile, {LABELS[k].split(' ')[0]}: the timed runs loaded {fmt(r['cache_hits'])} of {fmt(r['programs'])} "
+                  f"programs from the cache (median), in {fmt(r['compile'])} s; {cold}")
     for k, name, sb3 in (("D", "(d')", "d"), ("E", "(e')", "e"), ("T", "(t')", "d")):
         if not rows[k]["seeds"]:
             continue
@@ -269,6 +310,10 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, t
             print(f"compiled{label}: wall {name}/(b) = {ratio(k, 'b', key)} (compile excluded: {ratio(k, 'b', key + '_ex_compile')}), "
                   f"{name}/(b') = {ratio(k, 'B', key)} (compile excluded: {ratio(k, 'B', key + '_ex_compile')}), "
                   f"{name}/({sb3}) = {ratio(k, sb3, key)}")
+        if math.isfinite(rows[k]["wall_judged_cold"]):
+            print(f"compiled, judged, every run of {name} compiling cold (the warm-up's compile): "
+                  f"{name}/(b) = {ratio(k, 'b', 'wall_judged_cold', 'wall_judged')}, {name}/(b') = {ratio(k, 'B', 'wall_judged_cold')} "
+                  "((b') compiling cold too)")
     if expert_seconds is not None:
         print(f"expert collector trained once before the arms: {expert_seconds:.0f} s wall (not in (c) or (d))")
 
@@ -290,6 +335,9 @@ def main() -> None:
     ap.add_argument("--interleave", action="store_true", help="run the arms seed by seed (each seed's arms one after "
                     "the other, one sweep each) instead of arm by arm: a machine whose speed drifts over the run then "
                     "slows every arm alike; use with --jobs 1 for timings")
+    ap.add_argument("--no-warm-up", action="store_true", help="skip the compiled arms' warm-up runs (one short run "
+                    "each, before the timed ones, that fills JAX's compilation cache): the first timed run of each "
+                    "compiled arm then compiles cold")
     ap.add_argument("--report-only", action="store_true")
     ap.add_argument("--rerun", action="store_true", help="run the arms again (resume=false); the table takes "
                     "each seed's latest run (e.g. after a code change the config does not show)")
@@ -303,6 +351,10 @@ def main() -> None:
     if not args.report_only:
         if any(COLLECTOR.get(k) == "expert" for k in args.arms):
             expert = pretrain_expert(args.env, workdir, uri)
+        if not args.no_warm_up:
+            # the surrogate arms' first, so their warm-up compiles every program cold; (b') then finds the update cached
+            for k in sorted((k for k in args.arms if ARMS[k][0] == "jax"), key=lambda k: ARMS[k][1] == "real"):
+                warm_up(args.env, k, workdir, uri, args.transitions)
         order = [(k, [s]) for s in seeds for k in args.arms] if args.interleave else [(k, seeds) for k in args.arms]
         for k, some in order:
             cli(workdir, arm_overrides(args.env, k, some, uri, args.jobs, args.rerun, args.transitions, args.confirm))

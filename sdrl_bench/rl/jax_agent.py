@@ -20,7 +20,9 @@ Where it steps:
   table, terms used, members, noise, events: ``JaxStepper.key``) steps through the same program
   (``rollout_swaps``), another structure compiles again (``rollout_compiles``); the episodes
   under way go on. ``compile_seconds`` sums the compile times (ahead-of-time, timed apart; they are inside the
-  training wall the callbacks see).
+  training wall the callbacks see); ``compile_programs`` counts the programs compiled and
+  ``compile_cache_hits`` those JAX's persistent compilation cache (``use_compilation_cache``) held
+  already, so a reader tells a cold compile from a cached one.
 * **Python** (the real env's control, a surrogate ``jax_step`` does not cover, or
   ``compiled_rollout=False``: ``agent.algo.compiled_rollout=false``, an ablation that keeps the
   networks and the update and steps the surrogate's vector env in Python instead): the rollout
@@ -72,6 +74,29 @@ def use_compilation_cache(path: str | Path) -> None:
     jax.config.update("jax_compilation_cache_dir", str(Path(path).resolve()))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+
+
+_CACHE_HIT = "/jax/compilation_cache/cache_hits"
+_cache = {"hits": 0, "listening": False}
+"""Programs this process loaded from JAX's persistent compilation cache, and whether the listener
+that counts them is registered (``cache_hits``)."""
+
+
+def _count_cache_hit(event: str, **_: Any) -> None:
+    if event == _CACHE_HIT:
+        _cache["hits"] += 1
+
+
+def cache_hits() -> int:
+    """Programs this process has loaded from the persistent compilation cache so far (JAX's
+    ``/jax/compilation_cache/cache_hits`` monitoring event; its listener is registered on the
+    first call)."""
+    if not _cache["listening"]:
+        import jax.monitoring  # noqa: PLC0415
+
+        jax.monitoring.register_event_listener(_count_cache_hit)
+        _cache["listening"] = True
+    return int(_cache["hits"])
 
 
 POOL_THREAD_NAME = "tf_XLAEigen"
@@ -170,6 +195,11 @@ class JaxPPO:
         self.num_timesteps = 0
         self.compile_seconds = 0.0
         """Seconds spent compiling (rollout and update; counted inside ``learn``'s wall)."""
+        self.compile_programs = 0
+        """Programs compiled ahead of time (the env's start, the rollout, the update)."""
+        self.compile_cache_hits = 0
+        """Of ``compile_programs``, those loaded from JAX's persistent compilation cache
+        (``use_compilation_cache``) instead of compiled: a cold compile has none."""
         self.pool_threads: int | None = None
         """Threads in XLA's CPU pool when the networks were built (``cpu_pool_threads``; config
         ``jax_threads``): they run every compiled program."""
@@ -273,9 +303,11 @@ class JaxPPO:
         self._explore = jax.jit(lambda net, key: jax_ppo.exploration_matrices(net, key, cfg.n_envs))
 
     def _timed_compile(self, fn: Any, *args: Any) -> Any:
-        t0 = time.perf_counter()
+        hits, t0 = cache_hits(), time.perf_counter()
         out = fn.lower(*args).compile()
         self.compile_seconds += time.perf_counter() - t0
+        self.compile_programs += 1
+        self.compile_cache_hits += cache_hits() - hits
         return out
 
     # ------------------------------------------------------------------ SB3's interface

@@ -101,6 +101,9 @@ class ArmResult:
     surrogate_stats: dict[str, float] = field(default_factory=dict)
     xla_pool_threads: int | None = None
     """A compiled agent's (``rl.jax_agent``): the threads of XLA's CPU pool that ran its programs."""
+    compiles: dict[str, int] = field(default_factory=dict)
+    """A compiled agent's: ``compile_programs`` (programs it compiled) and ``compile_cache_hits``
+    (those loaded from JAX's persistent compilation cache: 0 is a cold compile)."""
 
     def metrics(self, spec: EnvSpec, train_steps: int, stop_when_solved: bool = False, expert: str | None = None,
                 tuning: int = 0) -> dict[str, float]:
@@ -118,6 +121,7 @@ class ArmResult:
             "eval_steps": self.counts.get("evaluate", 0),
             **({"confirmations": self.counts["confirmations"]} if "confirmations" in self.counts else {}),
             **({"xla_pool_threads": self.xla_pool_threads} if self.xla_pool_threads is not None else {}),
+            **self.compiles,
             "final_eval_episodes": len(rets),
             "final_eval_steps": self.final_steps,
             "final_return_mean": float(rets.mean()),
@@ -241,6 +245,8 @@ def run_arm(
         final_successes=final.successes.tolist(), final_steps=final.steps, counts=dict(counts),
         seconds=seconds, maps=maps, fit=fit_result, surrogate_stats=stats,
         xla_pool_threads=getattr(result.model, "pool_threads", None),
+        compiles={k: int(getattr(result.model, k)) for k in ("compile_programs", "compile_cache_hits")
+                  if hasattr(result.model, k)},
     )
 
 
