@@ -7,6 +7,7 @@ Dyna's refits are compiled again and trained on."""
 from __future__ import annotations
 
 import json
+import shutil
 import subprocess
 import sys
 from collections import Counter
@@ -116,12 +117,15 @@ def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path)
     assert run["metrics.real/real_transitions_train"] == 1024
     assert any((tmp_path / "mlruns" / "jax_cache").iterdir())  # jax_cache_dir: the compiled programs, for the next run
     # the first run compiled its surrogate arm cold (the real arm, after it, may find an update of
-    # the same shape in the cache); a second run, another seed, loads every program from the cache
+    # the same shape in the cache); a second run, another seed, in another folder with a copy of the
+    # cache (the cache's path is not in its keys), loads every program from it
     assert run["metrics.surrogate/compile_programs"] == 3 and run["metrics.surrogate/compile_cache_hits"] == 0
     assert run["metrics.real/compile_programs"] == 1
+    moved = tmp_path / "moved"
+    shutil.copytree(tmp_path / "mlruns" / "jax_cache", moved / "mlruns" / "jax_cache")
     again = run_cli(*SMALL, "rl.surrogate_steps=1024", "rl.real_steps=1024", "rl.eval_every=1024", "rl.eval_episodes=1",
                     "rl.final_episodes=1", "rl.stop_when_solved=false", "seed=1", "progress_bar=false",
-                    f"tracking.uri={store}", cwd=tmp_path)
+                    f"tracking.uri={store}", cwd=moved)
     assert again.returncode == 0, again.stderr[-2000:]
     second = search(store, filter_string="tags.`sdrl.kind` = 'transfer' and params.seed = '1'").iloc[0]
     for arm, programs in (("surrogate", 3), ("real", 1)):
