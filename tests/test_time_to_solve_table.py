@@ -41,7 +41,12 @@ def test_the_judged_medians_with_and_without_the_compile_and_with_a_cold_one(tts
     assert math.isnan(tts.arm_row(runs, [0, 1, 2, 3, 4])["wall_judged_cold"])  # no warm-up: no cold figure
 
 
-def test_the_warm_up_seed_is_outside_the_tables_seeds(tts):
-    assert tts.WARM_SEED not in tts.parse_seeds("0-4,20-29")
-    over = tts.arm_overrides("lunar_lander", "T", [tts.WARM_SEED], "sqlite:///x.db", 1, True, 3000)
-    assert "experiment=fast_lunar_lander_terrain" in over and "agent=ppo_jax" in over and "resume=false" in over
+def test_a_warm_up_is_one_short_unstopped_run_on_a_seed_outside_the_tables(tts, monkeypatch, tmp_path):
+    calls = []
+    monkeypatch.setattr(tts, "cli", lambda workdir, overrides, multirun=True: calls.append(overrides))
+    tts.warm_up("lunar_lander", "T", tmp_path, "sqlite:///x.db", 3000)
+    (over,) = calls
+    assert tts.WARM_SEED not in tts.parse_seeds("0-4,20-29") and f"seed={tts.WARM_SEED}" in over
+    assert [o for o in over if o.startswith("rl.stop_when_solved")] == ["rl.stop_when_solved=false"]  # collect skips it
+    assert {"experiment=fast_lunar_lander_terrain", "agent=ppo_jax", "resume=false", "rl.surrogate_steps=1",
+            "n_transitions=3000", "collector=expert"} <= set(over)
