@@ -19,9 +19,10 @@ the training wall) are printed apart, and the ratios with the compiled arms are 
 Before the timed runs, each compiled arm runs once, short and untimed, on a seed of its own (``WARM_SEED``):
 that warm-up fills JAX's persistent compilation cache (``jax_cache_dir``, under ``<workdir>/mlruns``), so
 every timed run loads its programs from the cache instead of the first seed alone paying the cold
-compile. The warm-up's compile is the cold one: it is printed apart (a one-time cost, as the expert's
-training is), with the judged ratios as they would be had every run of the surrogate arm compiled cold
-(the real arms as measured: a conservative comparison); each run records
+compile. A warm-up that found none of its programs in the cache measured the cold compile (a rerun's
+warm-up finds them all; a second surrogate arm's finds the update): the latest such is printed apart (a
+one-time cost, as the expert's training is), with the judged ratios as they would be had every run of
+the surrogate arm compiled cold (the real arms as measured: a conservative comparison); each run records
 how many of its programs came from the cache (``compile_cache_hits`` of ``compile_programs``).
 ``--no-warm-up`` skips it (the first run of each compiled arm then compiles cold).
 
@@ -173,7 +174,8 @@ def collect(uri: str, env: str, transitions: int | None = None, confirm: int = 0
     """{arm letter: {seed: metrics of that arm}} from the finished time-to-solve runs (stopped
     when solved, 10 episodes per evaluation, ``confirm`` confirmation episodes) of ``env``, the
     surrogate arms' among those fitted on ``transitions`` real transitions (None: the pack's);
-    the latest run of a seed wins. ``warm_ups``: the compiled arms' warm-up runs instead."""
+    the latest run of a seed wins. ``warm_ups``: the compiled arms' warm-up runs that compiled
+    cold (none of their programs from the cache) instead."""
     want = str(transitions if transitions is not None else pack_transitions(env))
     out: dict[str, dict[int, dict[str, float]]] = {k: {} for k in ARMS}
     for r in find_runs(uri, "sdrl-bench", "tags.`sdrl.kind` = 'transfer'"):
@@ -181,7 +183,9 @@ def collect(uri: str, env: str, transitions: int | None = None, confirm: int = 0
         if r["status"] != "FINISHED" or t.get("env") != env:
             continue
         if warm_ups:
-            if t.get("seed") != str(WARM_SEED) or p.get("rl.stop_when_solved") != "False":
+            where = t.get("arms")
+            if (t.get("seed") != str(WARM_SEED) or p.get("rl.stop_when_solved") != "False"
+                    or r["metrics"].get(f"{where}/compile_cache_hits", 1.0) != 0.0):
                 continue
         elif (p.get("rl.stop_when_solved") != "True" or p.get("rl.eval_episodes") != str(EVAL_EPISODES)
               or p.get("rl.confirm_episodes", "0") != str(confirm)):
@@ -299,9 +303,9 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, t
     for k in "BDET":
         r = rows[k]
         if r["seeds"] and math.isfinite(r["programs"]):
-            cold = (f"its warm-up (seed {WARM_SEED}) compiled {fmt(warm[k].get('compile_programs', math.nan))} programs in "
-                    f"{fmt(warm[k].get('compile_wall_seconds', math.nan))} s, {fmt(warm[k].get('compile_cache_hits', math.nan))} "
-                    "of them from the cache" if k in warm else "no warm-up run (the first run compiled cold)")
+            cold = (f"cold, its warm-up (seed {WARM_SEED}) compiled {fmt(warm[k].get('compile_programs', math.nan))} "
+                    f"programs in {fmt(warm[k].get('compile_wall_seconds', math.nan))} s" if k in warm
+                    else "no cold compile on record (no warm-up, or its warm-ups found programs in the cache)")
             print(f"compile, {LABELS[k].split(' ')[0]}: the timed runs loaded {fmt(r['cache_hits'])} of {fmt(r['programs'])} "
                   f"programs from the cache (median), in {fmt(r['compile'])} s; {cold}")
     for k, name, sb3 in (("D", "(d')", "d"), ("E", "(e')", "e"), ("T", "(t')", "d")):
@@ -311,7 +315,7 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, t
             print(f"compiled{label}: wall {name}/(b) = {ratio(k, 'b', key)} (compile excluded: {ratio(k, 'b', key + '_ex_compile')}), "
                   f"{name}/(b') = {ratio(k, 'B', key)} (compile excluded: {ratio(k, 'B', key + '_ex_compile')}), "
                   f"{name}/({sb3}) = {ratio(k, sb3, key)}")
-        if math.isfinite(rows[k]["wall_judged_cold"]):
+        if k in warm:
             print(f"compiled, judged, every run of {name} compiling cold (the warm-up's compile): "
                   f"{name}/(b) = {ratio(k, 'b', 'wall_judged_cold', 'wall_judged')}, "
                   f"{name}/(b') = {ratio(k, 'B', 'wall_judged_cold', 'wall_judged')} (the real arms as measured)")

@@ -46,7 +46,32 @@ def test_a_warm_up_is_one_short_unstopped_run_on_a_seed_outside_the_tables(tts, 
     monkeypatch.setattr(tts, "cli", lambda workdir, overrides, multirun=True: calls.append(overrides))
     tts.warm_up("lunar_lander", "T", tmp_path, "sqlite:///x.db", 3000)
     (over,) = calls
-    assert tts.WARM_SEED not in tts.parse_seeds("0-4,20-29") and f"seed={tts.WARM_SEED}" in over
+    assert f"seed={tts.WARM_SEED}" in over
     assert [o for o in over if o.startswith("rl.stop_when_solved")] == ["rl.stop_when_solved=false"]  # collect skips it
     assert {"experiment=fast_lunar_lander_terrain", "agent=ppo_jax", "resume=false", "rl.surrogate_steps=1",
-            "n_transitions=3000", "collector=expert"} <= set(over)
+            "rl.real_steps=1", "rl.final_episodes=1", "n_transitions=3000", "collector=expert"} <= set(over)
+
+
+def stored(seed: int, arm: str, stopped: bool, **metrics: float) -> dict:
+    """A finished transfer run as ``find_runs`` gives it: (t') for the surrogate arm, (b') for the real one."""
+    surrogate = arm == "surrogate"
+    params = {"rl.stop_when_solved": str(stopped), "rl.eval_episodes": "10", "rl.confirm_episodes": "20",
+              **({"collector.name": "expert", "n_transitions": "3000"} if surrogate else {})}
+    tags = {"env": "lunar_lander", "agent": "ppo_jax", "arms": arm, "seed": str(seed),
+            "sdrl.experiment": "fast_lunar_lander_terrain" if surrogate else "fast_lunar_lander"}
+    return {"run_id": f"{arm}-{seed}-{len(metrics)}", "status": "FINISHED", "tags": tags, "params": params,
+            "metrics": {f"{arm}/{k}": v for k, v in metrics.items()}}
+
+
+def test_the_tables_leave_the_warm_ups_out_and_take_a_cold_one_as_the_cold_compile(tts, monkeypatch):
+    w = tts.WARM_SEED
+    runs = [stored(w, "surrogate", False, compile_wall_seconds=4.8, compile_cache_hits=0.0),  # cold: the figure
+            stored(w, "real", False, compile_wall_seconds=0.2, compile_cache_hits=1.0),  # found its update cached
+            stored(0, "surrogate", True, solved_wall_seconds=3.7, compile_wall_seconds=0.7, compile_cache_hits=3.0),
+            stored(0, "real", True, solved_wall_seconds=15.0, compile_wall_seconds=0.2, compile_cache_hits=1.0),
+            stored(w, "surrogate", False, compile_wall_seconds=0.6, compile_cache_hits=3.0)]  # a rerun's, warm: not it
+    monkeypatch.setattr(tts, "find_runs", lambda *a, **k: runs)
+    timed = tts.collect("sqlite:///x.db", "lunar_lander", 3000, confirm=20)
+    assert sorted(timed["T"]) == [0] and sorted(timed["B"]) == [0]  # no warm-up in the tables
+    cold = tts.collect("sqlite:///x.db", "lunar_lander", 3000, warm_ups=True)
+    assert cold["T"][w]["compile_wall_seconds"] == 4.8 and cold["B"] == {}  # only a warm-up with no cache hit
