@@ -180,10 +180,10 @@ def collect(uri: str, env: str, transitions: int | None = None, confirm: int = 0
     out: dict[str, dict[int, dict[str, float]]] = {k: {} for k in ARMS}
     for r in find_runs(uri, "sdrl-bench", "tags.`sdrl.kind` = 'transfer'"):
         p, t = r["params"], r["tags"]
+        where = t.get("arms")
         if r["status"] != "FINISHED" or t.get("env") != env:
             continue
         if warm_ups:
-            where = t.get("arms")
             if (t.get("seed") != str(WARM_SEED) or p.get("rl.stop_when_solved") != "False"
                     or r["metrics"].get(f"{where}/compile_cache_hits", 1.0) != 0.0):
                 continue
@@ -191,7 +191,6 @@ def collect(uri: str, env: str, transitions: int | None = None, confirm: int = 0
               or p.get("rl.confirm_episodes", "0") != str(confirm)):
             continue
         recipe = next((k for k, v in AGENTS[env].items() if v == t.get("agent")), None)
-        where = t.get("arms")
         collector = p.get("collector.name")
         letter = next((k for k, v in ARMS.items() if v == (recipe, where) and COLLECTOR.get(k) == collector
                        and t.get("sdrl.experiment") == PACKS[env].get(PACK_KIND.get(k, "fast"))), None)
@@ -223,16 +222,15 @@ def arm_row(metrics: dict[int, dict[str, float]], seeds: list[int], cold_compile
     rows = [metrics[s] for s in seeds if s in metrics]
     solved = [m for m in rows if "solved_wall_seconds" in m]
 
-    def wall(m: dict[str, float], need_judge: bool, compile_too: bool = True, compile_as: float | None = None) -> float:
+    def wall(m: dict[str, float], need_judge: bool, compile_as: float | None = None) -> float:
+        """The run's wall, its own compile replaced by ``compile_as`` seconds (0: taken out) if given."""
         if "solved_wall_seconds" not in m or (need_judge and not judged(m)):
             return math.inf
         own = m.get("compile_wall_seconds", 0.0)
-        if compile_as is not None:
-            return m["solved_wall_seconds"] - own + compile_as
-        return m["solved_wall_seconds"] - (0.0 if compile_too else own)
+        return m["solved_wall_seconds"] - (0.0 if compile_as is None else own - compile_as)
 
-    def med_wall(need_judge: bool, compile_too: bool = True, compile_as: float | None = None) -> float:
-        return float(np.median([wall(m, need_judge, compile_too, compile_as) for m in rows])) if rows else math.nan
+    def med_wall(need_judge: bool, compile_as: float | None = None) -> float:
+        return float(np.median([wall(m, need_judge, compile_as) for m in rows])) if rows else math.nan
 
     def med(key: str, default: float = math.inf) -> float:
         vals = [m.get(key, default) for m in rows]
@@ -240,12 +238,12 @@ def arm_row(metrics: dict[int, dict[str, float]], seeds: list[int], cold_compile
 
     return {
         "seeds": len(rows), "solved": len(solved), "judged": sum(judged(m) for m in rows),
-        "wall_judged": med_wall(True), "wall_judged_ex_compile": med_wall(True, compile_too=False),
+        "wall_judged": med_wall(True), "wall_judged_ex_compile": med_wall(True, compile_as=0.0),
         "wall": med("solved_wall_seconds"), "cpu": med("solved_cpu_seconds"),
         "real": med("solved_real_steps"), "surrogate": med("solved_surrogate_steps") if solved else math.nan,
         "eval_wall": med("curve_eval_wall_seconds", math.nan), "final": med("final_return_mean", math.nan),
         "compile": med("compile_wall_seconds", math.nan), "confirmations": med("confirmations", math.nan),
-        "wall_ex_compile": med_wall(False, compile_too=False),
+        "wall_ex_compile": med_wall(False, compile_as=0.0),
         "wall_judged_cold": med_wall(True, compile_as=cold_compile) if math.isfinite(cold_compile) else math.nan,
         "cache_hits": med("compile_cache_hits", math.nan), "programs": med("compile_programs", math.nan),
         "rollout_share": float(np.median([m["solved_rollout_wall_seconds"] / m["solved_train_wall"]
