@@ -3,3 +3,6 @@
 ``build`` turns a composed config into typed jobs; the entry modules (``main``, ``search``,
 ``report``) parse, build, call the library and print.
 """
+
+CONFIG_MODULE = "sdrl_bench.conf"
+CONFIG_PATH = "pkg://" + CONFIG_MODULE

@@ -23,14 +23,13 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import InterpolationResolutionError
 
 from sdrl_bench import ConfigError
+from sdrl_bench.cli import CONFIG_MODULE
 from sdrl_bench.envs.functional import one_line
 from sdrl_bench.models.libraries import LibraryPart
 from sdrl_bench.pipeline import FitJob
 from sdrl_bench.rl.dyna import DynaConfig, DynaJob
 from sdrl_bench.rl.transfer import TransferJob
 
-CONFIG_MODULE = "sdrl_bench.conf"
-CONFIG_PATH = "pkg://" + CONFIG_MODULE
 
 
 def compose(overrides: Sequence[str] = (), config_name: str = "config", return_hydra_config: bool = False) -> DictConfig:

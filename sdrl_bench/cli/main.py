@@ -12,6 +12,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 import signal
 import sys
+from typing import TYPE_CHECKING
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
@@ -19,9 +20,15 @@ from hydra.types import RunMode
 from omegaconf import DictConfig, OmegaConf
 
 from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, stop_signal_received, tracking
-from sdrl_bench.cli.build import JOB_TAG, CONFIG_PATH, build_fit_job, config_key, exit_after_stop_signal, run_label
+from sdrl_bench.cli import CONFIG_PATH
 from sdrl_bench.cli.callbacks import CONFIG_KEY_TAG, SWEEP_KEY_TAG, job_label, sweep_context
-from sdrl_bench.pipeline import FitResult, check, fit_dynamics
+
+if TYPE_CHECKING:
+    from sdrl_bench.pipeline import FitResult
+
+# The config's builders (cli.build) and the pipeline import pysindy, torch and SB3 (about 3 s):
+# they are imported where a job runs, so that a bad command line is answered (cli.precheck) in
+# well under a second, before any of them loads.
 
 
 def _sweep() -> tuple[str | None, str | None]:
@@ -53,6 +60,8 @@ def adopt_finished_job(cfg: DictConfig, parent: str, tags: dict[str, str]) -> fl
 
 def run_fit(cfg: DictConfig, parent: str | None = None, extra_tags: dict[str, str] | None = None) -> FitResult:
     """Validate, then fit inside one MLflow run (FAILED if anything raises)."""
+    from sdrl_bench.cli.build import build_fit_job, run_label  # noqa: PLC0415  (see the imports above)
+    from sdrl_bench.pipeline import check, fit_dynamics  # noqa: PLC0415
     job = build_fit_job(cfg)
     checked = check(job)
     uri = tracking.resolve_uri(cfg.tracking.uri)
@@ -114,6 +123,8 @@ def app(cfg: DictConfig) -> float:
     # SIGTERM (a cluster scheduler, kill) and SIGINT unwind like an exception: the open MLflow
     # run ends KILLED instead of staying RUNNING. A sweep driver running jobs in-process keeps
     # its own handler (cli.callbacks), which also ends the parent run.
+    from sdrl_bench.cli.build import JOB_TAG, build_fit_job, config_key, exit_after_stop_signal  # noqa: PLC0415
+
     if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
         raise_on_stop_signals()
     try:

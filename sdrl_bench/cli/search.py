@@ -28,7 +28,8 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, stop_signal_received, tracking
-from sdrl_bench.cli.build import CONFIG_PATH, build_fit_job, compose, exit_after_stop_signal
+from sdrl_bench.cli import CONFIG_PATH
+from sdrl_bench.cli.build import build_fit_job, compose, exit_after_stop_signal
 from sdrl_bench.pipeline import FitJob
 from sdrl_bench.search.refine import run_refinement
 from sdrl_bench.search.study import BuildJob, StudySettings, run_study
