@@ -12,7 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from collections.abc import Sequence
 
 from hydra import compose as hydra_compose
@@ -27,8 +27,10 @@ from sdrl_bench.cli import CONFIG_MODULE
 from sdrl_bench.envs.functional import one_line
 from sdrl_bench.models.libraries import LibraryPart
 from sdrl_bench.pipeline import FitJob
-from sdrl_bench.rl.dyna import DynaConfig, DynaJob
-from sdrl_bench.rl.transfer import TransferJob
+
+if TYPE_CHECKING:
+    from sdrl_bench.rl.dyna import DynaJob
+    from sdrl_bench.rl.transfer import TransferJob
 
 
 
@@ -169,6 +171,8 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
 
 
 def build_transfer_job(cfg: DictConfig, fit_job) -> TransferJob:
+    from sdrl_bench.rl.transfer import TransferJob  # noqa: PLC0415  (torch and SB3: not for a fit's command)
+
     agent = instantiate_key(cfg.agent, "agent")
     rl = cfg.rl
     arms = tuple(str(a) for a in rl.arms)
@@ -185,6 +189,8 @@ def build_transfer_job(cfg: DictConfig, fit_job) -> TransferJob:
 def build_dyna_job(cfg: DictConfig, fit_job: FitJob) -> DynaJob:
     """The typed Dyna job (``rl.dyna.*``: unknown keys and bad values are one-line errors naming the key)."""
     import dataclasses
+
+    from sdrl_bench.rl.dyna import DynaConfig, DynaJob  # noqa: PLC0415  (torch and SB3: not for a fit's command)
 
     node = cfg.rl.get("dyna")
     if node is None:

@@ -1,7 +1,15 @@
-"""Surrogate environments: a real env's task with a fitted dynamics model in place of its physics."""
+"""Surrogate environments: a real env's task with a fitted dynamics model in place of its physics.
 
-from sdrl_bench.surrogate.env import SurrogateEnv
-from sdrl_bench.surrogate.model_env import ModelEnv, resolve_spec
-from sdrl_bench.surrogate.vec import SurrogateVecEnv
+The names below load on first use (PEP 562): ``SurrogateVecEnv`` imports SB3 and torch (about 1 s),
+which a fit that only reads ``surrogate.events`` does not need."""
 
+import importlib
+
+_WHERE = {"ModelEnv": "model_env", "resolve_spec": "model_env", "SurrogateEnv": "env", "SurrogateVecEnv": "vec"}
 __all__ = ["ModelEnv", "SurrogateEnv", "SurrogateVecEnv", "resolve_spec"]
+
+
+def __getattr__(name: str):
+    if name in _WHERE:
+        return getattr(importlib.import_module(f"sdrl_bench.surrogate.{_WHERE[name]}"), name)
+    raise AttributeError(f"module 'sdrl_bench.surrogate' has no attribute {name!r}")
