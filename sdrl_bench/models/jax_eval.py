@@ -45,7 +45,7 @@ from __future__ import annotations
 
 import logging
 import os
-from typing import Any
+from typing import Any, NamedTuple
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -54,6 +54,25 @@ from sdrl_bench.models.fast import scalar_source
 from sdrl_bench.models.terms import SOURCE_NAMESPACE, Term
 
 JaxPredict = Callable[[Any], Any]
+
+
+class JaxModel(NamedTuple):
+    """A fitted model as pure jax functions of its numbers (``params``: arrays, an argument of a
+    compiled program), what ``surrogate.jax_step`` steps through. ``jax_model`` builds one."""
+
+    predict: Callable
+    """``predict(z, params) -> (N, n_states)``: the model's ``predict`` at inputs ``z`` (N, n_inputs)."""
+    members: Callable | None
+    """``members(z, params) -> (K, N, n_states)``: each ensemble member's prediction (the spread
+    the task's pessimism reads); None where not asked for."""
+    sample: Callable | None
+    """``sample(z, params, u, eps) -> (N, n_states)``: a model that draws its own steps (a
+    probabilistic ensemble), its draws as inputs (u (N,) uniform, eps (N, n_states) standard
+    normal); None for the others."""
+    params: dict
+    key: tuple
+    """The structure the functions depend on besides ``params``: models of equal keys share a
+    compiled program."""
 
 INSTALL_HINT = "pip install 'sdrl-bench[jax]'"
 
@@ -170,6 +189,23 @@ def jax_predictor(model: Any, coef: Any = None) -> JaxPredict:
     layout, n_ext = _layout(stages, n_inputs, m)
     parts = [(rows, clips, _compile(terms, coef[rows], n_ext, namespace)) for rows, clips in layout]
     return lambda z: _run_stages(jnp, z, n_inputs, n_ext, m, parts, "jax_predictor")
+
+
+def jax_model(model: Any, members: bool = False) -> JaxModel:
+    """``model`` as a ``JaxModel``: a sparse model through ``linear_predictor`` (its coefficients,
+    and its members' with ``members``, in ``params["coef"]`` and ``params["members"]``); an NN
+    model (``net_``: ``surrogate=nn`` or ``pe``) through ``models.jax_nn.network_model``."""
+    if getattr(model, "net_", None) is not None:
+        from sdrl_bench.models.jax_nn import network_model  # noqa: PLC0415  (jax_nn imports this module)
+
+        return network_model(model, members)
+    jax, _ = jax_modules()
+    lin, key, columns = linear_predictor(model)
+    stacked = columns(model.members_) if members else None
+    params = {"coef": columns(model.coef_), "members": stacked}
+    spread = (lambda z, p: jax.vmap(lambda c: lin(z, c))(p["members"])) if members else None
+    return JaxModel(lambda z, p: lin(z, p["coef"]), spread, None, params,
+                    (key, None if stacked is None else stacked.shape))
 
 
 def linear_predictor(model: Any) -> tuple[Callable, tuple, Callable]:

@@ -491,8 +491,9 @@ class Surrogate(NamedTuple):
 def surrogate(model_env: Any) -> Surrogate:
     """``model_env`` as the compiled loop steps it: ``surrogate.jax_step.jax_stepper``'s step,
     with the ModelEnv's step noise (``step_noise`` of standard-normal draws: the same
-    distribution as ModelEnv's, not its draws) and one uniform per row and learned event drawn
-    from the step's key; refuses (in one line) what ``jax_stepper`` does not cover."""
+    distribution as ModelEnv's, not its draws), one uniform per row and learned event, and a
+    probabilistic ensemble's own draws (its elite and its Gaussian's normals) drawn from the
+    step's key; refuses (in one line) what ``jax_stepper`` does not cover."""
     jax, jnp, _ = _modules()
     spec = model_env.spec
     stepper = jax_stepper(model_env)
@@ -504,7 +505,11 @@ def surrogate(model_env: Any) -> Surrogate:
         n = states.shape[0]
         noise = noise_of(params["chol"], actions, jax.random.normal(k_noise, (n, m), jnp.float64)) if noisy else None
         event_u = jax.random.uniform(k_event, (n, k), jnp.float64) if k else None
-        return stepper.step(states, actions, aux, noise, event_u, params)
+        draws = None
+        if stepper.sampling:  # folded in, not split off: the other models' streams stay what they were
+            k_pick, k_eps = jax.random.split(jax.random.fold_in(key, 2))
+            draws = (jax.random.uniform(k_pick, (n,), jnp.float64), jax.random.normal(k_eps, (n, m), jnp.float64))
+        return stepper.step(states, actions, aux, noise, event_u, params, draws)
 
     # the reset pool (a seed's real first observations) is a number of the model like its
     # coefficients: an argument, so that one compiled rollout serves every seed's surrogate

@@ -37,7 +37,10 @@ Layout (N rows, batched; numpy or jax arrays in, jax arrays out):
 
 The steps, each as ModelEnv does it: the model's inputs (the regressed states, the exogenous
 states, then the actions encoded by ``spec.action_encoding``: raw, clip, one_hot, index or
-values); the prediction (``models.jax_eval.linear_predictor``: the coefficients an argument) plus the noise; the task's regime
+values); the prediction (``models.jax_eval.jax_model``: a sparse model's ``linear_predictor``, its
+coefficients an argument; an NN model's network, ``models.jax_nn``, its weights an argument) plus
+the noise, or a probabilistic ensemble's own draw (``sample_draws``: a uniform per row picks the
+elite, standard normals scale its variance); the task's regime
 dynamics (``task.array_step.regime_dynamics``). Then, with the task's kernels (``task.step_batch``,
 ModelEnv's fused path), their array form ``task.array_step.step`` (the divergence guard and all
 the task's rules, memory in and out); else ModelEnv's composition: the divergence guard (a
@@ -48,8 +51,8 @@ circle, rounding to ``obs_dtype``); clipping to the real env's observation space
 clips (``ModelEnv._clip``); angles wrapped to [-pi, pi); the task's reward and termination called
 on jax arrays: the spec's plain functions (``env.spec.reward_fn`` / ``termination_fn``), or the
 ``task.reward_terminated`` of a task an env class builds (``build_task``). Then the pessimism
-(``ModelEnv._pessimism``: the members' standard deviation, ddof 0, over ``model.members_``' jax
-predictors, in units of the task's scale, largest over states; penalty, free band, limit and
+(``ModelEnv._pessimism``: the members' standard deviation, ddof 0, over the members' jax
+predictions, a sparse model's ``members_`` or an NN ensemble's members, in units of the task's scale, largest over states; penalty, free band, limit and
 crash reward; in ``task.model_regime``) and the learned events (``ModelEnv._draw_events``: on rows
 the trigger fires, not ended, open to the prior when the event learns on those, an outcome drawn
 by ``surrogate.events.draw_outcomes`` from the model's probabilities, ``outcome_probabilities``;
@@ -71,9 +74,10 @@ states drawn from a jax PRNG key (the spec's ``initial_state_fn`` or the task's 
 or the ModelEnv's reset pool).
 
 Not covered (``unsupported``; refused when the step is built, one line naming each): models
-without term tables (``nn``, ``pe``), a sampling model's own draws (``noise=False`` steps its
-mean), compiled kernels without an array form (``task.array_step`` None),
-exogenous states or regime dynamics outside one, pessimism without ``members_``, learned events
+with neither term tables nor a network, a sampling model other than the NN ensembles'
+(``noise=False`` steps its mean), compiled kernels without an array form (``task.array_step`` None),
+exogenous states or regime dynamics outside one, pessimism from a sparse model without
+``members_``, learned events
 whose model is not a standard scaler + logistic regression. A task's one-state kernel
 (``task.step_one``) is no obstacle: it is the batched step for one state.
 """
@@ -88,7 +92,7 @@ import numpy as np
 from sdrl_bench import ConfigError
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.envs.functional import array_namespace, one_line, resolve, wrap_angle
-from sdrl_bench.models.jax_eval import jax_modules, linear_predictor
+from sdrl_bench.models.jax_eval import JaxModel, jax_model, jax_modules
 from sdrl_bench.surrogate.events import draw_outcomes, logistic_numbers, outcome_probabilities
 
 JaxStep = Callable[..., tuple[Any, Any, Any, Any]]
@@ -98,9 +102,11 @@ def unsupported(model_env: Any) -> list[str]:
     """What of ``model_env``'s step ``jax_stepper`` does not cover (empty: all of it)."""
     spec, task, model = model_env.spec, model_env.task, model_env.model
     out = []
-    if getattr(model, "terms_", None) is None or getattr(model, "coef_", None) is None:
+    network = getattr(model, "net_", None) is not None  # an NN model (models.jax_nn)
+    if not network and (getattr(model, "terms_", None) is None or getattr(model, "coef_", None) is None):
         kind = getattr(model, "kind", None) or type(model).__name__
-        out.append(f"a model without term tables ({kind}; jax_predictor evaluates the sparse models)")
+        out.append(f"a model without term tables or a network ({kind}; models.jax_eval.jax_model evaluates "
+                   "the sparse and the NN models)")
     array = task.array_step
     lacking = [(what, key) for what, key, used, given in (
         ("compiled kernels", "task.step_batch", model_env._step_batch is not None, array is not None),
@@ -111,12 +117,12 @@ def unsupported(model_env: Any) -> list[str]:
                    f"({', '.join(k for _, k in lacking)}; no task.array_step)")
     if model_env._step_batch is None and (spec.exogenous_names or task.exogenous is not None):
         out.append("exogenous states outside the task's kernels (env.spec.exogenous_names)")
-    if model_env._members is not None and len(getattr(model, "members_", None) or []) < 2:
+    if model_env._members is not None and not network and len(getattr(model, "members_", None) or []) < 2:
         out.append("pessimism from a model without members_ (ModelEnv(penalty=False) steps without)")
     bad = [e.name for e, m in model_env._learned if logistic_numbers(m) is None]
     if bad:
         out.append(f"learned events whose model is not a scaler + logistic regression ({', '.join(bad)})")
-    if model_env._sample is not None:
+    if model_env._sample is not None and not (network and callable(getattr(model, "sample", None))):
         out.append("a sampling model's own draws (ModelEnv(noise=False) steps its mean)")
     return out
 
@@ -199,8 +205,10 @@ class JaxStepper(NamedTuple):
     inputs (see the module docstring)."""
 
     step: Callable[..., tuple[Any, Any, Any, Any, Any]]
-    """``step(states, actions, aux, noise=None, event_u=None, params=None) -> (next_states,
-    rewards, terminated, diverged, aux)``; ``params`` None: this stepper's own."""
+    """``step(states, actions, aux, noise=None, event_u=None, params=None, sample_draws=None) ->
+    (next_states, rewards, terminated, diverged, aux)``; ``params`` None: this stepper's own;
+    ``sample_draws`` (a model that draws its own steps, ``sampling``): (u (N,) uniform in [0, 1),
+    eps (N, n_targets) standard normal), None: the model's mean step."""
     init_aux: Callable[..., Any]
     """``init_aux(n, key=None)``: the memory of n fresh episodes, (n,) int64 (zeros for a task
     without), or a tuple of per-row arrays for a task whose memory is drawn (e.g. a counter and
@@ -208,8 +216,9 @@ class JaxStepper(NamedTuple):
     n_event_draws: int
     """Columns of ``event_u``: one uniform per row and learned event."""
     params: dict[str, Any] | None = None
-    """The numbers of the ModelEnv's model, as arrays: ``coef`` (the model's coefficients),
-    ``members`` (its ensemble members', stacked; None without pessimism), ``chol`` (the step
+    """The numbers of the ModelEnv's model, as arrays (``JaxModel.params``): a sparse model's
+    ``coef`` (its coefficients) and ``members`` (its ensemble members', stacked; None without
+    pessimism), an NN model's weights, biases and normalisation; then ``chol`` (the step
     noise's square roots per discrete action; None without noise), ``events`` (per learned event
     its scaler's mean and scale and its logistic coefficients and intercept). Passed to ``step``
     as an argument of a compiled program, a refit of the same structure (equal ``key``) steps
@@ -218,6 +227,9 @@ class JaxStepper(NamedTuple):
     """The structure the compiled step depends on besides ``params`` (the term table and which
     terms are used, the members' count, noise, the events' classes); with the same ModelEnv spec,
     steppers of equal keys are interchangeable given their ``params``."""
+    sampling: bool = False
+    """Whether the model draws its own steps (a probabilistic ensemble with the ModelEnv's noise
+    on): ``step`` then takes ``sample_draws``."""
 
 
 def _composed(model_env: Any, jax: Any, jnp: Any) -> Callable:
@@ -290,10 +302,11 @@ def _state_fn(jax: Any, fn: Callable, key: str, n_state: int, width: int | None 
         raise ConfigError(f"{who} returned shape {getattr(out, 'shape', None)} for 2 states; expected {want}")
 
 
-def _pessimism(model_env: Any, lin: Callable, jax: Any, jnp: Any) -> Callable | None:
-    """``f(states, z, rewards, terminated, diverged, members) -> (rewards, terminated)``:
-    ``ModelEnv._pessimism`` with the members' coefficients ``members`` (K, n_states, n_terms)
-    through ``lin`` (``linear_predictor``); None without pessimism."""
+def _pessimism(model_env: Any, jm: JaxModel, jax: Any, jnp: Any) -> Callable | None:
+    """``f(states, z, rewards, terminated, diverged, params) -> (rewards, terminated)``:
+    ``ModelEnv._pessimism`` with the members' predictions ``jm.members`` (``jax_model``: a sparse
+    model's members' coefficients, an NN ensemble's members) at the model's numbers ``params``;
+    None without pessimism."""
     if model_env._members is None:
         return None
     task = model_env.task
@@ -305,8 +318,8 @@ def _pessimism(model_env: Any, lin: Callable, jax: Any, jnp: Any) -> Callable | 
     penalty, free, limit = float(unc.penalty), float(unc.free), float(unc.limit)
     crash = float(task.crash_reward) if task.crash_reward is not None else 0.0
 
-    def pessimism(states, z, rewards, terminated, diverged, members):
-        spread = jax.vmap(lambda c: lin(z, c))(members)  # (K, N, n_states)
+    def pessimism(states, z, rewards, terminated, diverged, params):
+        spread = jm.members(z, params)  # (K, N, n_states)
         u = (spread.std(axis=0) / scale).max(axis=1)  # (N,), as disagreement()
         live = ~diverged & ~terminated
         if regime is not None:
@@ -367,41 +380,43 @@ def jax_stepper(model_env: Any) -> JaxStepper:
         raise NotImplementedError(f"jax_step: env '{spec.name}': not covered yet: {'; '.join(missing)}")
     model = model_env.model
     jax, jnp = jax_modules("sdrl_bench.surrogate.jax_step")
-    lin, model_key, columns = linear_predictor(model)  # coefficients as arguments, in the table's ``columns``
-    members = columns(model.members_) if model_env._members is not None else None
+    jm = jax_model(model, members=model_env._members is not None)  # the model's numbers as arguments
+    sampling = model_env._sample is not None
     inputs = np.concatenate([spec.target_index, spec.exogenous_index]).astype(int)  # ModelEnv.model_inputs
     kernel = model_env._step_batch is not None
     after = _kernel(model_env, jnp) if kernel else _composed(model_env, jax, jnp)
     regime = task.array_step.regime_dynamics if task.regime_dynamics is not None else None
     fresh = task.array_step.init_aux if kernel else (lambda n, key=None: np.zeros(n, dtype=np.int64))
-    pessimism = _pessimism(model_env, lin, jax, jnp)
+    pessimism = _pessimism(model_env, jm, jax, jnp)
     draws = _event_draws(model_env, jax, jnp)
-    own = {"coef": columns(model.coef_), "members": members,
-           "chol": None if model_env._chol is None else np.asarray(model_env._chol, dtype=float),
+    own = {**jm.params, "chol": None if model_env._chol is None else np.asarray(model_env._chol, dtype=float),
            "events": [tuple(np.asarray(x, dtype=float) for x in numbers[:4]) for _, numbers in draws]}
-    key = (model_key, None if members is None else members.shape, None if own["chol"] is None else own["chol"].shape,
+    key = (jm.key, sampling, None if own["chol"] is None else own["chol"].shape,
            tuple((tuple(numbers[4].tolist()), numbers[2].shape) for _, numbers in draws))
 
-    def step(states, actions, aux, noise=None, event_u=None, params=None):
+    def step(states, actions, aux, noise=None, event_u=None, params=None, sample_draws=None):
         params = own if params is None else params
         states = jnp.asarray(states, dtype=jnp.float64)
         actions = jnp.asarray(actions)
         z = jnp.concatenate([states[:, inputs], spec.encode_actions(actions)], axis=1)
-        rows = lin(z, params["coef"])  # (N, n_targets)
+        if sampling and sample_draws is not None:  # the model's own draw (ModelEnv._sample), its draws given
+            rows = jm.sample(z, params, *sample_draws)
+        else:
+            rows = jm.predict(z, params)  # (N, n_targets)
         if noise is not None:
             rows = rows + jnp.asarray(noise, dtype=jnp.float64)
         if regime is not None:
             rows = jnp.asarray(regime(states, actions, rows), dtype=jnp.float64)
         nxt, rewards, terminated, diverged, aux = after(states, actions, rows, _as_jax(aux, jnp))
         if pessimism is not None:
-            rewards, terminated = pessimism(states, z, rewards, terminated, diverged, params["members"])
+            rewards, terminated = pessimism(states, z, rewards, terminated, diverged, params)
         if draws and event_u is not None:
             u = jnp.asarray(event_u, dtype=jnp.float64).reshape(states.shape[0], len(draws))
             for j, (draw, _) in enumerate(draws):
                 rewards, terminated = draw(states, actions, nxt, rewards, terminated, diverged, u[:, j], params["events"][j])
         return nxt, rewards, terminated, diverged, aux
 
-    return JaxStepper(step, lambda n, key=None: _as_jax(fresh(n, key), jnp), len(draws), own, key)
+    return JaxStepper(step, lambda n, key=None: _as_jax(fresh(n, key), jnp), len(draws), own, key, sampling)
 
 
 def noise_of(chol: Any, actions: Any, eps: Any) -> Any:
