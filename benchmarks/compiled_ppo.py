@@ -1,6 +1,7 @@
 """PPO compiled with the surrogate's step against stable-baselines3's PPO in the same surrogate.
 
-On an env's SINDy surrogate (``--env``; default the cartpole swing-up, fitted from 8,000
+On an env's SINDy surrogate (``--surrogate nn`` or ``pe``: the NN models, fitted on the same data)
+(``--env``; default the cartpole swing-up, fitted from 8,000
 uniform-random real steps as ``sdrl-bench env=cartpole_swingup collector=random`` fits it; MountainCar
 and LunarLander from their fast packs' data, the env's heuristic in place of the pack's expert),
 measured side by side in one run:
@@ -236,6 +237,8 @@ def main() -> None:
                     "e.g. 1 for a per-core comparison); default: all it may use")
     ap.add_argument("--jax-threads", type=int, default=None, help="threads in XLA's CPU pool (default: the config's "
                     "jax_threads, as the harness trains; 0: XLA's default, one per core)")
+    ap.add_argument("--surrogate", default="sindy", choices=["sindy", "nn", "pe"],
+                    help="the surrogate model (the config group surrogate=...), fitted on the same data")
     ap.add_argument("--quick", action="store_true", help="a smoke run: 2^14 steps, 1 repeat, 2 eval episodes")
     args = ap.parse_args()
     if args.quick:
@@ -250,12 +253,13 @@ def main() -> None:
     jax, _ = jax_modules("benchmarks/compiled_ppo.py")  # float64 on before any jax array (the surrogate's step)
     env = ENVS[args.env]
     recipes = args.recipes or list(env["recipes"])
-    cfg = compose(env["fit"])
+    fit_overrides = [*env["fit"], *([] if args.surrogate == "sindy" else [f"surrogate={args.surrogate}"])]
+    cfg = compose(fit_overrides)
     torch.set_num_threads(int(cfg.torch_threads))  # as the harness trains SB3 (cli.train.prepare)
     pool = jax_agent.size_cpu_pool(int(cfg.jax_threads) if args.jax_threads is None else args.jax_threads)  # ditto
     t = time.perf_counter()
     fit = fit_dynamics(build_fit_job(cfg))
-    print(f"fit: {args.env} SINDy model from {len(fit.data.states):,} transitions ({' '.join(env['fit'])}) "
+    print(f"fit: {args.env} {fit.model.kind} model from {len(fit.data.states):,} transitions ({' '.join(fit_overrides)}) "
           f"in {time.perf_counter() - t:.1f} s")
     peaks = {d: matmul_peak(d) for d in ("float32", "float64")}
     peaks["layer"] = layer_peak()
