@@ -34,8 +34,8 @@ the package imports without it, and ``jax_predictor`` says how to install it.
 
 Supported: ``SindyModel`` and ``PerEquationModel`` (staged or not). An ensemble member is
 evaluated with ``jax_predictor(model, coef=model.members_[k])`` (its coefficients over the same
-terms and stages). Not supported: models without term tables (the NN models ``nn`` and ``pe``:
-a clear error names the kind).
+terms and stages). Not supported here: models without term tables (the NN models ``nn`` and
+``pe``: a clear error names the kind); ``jax_model`` evaluates those through ``models.jax_nn``.
 
 The rest of ``ModelEnv.step`` (bounds, divergence guard, the task's reward and termination, the
 step noise as an input) is ``surrogate.jax_step``; what neither covers yet is listed there.
