@@ -33,7 +33,6 @@ if TYPE_CHECKING:
     from sdrl_bench.rl.transfer import TransferJob
 
 
-
 def compose(overrides: Sequence[str] = (), config_name: str = "config", return_hydra_config: bool = False) -> DictConfig:
     """The composed config as the command line would build it (no run dir, no callbacks).
 

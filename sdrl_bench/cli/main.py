@@ -62,6 +62,7 @@ def run_fit(cfg: DictConfig, parent: str | None = None, extra_tags: dict[str, st
     """Validate, then fit inside one MLflow run (FAILED if anything raises)."""
     from sdrl_bench.cli.build import build_fit_job, run_label  # noqa: PLC0415  (see the imports above)
     from sdrl_bench.pipeline import check, fit_dynamics  # noqa: PLC0415
+
     job = build_fit_job(cfg)
     checked = check(job)
     uri = tracking.resolve_uri(cfg.tracking.uri)
