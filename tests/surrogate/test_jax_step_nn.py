@@ -133,3 +133,23 @@ def test_the_compiled_ppo_trains_in_an_nn_surrogate_with_its_rollout_compiled():
     assert model.num_timesteps == 2 * model.cfg.rollout_size
     action, _ = model.predict(model.env.reset(), deterministic=True)
     assert action.shape == (agent_cfg.n_envs, 1) and np.all(np.isfinite(action))
+
+
+def test_the_compiled_rollouts_step_draws_a_probabilistic_ensembles_steps_as_model_env_does():
+    """``rl.jax_ppo.surrogate``'s step draws the elite and the normals from its key: steps around
+    the elites' mean with the spread of ModelEnv's own draws (per state, within 10% on 5,000
+    rows), other keys other steps."""
+    from sdrl_bench.rl import jax_ppo  # noqa: PLC0415
+
+    res = fitted("mountain_car", "pe")
+    menv = ModelEnv(res.model, res.job.spec, noise=True, seed=0)
+    sur = jax_ppo.surrogate(menv)
+    s, a = states_actions(menv, res, seed=2)
+    aux = jax_stepper(menv).init_aux(N)
+    mean = np.asarray(jax_stepper(ModelEnv(res.model, res.job.spec, noise=False, seed=0)).step(s, a, aux)[0])
+    one, two = (np.asarray(sur.step(s, a, aux, jax.random.key(k), sur.params)[0]) for k in (0, 1))
+    ref = menv.step(s, a)[0]  # ModelEnv's own draws
+    assert not np.array_equal(one, two)
+    for j in range(s.shape[1]):
+        ratio = np.std(one[:, j] - mean[:, j]) / np.std(ref[:, j] - mean[:, j])
+        assert 0.9 < ratio < 1.1, (j, ratio)
