@@ -4,7 +4,8 @@ of 3, whose disagreement is LunarLander's pessimism) and ``surrogate=pe`` (a pro
 ensemble: its elites' mean, and its own draws fed in), on MountainCar (ModelEnv's composition) and
 LunarLander (the task's kernels in their array form), 5,000 states around the data, one step,
 eager and jit (the states: the data's, moved); the weights an argument (another fit of the same architecture steps through the
-same compiled program); and the compiled PPO trains in an NN surrogate with its rollout compiled."""
+same compiled program); the compiled rollout's step draws a probabilistic ensemble's steps with
+ModelEnv's spread; and the compiled PPO trains in an NN surrogate with its rollout compiled."""
 
 from __future__ import annotations
 
