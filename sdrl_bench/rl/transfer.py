@@ -102,8 +102,10 @@ class ArmResult:
     xla_pool_threads: int | None = None
     """A compiled agent's (``rl.jax_agent``): the threads of XLA's CPU pool that ran its programs."""
     compiles: dict[str, int] = field(default_factory=dict)
-    """A compiled agent's: ``compile_programs`` (programs it compiled) and ``compile_cache_hits``
-    (those loaded from JAX's persistent compilation cache: 0 is a cold compile)."""
+    """A compiled agent's: ``compile_programs`` (programs it compiled), ``compile_cache_hits``
+    (those loaded from JAX's persistent compilation cache: 0 is a cold compile) and
+    ``rollout_compiles`` (rollouts compiled with the surrogate's step: 0 where the rollout stepped
+    in Python, in real envs or in a surrogate the compiled step does not cover)."""
 
     def metrics(self, spec: EnvSpec, train_steps: int, stop_when_solved: bool = False, expert: str | None = None,
                 tuning: int = 0) -> dict[str, float]:
@@ -245,7 +247,7 @@ def run_arm(
         final_successes=final.successes.tolist(), final_steps=final.steps, counts=dict(counts),
         seconds=seconds, maps=maps, fit=fit_result, surrogate_stats=stats,
         xla_pool_threads=getattr(result.model, "pool_threads", None),
-        compiles={k: int(getattr(result.model, k)) for k in ("compile_programs", "compile_cache_hits")
+        compiles={k: int(getattr(result.model, k)) for k in ("compile_programs", "compile_cache_hits", "rollout_compiles")
                   if hasattr(result.model, k)},
     )
 

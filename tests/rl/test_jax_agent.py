@@ -121,6 +121,7 @@ def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path)
     # cache (the cache's path is not in its keys), loads every program from it
     assert run["metrics.surrogate/compile_programs"] == 3 and run["metrics.surrogate/compile_cache_hits"] == 0
     assert run["metrics.real/compile_programs"] == 1
+    assert run["metrics.surrogate/rollout_compiles"] == 1 and run["metrics.real/rollout_compiles"] == 0
     moved = tmp_path / "moved"
     shutil.copytree(tmp_path / "mlruns" / "jax_cache", moved / "mlruns" / "jax_cache")
     again = run_cli(*SMALL, "rl.surrogate_steps=1024", "rl.real_steps=1024", "rl.eval_every=1024", "rl.eval_episodes=1",
