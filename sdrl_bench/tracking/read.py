@@ -71,20 +71,23 @@ def download_artifact(uri: str, run_id: str, path: str, dst: str | Path) -> Path
 
 def owner_alive(tags: dict[str, str]) -> bool | None:
     """Whether the process that owns a run (``sdrl.host``/``sdrl.pid`` tags) is alive: None
-    when that cannot be told here (no tags, or another host)."""
-    import os
+    when that cannot be told here (no tags, or another host). A zombie is dead: a sweep's worker
+    killed with its driver stays one until init reaps it, which can come after a rerun looks
+    (seen here: the workers of a sweep killed with SIGKILL were zombies a moment later, and a
+    rerun that asked then left their runs RUNNING)."""
     import socket
+
+    import psutil
 
     host, pid = tags.get("sdrl.host"), tags.get("sdrl.pid")
     if host != socket.gethostname() or not (pid or "").isdigit():
         return None
     try:
-        os.kill(int(pid), 0)
-    except ProcessLookupError:
+        return psutil.Process(int(pid)).status() != psutil.STATUS_ZOMBIE
+    except psutil.NoSuchProcess:
         return False
-    except PermissionError:
+    except psutil.AccessDenied:
         return True
-    return True
 
 
 def end_stale_runs(uri: str, experiment: str, filter_string: str, status: str = "KILLED") -> list[str]:

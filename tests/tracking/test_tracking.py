@@ -176,3 +176,38 @@ def test_sb3_rows_are_batched_and_all_written_when_the_logger_closes(store):
         held.close()
         assert sorted(history("arm/sb3/train/value_loss")) == [(128, 0.128), (256, 0.256), (384, 0.384)]
         assert "arm/sb3/train/flag" not in client.get_run(run.run_id).data.metrics
+
+
+def test_a_run_whose_owner_is_a_zombie_is_stale_and_one_whose_owner_lives_is_not(store):
+    """``end_stale_runs`` (a sweep's rerun) ends the RUNNING runs of dead owners: a zombie (a
+    killed process not yet reaped, as a sweep's workers are a moment after a kill -9 of their
+    driver) is dead; a live process's run is left alone."""
+    import socket
+    import subprocess
+    import sys
+    import time
+
+    import psutil
+
+    from sdrl_bench import tracking
+    from sdrl_bench.tracking.read import owner_alive
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
+    try:
+        deadline = time.monotonic() + 60
+        while psutil.Process(dead.pid).status() != psutil.STATUS_ZOMBIE and time.monotonic() < deadline:
+            time.sleep(0.05)  # exited, and not reaped: this process has not waited for it
+        assert psutil.Process(dead.pid).status() == psutil.STATUS_ZOMBIE
+        here = socket.gethostname()
+        assert owner_alive({"sdrl.host": here, "sdrl.pid": str(dead.pid)}) is False
+        assert owner_alive({"sdrl.host": here, "sdrl.pid": str(live.pid)}) is True
+        ids = {name: tracking.create_parent_run(store, "stale", name, {"sdrl.pid": str(p.pid), "sdrl.test": "owners"})
+               for name, p in (("dead", dead), ("live", live))}
+        assert tracking.end_stale_runs(store, "stale", "tags.`sdrl.test` = 'owners'") == [ids["dead"]]
+        status = {r["run_id"]: r["status"] for r in tracking.find_runs(store, "stale")}
+        assert status == {ids["dead"]: "KILLED", ids["live"]: "RUNNING"}
+    finally:
+        live.kill()
+        live.wait()
+        dead.wait()
