@@ -288,9 +288,9 @@ def run_study(
 
     def on_stale(study: optuna.Study, trial: optuna.trial.FrozenTrial) -> None:
         run_id = trial.user_attrs.get("mlflow_run_id")
-        if run_id:
+        if run_id:  # also a run that ended FINISHED: its worker died before Optuna recorded the trial
             tracking.Run(uri, run_id).set_tags({"optuna.state": "FAIL", "error": "worker process died"})
-            tracking.end_run(uri, run_id, "KILLED")
+            tracking.end_run(uri, run_id, "KILLED", also_ended=True)
 
     heartbeat = settings.heartbeat_interval if not storage_url.startswith("journal:") else None
     storage = open_storage(storage_url, heartbeat, settings.heartbeat_grace if heartbeat else None, on_stale)

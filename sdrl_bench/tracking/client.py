@@ -293,9 +293,12 @@ def create_parent_run(uri: str, experiment: str, run_name: str, tags: Mapping[st
     return info.info.run_id
 
 
-def end_run(uri: str, run_id: str, status: str) -> None:
+def end_run(uri: str, run_id: str, status: str, *, also_ended: bool = False) -> None:
+    """End a RUNNING run with ``status``; ``also_ended``: a run that ended already gets it too
+    (a search trial whose worker died after its run ended, before Optuna recorded the trial:
+    the study counts it FAIL, and its run says so)."""
     client = mlflow_client(uri)
-    if client.get_run(run_id).info.status == "RUNNING":
+    if also_ended or client.get_run(run_id).info.status == "RUNNING":
         client.set_terminated(run_id, status)
 
 

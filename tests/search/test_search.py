@@ -315,6 +315,28 @@ def test_sigkill_mid_study_then_rerun_loses_and_duplicates_nothing(tmp_path, uri
     assert len(tracking.find_runs(uri, EXPERIMENT, "tags.`sdrl.kind` = 'study' and tags.`sdrl.study` = 'killed'")) == 1
 
 
+def test_a_trial_whose_worker_died_after_its_run_ended_gets_its_run_killed(tmp_path, uri):
+    """The window the kill test can land in by chance, made on purpose: a worker's trial run
+    ended FINISHED, then the worker died before Optuna recorded the trial. The next worker's
+    heartbeat check fails the trial, and its run says so: KILLED, ``optuna.state`` FAIL."""
+    result, _ = run_search(search_cfg(tmp_path, uri, "study.name=window", "search.n_trials=2",
+                                      "study.heartbeat_grace=1", "study.final_score=false"), quiet=True)
+    storage = optuna.storages.RDBStorage(f"sqlite:///{tmp_path}/optuna.db", heartbeat_interval=1, grace_period=1)
+    trial = optuna.load_study(study_name="window", storage=storage).ask()  # the dead worker's trial
+    storage.record_heartbeat(trial._trial_id)
+    run_id = tracking.create_parent_run(uri, EXPERIMENT, "window-trial-dead", {
+        tracking.PARENT_TAG: result.parent_run_id, "sdrl.kind": "trial", "optuna.trial": trial.number,
+        "optuna.state": "COMPLETE"})
+    tracking.end_run(uri, run_id, "FINISHED")
+    trial.set_user_attr("mlflow_run_id", run_id)
+    time.sleep(2.5)  # past the grace period: the trial's heartbeat is stale
+    run_search(search_cfg(tmp_path, uri, "study.name=window", "search.n_trials=3", "study.heartbeat_grace=1",
+                          "study.final_score=false"), quiet=True)
+    assert optuna.load_study(study_name="window", storage=storage).trials[trial.number].state == optuna.trial.TrialState.FAIL
+    run = MlflowClient(uri).get_run(run_id)
+    assert run.info.status == "KILLED" and run.data.tags["optuna.state"] == "FAIL"
+
+
 def _check_workers(tmp: Path, uri: str, name: str, n_workers: int) -> None:
     study = optuna.load_study(study_name=name, storage=f"sqlite:///{tmp}/optuna.db")
     reports = [json.loads(p.read_text()) for p in sorted((tmp / "sweep").glob("*/worker.json"))]
