@@ -52,7 +52,8 @@ clips (``ModelEnv._clip``); angles wrapped to [-pi, pi); the task's reward and t
 on jax arrays: the spec's plain functions (``env.spec.reward_fn`` / ``termination_fn``), or the
 ``task.reward_terminated`` of a task an env class builds (``build_task``). Then the pessimism
 (``ModelEnv._pessimism``: the members' standard deviation, ddof 0, over the members' jax
-predictions, a sparse model's ``members_`` or an NN ensemble's members, in units of the task's scale, largest over states; penalty, free band, limit and
+predictions, a sparse model's ``members_`` or an NN ensemble's members, in units of the task's
+scale, largest over states; penalty, free band, limit and
 crash reward; in ``task.model_regime``) and the learned events (``ModelEnv._draw_events``: on rows
 the trigger fires, not ended, open to the prior when the event learns on those, an outcome drawn
 by ``surrogate.events.draw_outcomes`` from the model's probabilities, ``outcome_probabilities``;
@@ -74,7 +75,7 @@ states drawn from a jax PRNG key (the spec's ``initial_state_fn`` or the task's 
 or the ModelEnv's reset pool).
 
 Not covered (``unsupported``; refused when the step is built, one line naming each): models
-with neither term tables nor a network, a sampling model other than the NN ensembles'
+with neither term tables nor a network, a sampling model that is not an NN ensemble
 (``noise=False`` steps its mean), compiled kernels without an array form (``task.array_step`` None),
 exogenous states or regime dynamics outside one, pessimism from a sparse model without
 ``members_``, learned events
