@@ -74,6 +74,7 @@ class JaxModel(NamedTuple):
     """The structure the functions depend on besides ``params``: models of equal keys share a
     compiled program."""
 
+
 INSTALL_HINT = "pip install 'sdrl-bench[jax]'"
 
 
