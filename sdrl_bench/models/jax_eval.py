@@ -192,11 +192,17 @@ def jax_predictor(model: Any, coef: Any = None) -> JaxPredict:
     return lambda z: _run_stages(jnp, z, n_inputs, n_ext, m, parts, "jax_predictor")
 
 
+def is_network(model: Any) -> bool:
+    """Whether ``model`` is a fitted NN model (``net_``: ``surrogate=nn`` or ``pe``), which
+    ``jax_model`` evaluates through ``models.jax_nn``."""
+    return getattr(model, "net_", None) is not None
+
+
 def jax_model(model: Any, members: bool = False) -> JaxModel:
     """``model`` as a ``JaxModel``: a sparse model through ``linear_predictor`` (its coefficients,
     and its members' with ``members``, in ``params["coef"]`` and ``params["members"]``); an NN
     model (``net_``: ``surrogate=nn`` or ``pe``) through ``models.jax_nn.network_model``."""
-    if getattr(model, "net_", None) is not None:
+    if is_network(model):
         from sdrl_bench.models.jax_nn import network_model  # noqa: PLC0415  (jax_nn imports this module)
 
         return network_model(model, members)

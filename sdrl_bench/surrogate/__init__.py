@@ -6,7 +6,7 @@ which a fit that only reads ``surrogate.events`` does not need."""
 import importlib
 
 _WHERE = {"ModelEnv": "model_env", "resolve_spec": "model_env", "SurrogateEnv": "env", "SurrogateVecEnv": "vec"}
-__all__ = ["ModelEnv", "SurrogateEnv", "SurrogateVecEnv", "resolve_spec"]
+__all__ = list(_WHERE)
 
 
 def __getattr__(name: str):

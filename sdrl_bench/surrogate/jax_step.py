@@ -93,7 +93,7 @@ import numpy as np
 from sdrl_bench import ConfigError
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.envs.functional import array_namespace, one_line, resolve, wrap_angle
-from sdrl_bench.models.jax_eval import JaxModel, jax_model, jax_modules
+from sdrl_bench.models.jax_eval import JaxModel, is_network, jax_model, jax_modules
 from sdrl_bench.surrogate.events import draw_outcomes, logistic_numbers, outcome_probabilities
 
 JaxStep = Callable[..., tuple[Any, Any, Any, Any]]
@@ -103,7 +103,7 @@ def unsupported(model_env: Any) -> list[str]:
     """What of ``model_env``'s step ``jax_stepper`` does not cover (empty: all of it)."""
     spec, task, model = model_env.spec, model_env.task, model_env.model
     out = []
-    network = getattr(model, "net_", None) is not None  # an NN model (models.jax_nn)
+    network = is_network(model)
     if not network and (getattr(model, "terms_", None) is None or getattr(model, "coef_", None) is None):
         kind = getattr(model, "kind", None) or type(model).__name__
         out.append(f"a model without term tables or a network ({kind}; models.jax_eval.jax_model evaluates "
