@@ -1,10 +1,13 @@
 """The compiled PPO (rl/jax_ppo.py) on a Pendulum surrogate (its law is exact from 200 random
 transitions): its rollout is ``jax_step`` step by step (resets at the step limit and on
-divergence, observations, the timeout bootstrap, episode returns); a short training run lifts
+divergence, observations, the timeout bootstrap, episode returns); its draws, made before the
+loop, are those of each step drawing from its own key; a short training run lifts
 the surrogate return well above the initial policy's; the trained policy acts in the real env;
 what it does not cover is refused in one line; a package recipe maps onto its config."""
 
 from __future__ import annotations
+
+import dataclasses
 
 import numpy as np
 import pytest
@@ -21,7 +24,8 @@ from sdrl_bench.cli.build import build_fit_job, instantiate_key  # noqa: E402
 from sdrl_bench.pipeline import fit_dynamics  # noqa: E402
 from sdrl_bench.rl import jax_ppo  # noqa: E402
 from sdrl_bench.rl.agents import evaluate_real  # noqa: E402
-from sdrl_bench.surrogate.jax_step import jax_reset, jax_step  # noqa: E402
+from sdrl_bench.surrogate.events import fit_event_model  # noqa: E402
+from sdrl_bench.surrogate.jax_step import jax_reset, jax_step, reset_aux  # noqa: E402
 from sdrl_bench.surrogate.model_env import ModelEnv  # noqa: E402
 
 TRAIN = jax_ppo.PPOConfig(n_envs=64, n_steps=64, batch_size=1024, n_epochs=10, gamma=0.95, learning_rate=1e-3)
@@ -94,6 +98,81 @@ def test_the_compiled_rollout_is_the_jax_step_step_by_step(pendulum):
     assert tr.diverged[0, 0] and tr.diverged.sum() == 1 and tr.done[0, 4] and not tr.done[0, 1:4].any()
     # ends: at step 199 - t0 and 200 steps later (t0 = 150, 190, 199 end twice), copy 0 at its divergence and at 200
     assert starts == 12
+
+
+def keyed_draws(sur, n, net, key, steps):
+    """Each step's draws as a step drawing on its own makes them: its key split three ways, then
+    the action's noise (``jax.random.categorical``'s Gumbel noise, or the Gaussian's normals),
+    the fresh episodes (states, observations, task memory) and the model's draws from them."""
+    out = []
+    for k in jax.random.split(key, steps):
+        k_act, k_reset, k_step = jax.random.split(k, 3)
+        shape = (n, sur.n_act)
+        noise = jax.random.gumbel(k_act, shape, jnp.float32) if sur.discrete else jax.random.normal(k_act, shape, jnp.float32)
+        fresh = sur.reset(k_reset, n, sur.params)
+        out.append((noise, fresh, sur.observe(fresh).astype(jnp.float32), sur.init_aux(n, jax_ppo.aux_key(k_reset)),
+                    sur.draw(k_step, n)))
+    return jax.tree_util.tree_map(lambda *xs: np.stack([np.asarray(x) for x in xs]), *out)
+
+
+def keyed_rollout(sur, cfg, net, env, obs, key):
+    """The rollout as written before its draws were batched: each step splits its key three
+    ways and draws as it goes (the categorical action by ``jax.random.categorical``)."""
+    n = cfg.n_envs
+
+    def one(carry, k):
+        env, obs = carry
+        k_act, k_reset, k_step = jax.random.split(k, 3)
+        action = jax.random.categorical(k_act, jax_ppo.action_mean(net, obs)).astype(jnp.int32)
+        nxt, reward, term, div, aux = sur.step(env.states, action[:, None], env.aux, k_step, sur.params)
+        t = env.t + 1
+        done = term | div | (t >= sur.max_steps)
+        states = jnp.where(done[:, None], sur.reset(k_reset, n, sur.params), nxt)
+        aux = reset_aux(done, sur.init_aux(n, jax_ppo.aux_key(k_reset)), aux)
+        new_obs = sur.observe(states).astype(jnp.float32)
+        return (env._replace(states=states, t=jnp.where(done, 0, t), aux=aux), new_obs), (obs, action, nxt, reward, done)
+
+    return jax.lax.scan(one, (env, obs), jax.random.split(jax.random.split(key)[1], cfg.n_steps))[1]
+
+
+@pytest.mark.parametrize("env_name", ["pendulum", "lunar_lander_terrain"])
+def test_the_rollout_draws_what_each_step_would_draw_from_its_key(env_name, pendulum):
+    """The rollout draws its steps' randomness before the loop, in batched calls
+    (``rollout_draws``: its actions' noise, its fresh episodes' states, observations and task
+    memory, the model's step noise and learned-event uniforms): bit for bit the draws of each
+    step drawing from its own key. Pendulum (Gaussian actions); LunarLander with terrain
+    (categorical actions, per-episode grounds, the engines' step noise, the touchdown event's
+    model), whose whole trajectory, episodes ending and restarting under way, is the keyed
+    rollout's bit for bit."""
+    if env_name == "pendulum":
+        menv, n = ModelEnv(*pendulum, seed=0), 8
+    else:
+        res = fit_dynamics(build_fit_job(compose_cfg("env=lunar_lander", "collector=heuristic",
+                                                     "collector.epsilon=0.3", "n_transitions=4000")))
+        events = {"touchdown": fit_event_model(res.job.spec.task.events[0], res.data, min_events=2)}
+        menv, n = ModelEnv(res.model, dataclasses.replace(res.job.spec, terrain=True), events=events, seed=0), 16
+    cfg = jax_ppo.PPOConfig(n_envs=n, n_steps=300, batch_size=n * 150, gamma=0.9)
+    sur = jax_ppo.surrogate(menv)
+    net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act, discrete=sur.discrete)
+    key = jax.random.key(2)
+    got = jax.jit(lambda k: jax_ppo.rollout_draws(sur, cfg, net, None, sur.params, k))(key)
+    want = keyed_draws(sur, n, net, key, cfg.n_steps)
+    leaves = jax.tree_util.tree_leaves(want)
+    assert len(jax.tree_util.tree_leaves(got)) == len(leaves) == (4 if env_name == "pendulum" else 7)  # LL: aux 2 (sleep count, ground), draws 2 (noise, event)
+    for g, w in zip(jax.tree_util.tree_leaves(got), leaves, strict=True):
+        assert g.shape == w.shape and g.dtype == w.dtype
+        # equal, but for the terrain's smoothing: arithmetic, compiled here and eager there (1.1e-16)
+        assert np.max(np.abs(np.asarray(g) - w)) <= (1e-15 if g.shape[-1] == 11 else 0.0)
+    if env_name == "pendulum":
+        return
+    assert sur.params["chol"] is not None and sur.discrete
+    env, obs = jax_ppo.init_env(sur, jax.random.key(1), n, cfg)
+    tr = jax.jit(jax_ppo.make_rollout(sur, cfg))(net, env, obs, key)[2]
+    want = [np.asarray(x) for x in jax.jit(lambda *a: keyed_rollout(sur, cfg, *a))(net, env, obs, key)]
+    for name, w in zip(("obs", "action", "next_state", "task_reward", "done"), want, strict=True):
+        assert np.array_equal(np.asarray(getattr(tr, name)), w), name
+    assert want[4].sum() >= 8  # episodes ended, and their successors started from the drawn states
+    print(f"{env_name}: {int(want[4].sum())} episodes ended in {cfg.n_steps} steps x {n} copies; identical draws and steps")
 
 
 def test_a_short_training_run_improves_the_surrogate_return(trained):
