@@ -47,8 +47,9 @@ step (rejax and PureJaxRL expect their own env API).
 
 Covered: the surrogates ``jax_step.jax_stepper`` covers (Pendulum, MountainCar, CartPole, the
 swing-up, LunarLander on flat ground or terrain), with their step noise, pessimism, learned events and per-row
-memory, the noise and event draws made from jax keys inside the loop (the same distributions as
-``ModelEnv``'s, other draws). Box actions get the Gaussian above; discrete actions a categorical policy over the actor's logits
+memory, the noise and event draws made from jax keys inside the compiled program (the same
+distributions as ``ModelEnv``'s, other draws; a rollout makes all its steps' draws before its
+loop, ``rollout_draws``). Box actions get the Gaussian above; discrete actions a categorical policy over the actor's logits
 (SB3's ``CategoricalDistribution``). jax and optax are the optional ``jax`` extra (``pip install
 'sdrl-bench[jax]'``), imported on first use.
 """
