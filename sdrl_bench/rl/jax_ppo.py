@@ -596,9 +596,11 @@ def rollout_draws(sur: Surrogate, cfg: PPOConfig, net: dict, explore: Any, param
     CPU is a loop of its own (XLA's rolled rounds), five of them a step in LunarLander's
     rollout; drawn once for all steps their cost is shared: a rollout of LunarLander's terrain
     pack took 23.1 ms with the draws in the loop, 19.2 ms with them here (median of 30, one
-    core, this 2-core machine); MountainCar's fast pack, 2.51 against 2.26 ms. The cost: every
+    core, this 2-core machine); MountainCar's fast pack, 2.51 against 2.26 ms. The costs: every
     step's fresh episodes are held at once, arrays of the trajectory's own shape (n_steps,
-    n_envs, ...), where a step drew and dropped its own."""
+    n_envs, ...), where a step drew and dropped its own; and the program lowers more slowly
+    (LunarLander's terrain rollout 0.13 -> 0.17 s, every compile, cached or not), which a short
+    run's fewer rollouts do not win back (docs/compiled.md)."""
     jax, jnp, _ = _modules()
     n = cfg.n_envs
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(jax.random.split(key, cfg.n_steps))
