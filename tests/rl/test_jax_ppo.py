@@ -100,7 +100,7 @@ def test_the_compiled_rollout_is_the_jax_step_step_by_step(pendulum):
     assert starts == 12
 
 
-def keyed_draws(sur, n, net, key, steps):
+def keyed_draws(sur, n, key, steps):
     """Each step's draws as a step drawing on its own makes them: its key split three ways, then
     the action's noise (``jax.random.categorical``'s Gumbel noise, or the Gaussian's normals),
     the fresh episodes (states, observations, task memory) and the model's draws from them."""
@@ -156,7 +156,7 @@ def test_the_rollout_draws_what_each_step_would_draw_from_its_key(env_name, pend
     net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act, discrete=sur.discrete)
     key = jax.random.key(2)
     got = jax.jit(lambda k: jax_ppo.rollout_draws(sur, cfg, net, None, sur.params, k))(key)
-    want = keyed_draws(sur, n, net, key, cfg.n_steps)
+    want = keyed_draws(sur, n, key, cfg.n_steps)
     leaves = jax.tree_util.tree_leaves(want)
     assert len(jax.tree_util.tree_leaves(got)) == len(leaves) == (4 if env_name == "pendulum" else 7)  # LL: aux 2 (sleep count, ground), draws 2 (noise, event)
     for g, w in zip(jax.tree_util.tree_leaves(got), leaves, strict=True):
