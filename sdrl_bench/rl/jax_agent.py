@@ -312,7 +312,7 @@ class JaxPPO:
 
     def _timed_compile(self, fn: Any, *args: Any) -> Any:
         hits, t0 = cache_hits(), time.perf_counter()
-        out = fn.lower(*args).compile()
+        out = fn.lower(*args).compile(compiler_options=jax_ppo.COMPILER_OPTIONS)
         self.compile_seconds += time.perf_counter() - t0
         self.compile_programs += 1
         self.compile_cache_hits += cache_hits() - hits

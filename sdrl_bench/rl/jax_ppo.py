@@ -72,6 +72,17 @@ HIDDEN = (64, 64)
 ADAM_EPS = 1e-5
 """SB3's ``ActorCriticPolicy`` sets Adam's eps to 1e-5."""
 INSTALL_HINT = "pip install 'sdrl-bench[jax]' (jax, optax)"
+COMPILER_OPTIONS = {"xla_backend_optimization_level": 2}
+"""XLA options for the programs this module's training compiles (``make_train``, and
+``rl.jax_agent.JaxPPO``'s init, rollout and update): LLVM at O2 instead of XLA's default O3. A
+rollout is some 150 small kernels per step over 64-128 rows, and O3's larger code ran slower.
+Measured on this 2-core host, one core, 2026-11-27 (``benchmarks/xla_opt_level.py``: each program
+compiled at each level, interleaved medians): LunarLander's terrain rollout (64 x 128) 14.8 ->
+12.7 ms, and its cold compile 7.4 -> 3.4 s (the code 2.2 -> 1.6 MB); MountainCar's rollout and
+both updates unchanged (1.43 / 1.44, 8.34 / 8.30, 20.4 / 20.2 ms). O1 gave the same times, O0 ran
+four times slower. Fast-math stays off, but LLVM may fuse a multiply and an add differently at
+another level: those four programs' outputs were the same bit for bit, and a Pendulum rollout
+of 8 rows differed in the last bit of some float32 values (tested to rounding)."""
 
 
 def _modules() -> tuple[Any, Any, Any]:
@@ -790,7 +801,7 @@ def make_train(model_env: Any, cfg: PPOConfig, total_steps: int) -> Callable:
         (net, _, _, _), stats = jax.lax.scan(iteration, (net, tx.init(net), env, obs), jax.random.split(k_loop, iters))
         return net, stats
 
-    return jax.jit(train_fn)
+    return jax.jit(train_fn, compiler_options=COMPILER_OPTIONS)
 
 
 def as_params(net: Any, model_env: Any) -> dict[str, Any]:

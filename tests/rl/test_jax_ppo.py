@@ -175,6 +175,43 @@ def test_the_rollout_draws_what_each_step_would_draw_from_its_key(env_name, pend
     print(f"{env_name}: {int(want[4].sum())} episodes ended in {cfg.n_steps} steps x {n} copies; identical draws and steps")
 
 
+def test_the_harness_compiler_options_change_a_rollout_and_an_update_by_rounding_only(pendulum):
+    """``COMPILER_OPTIONS`` (LLVM at O2, chosen for speed) against XLA's defaults, on the same
+    lowered rollout and update: the same episodes (every flag and count equal) and numbers equal
+    to float32's rounding in the networks (LLVM may fuse a multiply and an add differently at
+    each level: on Pendulum's 8 rows some values differ in their last bit; on the fast packs'
+    rollouts and updates measured, none did)."""
+    menv = ModelEnv(*pendulum, seed=0)
+    cfg = jax_ppo.PPOConfig(n_envs=8, n_steps=256, batch_size=512, n_epochs=2, gamma=0.9)
+    sur = jax_ppo.surrogate(menv)
+    net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act)
+    env, obs = jax_ppo.init_env(sur, jax.random.key(1), cfg.n_envs, cfg)
+    rollout, update = jax_ppo.make_rollout(sur, cfg), jax_ppo.make_update(cfg)
+    opt = jax_ppo.optimizer(cfg).init(net)
+
+    def iteration(net, opt, env, obs, key):
+        env, obs, traj, last = rollout(net, env, obs, key, sur.params)
+        return traj, update(net, opt, jax_ppo.make_batch(cfg, traj, last), jax.random.fold_in(key, 1))
+
+    args = (net, opt, env, obs, jax.random.key(2))
+    lowered = jax.jit(iteration).lower(*args)
+    assert jax_ppo.COMPILER_OPTIONS["xla_backend_optimization_level"] != 3  # not XLA's default: a real comparison
+    ours = lowered.compile(compiler_options=jax_ppo.COMPILER_OPTIONS)(*args)
+    xla = lowered.compile()(*args)
+    leaves = jax.tree_util.tree_leaves(ours)
+    assert len(leaves) == len(jax.tree_util.tree_leaves(xla)) > 10
+    for a, b in zip(leaves, jax.tree_util.tree_leaves(xla), strict=True):
+        a, b = np.asarray(a), np.asarray(b)
+        if a.dtype.kind in "biu":
+            assert np.array_equal(a, b)
+        else:
+            np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
+    trained_net = ours[1][0]
+    assert not all(np.array_equal(np.asarray(a), np.asarray(b)) for a, b in zip(
+        jax.tree_util.tree_leaves(net), jax.tree_util.tree_leaves(trained_net), strict=True))  # the update did update
+    assert np.asarray(ours[0].done).any()  # episodes ended and restarted under way
+
+
 def test_a_short_training_run_improves_the_surrogate_return(trained):
     menv, params, stats = trained
     before = jax_ppo.evaluate_surrogate(menv, jax_ppo.as_params(jax_ppo.init_net(jax.random.key(0), 3, 1), menv), 20, 7)
