@@ -174,10 +174,11 @@ def compiled_parts(menv: ModelEnv, cfg: jax_ppo.PPOConfig, repeats: int) -> tupl
     sur = jax_ppo.surrogate(menv)
     net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act, cfg, sur.discrete)
     env, obs = jax_ppo.init_env(sur, jax.random.key(1), cfg.n_envs, cfg)
-    rollout = jax.jit(jax_ppo.make_rollout(sur, cfg))
+    opts = jax_ppo.COMPILER_OPTIONS  # as (b) and the harness compile them
+    rollout = jax.jit(jax_ppo.make_rollout(sur, cfg), compiler_options=opts)
     _, _, traj, last = rollout(net, env, obs, jax.random.key(2))
     batch = jax.jit(lambda tr, lv: jax_ppo.make_batch(cfg, tr, lv))(traj, last)
-    update = jax.jit(jax_ppo.make_update(cfg))
+    update = jax.jit(jax_ppo.make_update(cfg), compiler_options=opts)
     opt = jax_ppo.optimizer(cfg).init(net)
     return (timed(lambda: rollout(net, env, obs, jax.random.key(3))[2].reward, repeats=repeats),
             timed(lambda: update(net, opt, batch, jax.random.key(4))[0], repeats=repeats))

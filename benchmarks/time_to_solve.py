@@ -246,6 +246,7 @@ def arm_row(metrics: dict[int, dict[str, float]], seeds: list[int], cold_compile
         "wall_ex_compile": med_wall(False, compile_as=0.0),
         "wall_judged_cold": med_wall(True, compile_as=cold_compile) if math.isfinite(cold_compile) else math.nan,
         "cache_hits": med("compile_cache_hits", math.nan), "programs": med("compile_programs", math.nan),
+        "lowered": med("lowering_cache_hits", math.nan),
         "rollout_share": float(np.median([m["solved_rollout_wall_seconds"] / m["solved_train_wall"]
                                           for m in solved if "solved_rollout_wall_seconds" in m and m["solved_train_wall"] > 0]))
         if any("solved_rollout_wall_seconds" in m for m in solved) else math.nan,
@@ -305,7 +306,8 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, t
                     f"programs in {fmt(warm[k].get('compile_wall_seconds', math.nan))} s" if k in warm
                     else "no cold compile on record (no warm-up, or its warm-ups found programs in the cache)")
             print(f"compile, {LABELS[k].split(' ')[0]}: the timed runs loaded {fmt(r['cache_hits'])} of {fmt(r['programs'])} "
-                  f"programs from the cache (median), in {fmt(r['compile'])} s; {cold}")
+                  f"programs from the cache (median; their lowerings {fmt(r['lowered'])} from the lowering cache), "
+                  f"in {fmt(r['compile'])} s; {cold}")
     for k, name, sb3 in (("D", "(d')", "d"), ("E", "(e')", "e"), ("T", "(t')", "d")):
         if not rows[k]["seeds"]:
             continue

@@ -327,7 +327,7 @@ def run_dyna(job: DynaJob, checked: tuple[Any, Any], recorder: DynaRecorder | No
     if cfg.audit_episodes:  # recorded as the screens are, but never model data: held out
         audit, audit_data = loop.evaluate(agent, cfg.audit_episodes, seeds.reset_seed(seed, "dyna_audit"), "audit")
     summary = summarize(rounds, audit, spec.solved_threshold, cfg, job)
-    for key in ("compile_seconds", "compile_programs", "compile_cache_hits", "rollout_compiles", "rollout_swaps",
+    for key in ("compile_seconds", "compile_programs", "compile_cache_hits", "lowering_cache_hits", "rollout_compiles", "rollout_swaps",
                 "pool_threads"):  # a compiled agent's (rl.jax_agent)
         if getattr(agent, key, None) is not None:
             summary[f"agent_{key}"] = float(getattr(agent, key))

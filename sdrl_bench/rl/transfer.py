@@ -103,7 +103,9 @@ class ArmResult:
     """A compiled agent's (``rl.jax_agent``): the threads of XLA's CPU pool that ran its programs."""
     compiles: dict[str, int] = field(default_factory=dict)
     """A compiled agent's: ``compile_programs`` (programs it compiled), ``compile_cache_hits``
-    (those loaded from JAX's persistent compilation cache: 0 is a cold compile) and
+    (those loaded from JAX's persistent compilation cache: 0 is a cold compile),
+    ``lowering_cache_hits`` (those whose lowering came from the lowering cache,
+    ``rl.jax_agent.compile_program``) and
     ``rollout_compiles`` (rollouts compiled with the surrogate's step: 0 where the rollout stepped
     in Python, in real envs or in a surrogate the compiled step does not cover)."""
 
@@ -247,7 +249,8 @@ def run_arm(
         final_successes=final.successes.tolist(), final_steps=final.steps, counts=dict(counts),
         seconds=seconds, maps=maps, fit=fit_result, surrogate_stats=stats,
         xla_pool_threads=getattr(result.model, "pool_threads", None),
-        compiles={k: int(getattr(result.model, k)) for k in ("compile_programs", "compile_cache_hits", "rollout_compiles")
+        compiles={k: int(getattr(result.model, k)) for k in ("compile_programs", "compile_cache_hits", "lowering_cache_hits",
+                                                              "rollout_compiles")
                   if hasattr(result.model, k)},
     )
 

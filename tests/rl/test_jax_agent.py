@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 jax = pytest.importorskip("jax")
+jnp = pytest.importorskip("jax.numpy")
 pytest.importorskip("optax")
 pytestmark = pytest.mark.jax
 
@@ -102,6 +103,72 @@ def test_a_saved_agent_loads_and_acts_the_same(fitted, tmp_path):
     assert not np.array_equal(leaves(ppo)[0], leaves(other)[0])
 
 
+def test_the_lowering_key_changes_with_the_program_its_constants_shapes_and_options():
+    from sdrl_bench.rl.jax_agent import lowering_key
+
+    jax_ppo._modules()  # the harness's XLA flags, should this be the process's first jax computation
+
+    def scaled(c, shift=1.0):
+        c = jnp.asarray(c)
+        return jax.jit(lambda v: v * c + shift)
+
+    x = jnp.ones(3)
+    key = lowering_key(scaled(np.arange(3.0)).trace(x), {})
+    assert len(key) == 64 and key == lowering_key(scaled(np.arange(3.0)).trace(x), {})  # another closure, the same program
+    assert key != lowering_key(scaled(np.arange(3.0) + 1).trace(x), {})  # a captured constant's value
+    assert key != lowering_key(scaled(np.arange(3.0), 2.0).trace(x), {})  # a literal
+    assert key != lowering_key(scaled(np.arange(4.0)).trace(jnp.ones(4)), {})  # the shapes
+    assert key != lowering_key(scaled(np.arange(3.0)).trace(x), {"xla_backend_optimization_level": 2})
+
+
+_LEARN = """
+import sys, json
+import numpy as np
+sys.path.insert(0, {tests!r})
+from helpers import compose_cfg
+from sdrl_bench.cli.build import build_fit_job, instantiate_key
+from sdrl_bench.pipeline import fit_dynamics
+from sdrl_bench.rl import jax_agent
+from sdrl_bench.rl.agents import make_agent
+from sdrl_bench.rl.transfer import surrogate_vec_env
+jax_agent.use_compilation_cache({cache!r})
+cfg = compose_cfg(*{small!r})
+res = fit_dynamics(build_fit_job(cfg))
+agent = instantiate_key(cfg.agent, "agent")
+ppo = make_agent(agent, surrogate_vec_env(res.model, res.spec, agent.n_envs, seed=0), seed=3)
+ppo.learn(1024)
+import jax
+np.savez({out!r}, *[np.asarray(x) for x in jax.tree_util.tree_leaves(ppo.net)])
+print(json.dumps({{"programs": ppo.compile_programs, "lowered": ppo.lowering_cache_hits, "jax": ppo.compile_cache_hits}}))
+"""
+
+
+def test_through_the_lowering_cache_training_is_what_it_is_compiled_directly(fitted, tmp_path):
+    """Two fresh processes with the persistent cache on (the first exports its programs'
+    lowerings, the second loads them) train the networks this process trains without the cache,
+    bit for bit."""
+    from pathlib import Path
+
+    cfg, model, spec = fitted
+    agent = instantiate_key(cfg.agent, "agent")
+    ppo = make_agent(agent, surrogate_vec_env(model, spec, agent.n_envs, seed=0), seed=3)
+    ppo.learn(1024)
+    assert ppo.lowering_cache_hits == 0  # no cache in this process: compiled directly
+    want = [np.asarray(x) for x in jax.tree_util.tree_leaves(ppo.net)]
+    tests, runs = str(Path(__file__).resolve().parents[1]), []
+    for i in range(2):
+        out = tmp_path / f"net{i}.npz"
+        code = _LEARN.format(tests=tests, cache=str(tmp_path / "cache"), small=SMALL, out=str(out))
+        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+        assert res.returncode == 0, res.stderr[-2000:]
+        runs.append(json.loads(res.stdout.strip().splitlines()[-1]))
+        got = np.load(out)
+        assert len(got.files) == len(want) and all(np.array_equal(got[f"arr_{k}"], w) for k, w in enumerate(want))
+    assert runs[0] == {"programs": 3, "lowered": 0, "jax": 0}  # cold: traced, exported, compiled
+    assert runs[1] == {"programs": 3, "lowered": 3, "jax": 3}  # traced only: lowerings and code from the caches
+    assert len(list((tmp_path / "cache" / "lowered").iterdir())) == 3
+
+
 def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path):
     res = run_cli(*SMALL, "rl.surrogate_steps=1024", "rl.real_steps=1024", "rl.eval_every=1024", "rl.eval_episodes=1",
                   "rl.final_episodes=1", "rl.stop_when_solved=false", "seed=0", "progress_bar=false",
@@ -131,6 +198,8 @@ def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path)
     second = search(store, filter_string="tags.`sdrl.kind` = 'transfer' and params.seed = '1'").iloc[0]
     for arm, programs in (("surrogate", 3), ("real", 1)):
         assert second[f"metrics.{arm}/compile_programs"] == second[f"metrics.{arm}/compile_cache_hits"] == programs
+        assert second[f"metrics.{arm}/lowering_cache_hits"] == programs  # traced, their lowerings loaded
+    assert run["metrics.surrogate/lowering_cache_hits"] == 0
     from mlflow.tracking import MlflowClient
 
     path = MlflowClient(store).download_artifacts(run["run_id"], "agents/surrogate.zip", str(tmp_path))
