@@ -164,7 +164,9 @@ def compile_program(fn: Any, args: tuple, options: dict[str, Any]) -> tuple[Any,
     pack in a fresh process, this 2-core machine (2026-11-27): the three programs (the episodes'
     start, the rollout, the update) took 0.69 s to trace, lower and load from JAX's cache, and
     0.50 s with their lowerings from this cache (of it, tracing 0.21 s and JAX's cache 0.21 s).
-    A program ``jax.export`` cannot hold (a host callback) is lowered and compiled as usual."""
+    A program ``jax.export`` cannot hold (a host callback) is lowered and compiled as usual, and
+    so is every program, with one warning, where jax.export's serialization is missing
+    (``flatbuffers``, which the ``jax`` extra installs)."""
     import jax  # noqa: PLC0415
     from jax import export  # noqa: PLC0415
 
@@ -188,11 +190,17 @@ def compile_program(fn: Any, args: tuple, options: dict[str, Any]) -> tuple[Any,
 
         try:
             exported = export.export(jax.jit(flat))(*leaves)
+            blob = exported.serialize()
+        except ImportError as exc:  # jax.export's serialization needs flatbuffers (the jax extra has it)
+            if not _lowered.get("warned"):
+                warnings.warn(f"the lowering cache is off: {exc}", stacklevel=3)
+                _lowered["warned"] = 1
+            return traced.lower().compile(compiler_options=options), False
         except Exception:  # noqa: BLE001 - a program export cannot hold: compiled as it is
             return traced.lower().compile(compiler_options=options), False
         path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-        tmp.write_bytes(exported.serialize())
+        tmp.write_bytes(blob)
         os.replace(tmp, path)  # whole or absent, for a concurrent reader
     _lowered["hits"] += hit
     exe = jax.jit(exported.call).lower(*leaves).compile(compiler_options=options)

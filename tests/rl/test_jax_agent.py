@@ -123,6 +123,8 @@ def test_the_lowering_key_changes_with_the_program_its_constants_shapes_and_opti
 
 _LEARN = """
 import sys, json
+if {block}:
+    sys.modules["flatbuffers"] = None  # jax.export's serialization missing: its import fails
 import numpy as np
 sys.path.insert(0, {tests!r})
 from helpers import compose_cfg
@@ -145,7 +147,8 @@ print(json.dumps({{"programs": ppo.compile_programs, "lowered": ppo.lowering_cac
 
 def test_through_the_lowering_cache_training_is_what_it_is_compiled_directly(fitted, tmp_path):
     """Two fresh processes with the persistent cache on (the first exports its programs'
-    lowerings, the second loads them, one of them cut short in between) train the networks this
+    lowerings, the second loads them, one of them cut short in between), and a third without
+    jax.export's serialization (no lowering cache, one warning), train the networks this
     process trains without the cache, bit for bit."""
     from pathlib import Path
 
@@ -156,9 +159,9 @@ def test_through_the_lowering_cache_training_is_what_it_is_compiled_directly(fit
     assert ppo.lowering_cache_hits == 0  # no cache in this process: compiled directly
     want = [np.asarray(x) for x in jax.tree_util.tree_leaves(ppo.net)]
     tests, runs = str(Path(__file__).resolve().parents[1]), []
-    for i in range(2):
+    for i in range(3):
         out = tmp_path / f"net{i}.npz"
-        code = _LEARN.format(tests=tests, cache=str(tmp_path / "cache"), small=SMALL, out=str(out))
+        code = _LEARN.format(tests=tests, cache=str(tmp_path / "cache"), small=SMALL, out=str(out), block=i == 2)
         res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
         assert res.returncode == 0, res.stderr[-2000:]
         runs.append(json.loads(res.stdout.strip().splitlines()[-1]))
@@ -171,6 +174,8 @@ def test_through_the_lowering_cache_training_is_what_it_is_compiled_directly(fit
             cut.write_bytes(cut.read_bytes()[: size // 2])
     assert runs[0] == {"programs": 3, "lowered": 0, "jax": 0}  # cold: traced, exported, compiled
     assert runs[1] == {"programs": 3, "lowered": 2, "jax": 3}  # traced; two lowerings and all the code from the caches
+    assert runs[2]["programs"] == 3 and runs[2]["lowered"] == 0  # lowered and compiled directly
+    assert "the lowering cache is off" in res.stderr and "flatbuffers" in res.stderr
     assert cut.stat().st_size > size // 2  # the cut one written whole again: it loads
     assert jax.export.deserialize(bytearray(cut.read_bytes())).in_avals
 
