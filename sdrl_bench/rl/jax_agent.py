@@ -115,13 +115,23 @@ LOWERED = "lowered"
 """The folder, inside JAX's persistent compilation cache, of the lowering cache
 (``compile_program``): one serialized ``jax.export.Exported`` per program."""
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
-_lowered = {"hits": 0}
-"""Programs this process took from the lowering cache (``lowering_hits``)."""
+_lowering = {"warned": False}
+"""Whether this process warned that the lowering cache is off (``compile_program``)."""
 
 
-def lowering_hits() -> int:
-    """Programs this process has taken from the lowering cache (``compile_program``) so far."""
-    return int(_lowered["hits"])
+def _constants(jaxpr: Any, out: list) -> list:
+    """Every constant a (closed) jaxpr holds, its nested ones included, in a fixed order: a
+    constant captured inside a nested ``jit``, ``scan`` or ``cond`` stays in that inner closed
+    jaxpr, and the printed jaxpr names it without its value."""
+    if hasattr(jaxpr, "consts") and hasattr(jaxpr, "jaxpr"):
+        out.extend(jaxpr.consts)
+        jaxpr = jaxpr.jaxpr
+    for eqn in jaxpr.eqns:
+        for value in eqn.params.values():
+            for x in value if isinstance(value, (tuple, list)) else (value,):
+                if hasattr(x, "eqns") or (hasattr(x, "consts") and hasattr(x, "jaxpr")):
+                    _constants(x, out)
+    return out
 
 
 def lowering_key(traced: Any, options: dict[str, Any]) -> str:
@@ -129,14 +139,14 @@ def lowering_key(traced: Any, options: dict[str, Any]) -> str:
     what its lowering depends on: the program's jaxpr as text (every equation with its shapes,
     dtypes, parameters and literals; memory addresses in callables' names taken out: they differ
     from process to process and lowering does not read those callables), the values of its
-    captured constants, the layout of its arguments, jax's and jaxlib's versions, the backend,
+    captured constants (those of nested jaxprs too, ``_constants``), the layout of its arguments, jax's and jaxlib's versions, the backend,
     every jax configuration value (some change a lowering without showing in the jaxpr, e.g. the
     PRNG's implementation) but the cache folder's path, and the compiler options."""
     import jax  # noqa: PLC0415
     import jaxlib  # noqa: PLC0415
 
     h = hashlib.sha256(_ADDRESS.sub("", str(traced.jaxpr)).encode())
-    for c in traced.jaxpr.consts:
+    for c in _constants(traced.jaxpr, []):
         dtype = getattr(c, "dtype", None)
         a = np.asarray(jax.random.key_data(c) if dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key) else c)
         h.update(repr((a.dtype.str, a.shape)).encode())
@@ -192,9 +202,9 @@ def compile_program(fn: Any, args: tuple, options: dict[str, Any]) -> tuple[Any,
             exported = export.export(jax.jit(flat))(*leaves)
             blob = exported.serialize()
         except ImportError as exc:  # jax.export's serialization needs flatbuffers (the jax extra has it)
-            if not _lowered.get("warned"):
+            if not _lowering["warned"]:
                 warnings.warn(f"the lowering cache is off: {exc}", stacklevel=3)
-                _lowered["warned"] = 1
+                _lowering["warned"] = True
             return traced.lower().compile(compiler_options=options), False
         except Exception:  # noqa: BLE001 - a program export cannot hold: compiled as it is
             return traced.lower().compile(compiler_options=options), False
@@ -202,7 +212,6 @@ def compile_program(fn: Any, args: tuple, options: dict[str, Any]) -> tuple[Any,
         tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
         tmp.write_bytes(blob)
         os.replace(tmp, path)  # whole or absent, for a concurrent reader
-    _lowered["hits"] += hit
     exe = jax.jit(exported.call).lower(*leaves).compile(compiler_options=options)
 
     def run(*a: Any) -> Any:

@@ -77,10 +77,10 @@ COMPILER_OPTIONS = {"xla_backend_optimization_level": 2}
 ``rl.jax_agent.JaxPPO``'s init, rollout and update): LLVM at O2 instead of XLA's default O3. A
 rollout is some 150 small kernels per step over 64-128 rows, and O3's larger code ran slower.
 Measured on this 2-core host, one core, 2026-11-27 (``benchmarks/xla_opt_level.py``: each program
-compiled at each level, interleaved medians): LunarLander's terrain rollout (64 x 128) 14.8 ->
-12.7 ms, and its cold compile 7.4 -> 3.4 s (the code 2.2 -> 1.6 MB); MountainCar's rollout and
-both updates unchanged (1.43 / 1.44, 8.34 / 8.30, 20.4 / 20.2 ms). O1 gave the same times, O0 ran
-four times slower. Fast-math stays off, but LLVM may fuse a multiply and an add differently at
+compiled at each level, interleaved medians): LunarLander's terrain rollout (64 x 128) 15.35 ->
+13.02 ms, and its cold compile 7.7 -> 3.7 s (the code 2.2 -> 1.6 MB); MountainCar's rollout and
+both updates unchanged (O3 / O2: 1.67 / 1.66, 10.69 / 10.65, 22.22 / 22.31 ms). O1 gave the same
+times, O0 ran four times slower. Fast-math stays off, but LLVM may fuse a multiply and an add differently at
 another level: those four programs' outputs were the same bit for bit, and a Pendulum rollout
 of 8 rows differed in the last bit of some float32 values (tested to rounding)."""
 

@@ -120,6 +120,14 @@ def test_the_lowering_key_changes_with_the_program_its_constants_shapes_and_opti
     assert key != lowering_key(scaled(np.arange(4.0)).trace(jnp.ones(4)), {})  # the shapes
     assert key != lowering_key(scaled(np.arange(3.0)).trace(x), {"xla_backend_optimization_level": 2})
 
+    def nested(c):  # a constant captured inside a jit inside a scan: the printed jaxpr names it, without its value
+        inner = scaled(c, 0.0)
+        return jax.jit(lambda v: jax.lax.scan(lambda s, _: (inner(s), None), v, None, length=2)[0])
+
+    deep = lowering_key(nested(np.arange(3.0)).trace(x), {})
+    assert deep == lowering_key(nested(np.arange(3.0)).trace(x), {})
+    assert deep != lowering_key(nested(np.arange(3.0) + 1).trace(x), {})
+
 
 _LEARN = """
 import sys, json
