@@ -46,6 +46,7 @@ is this class; SB3's callback classes are used as they are.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import io
 import json
@@ -208,10 +209,15 @@ def compile_program(fn: Any, args: tuple, options: dict[str, Any]) -> tuple[Any,
             return traced.lower().compile(compiler_options=options), False
         except Exception:  # noqa: BLE001 - a program export cannot hold: compiled as it is
             return traced.lower().compile(compiler_options=options), False
-        path.parent.mkdir(parents=True, exist_ok=True)
         tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-        tmp.write_bytes(blob)
-        os.replace(tmp, path)  # whole or absent, for a concurrent reader
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp.write_bytes(blob)
+            os.replace(tmp, path)  # whole or absent, for a concurrent reader
+        except OSError as exc:  # a full or read-only cache: this run compiles all the same
+            warnings.warn(f"the lowering cache could not keep {path.name[:12]}...: {exc}", stacklevel=3)
+            with contextlib.suppress(OSError):
+                tmp.unlink(missing_ok=True)
     exe = jax.jit(exported.call).lower(*leaves).compile(compiler_options=options)
 
     def run(*a: Any) -> Any:

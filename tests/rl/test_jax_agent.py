@@ -184,6 +184,16 @@ def test_through_the_lowering_cache_training_is_what_it_is_compiled_directly(fit
     assert runs[1] == {"programs": 3, "lowered": 2, "jax": 3}  # traced; two lowerings and all the code from the caches
     assert runs[2]["programs"] == 3 and runs[2]["lowered"] == 0  # lowered and compiled directly
     assert "the lowering cache is off" in res.stderr and "flatbuffers" in res.stderr
+    # a cache whose lowerings cannot be written (its folder's name taken by a file): warned, trained all the same
+    (tmp_path / "full").mkdir()
+    (tmp_path / "full" / "lowered").write_text("not a folder")
+    out = tmp_path / "net3.npz"
+    code = _LEARN.format(tests=tests, cache=str(tmp_path / "full"), small=SMALL, out=str(out), block=False)
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    assert json.loads(res.stdout.strip().splitlines()[-1])["lowered"] == 0 and "could not keep" in res.stderr
+    got = np.load(out)
+    assert all(np.array_equal(got[f"arr_{k}"], w) for k, w in enumerate(want))
     assert cut.stat().st_size > size // 2  # the cut one written whole again: it loads
     assert jax.export.deserialize(bytearray(cut.read_bytes())).in_avals
 
