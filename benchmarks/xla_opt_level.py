@@ -58,13 +58,13 @@ def main() -> None:
     sur = jax_ppo.surrogate(ModelEnv(fit.model, fit.spec, seed=0))
     net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act, pcfg, sur.discrete)
     env, obs = jax_ppo.init_env(sur, jax.random.key(1), pcfg.n_envs, pcfg, sur.params)
-    rollout = jax_ppo.make_rollout(sur, pcfg)
+    rollout = jax.jit(jax_ppo.make_rollout(sur, pcfg))
     roll_args = (net, env, obs, jax.random.key(2), sur.params)
-    _, _, traj, last = jax.jit(rollout)(*roll_args)
+    _, _, traj, last = rollout(*roll_args)
     update = jax_ppo.make_update(pcfg)
     opt = jax_ppo.optimizer(pcfg).init(net)
     upd_args = (net, opt, traj, last, jax.random.key(3))
-    programs = {"rollout": (jax.jit(rollout).lower(*roll_args), roll_args),
+    programs = {"rollout": (rollout.lower(*roll_args), roll_args),
                 "update": (jax.jit(lambda n, o, tr, lv, k: update(n, o, jax_ppo.make_batch(pcfg, tr, lv), k)).lower(*upd_args), upd_args)}
     print(f"{args.experiment}: {fit.model.kind} surrogate from {len(fit.data.states):,} transitions; {pcfg.n_envs} envs x "
           f"{pcfg.n_steps} steps, batch {pcfg.batch_size}, {pcfg.n_epochs} epochs; jax {jax.__version__}, {pool} thread(s) "

@@ -183,7 +183,7 @@ def compile_program(fn: Any, args: tuple, options: dict[str, Any]) -> tuple[Any,
 
     traced = fn.trace(*args)
     folder = jax.config.jax_compilation_cache_dir
-    if not folder:
+    if not folder or _lowering["warned"]:  # no persistent cache, or no serialization (warned once)
         return traced.lower().compile(compiler_options=options), False
     leaves, in_tree = jax.tree_util.tree_flatten(args)
     out_tree = jax.tree_util.tree_structure(traced.out_info)
@@ -203,9 +203,8 @@ def compile_program(fn: Any, args: tuple, options: dict[str, Any]) -> tuple[Any,
             exported = export.export(jax.jit(flat))(*leaves)
             blob = exported.serialize()
         except ImportError as exc:  # jax.export's serialization needs flatbuffers (the jax extra has it)
-            if not _lowering["warned"]:
-                warnings.warn(f"the lowering cache is off: {exc}", stacklevel=3)
-                _lowering["warned"] = True
+            warnings.warn(f"the lowering cache is off: {exc}", stacklevel=3)
+            _lowering["warned"] = True  # the later programs go straight to the direct path
             return traced.lower().compile(compiler_options=options), False
         except Exception:  # noqa: BLE001 - a program export cannot hold: compiled as it is
             return traced.lower().compile(compiler_options=options), False
