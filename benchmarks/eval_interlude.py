@@ -47,17 +47,15 @@ def main() -> None:
     if args.cores:  # before jax starts its thread pool
         os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[: args.cores])
 
-    from sdrl_bench.cli.build import build_fit_job, compose, instantiate_key
-    from sdrl_bench.pipeline import fit_dynamics
-    from sdrl_bench.rl import jax_agent, jax_ppo
+    from xla_opt_level import fit_pack  # this folder's: run as benchmarks/eval_interlude.py
+
+    from sdrl_bench.cli.build import instantiate_key
+    from sdrl_bench.rl import jax_ppo
     from sdrl_bench.rl.agents import evaluate_real, make_agent
     from sdrl_bench.rl.transfer import surrogate_vec_env
 
-    over = [f"experiment={args.experiment}", "agent=ppo_jax", "collector=heuristic"]
-    cfg = compose([*over, *([f"n_transitions={args.transitions}"] if args.transitions else [])])
-    pool = jax_agent.size_cpu_pool(int(cfg.jax_threads))
+    cfg, pool, fit = fit_pack(args.experiment, args.transitions)
     jax, _, _ = jax_ppo._modules()
-    fit = fit_dynamics(build_fit_job(cfg))
     agent = instantiate_key(cfg.agent, "agent")
     model = make_agent(agent, surrogate_vec_env(fit.model, fit.spec, agent.n_envs, 0), 0)
     if not model.compiled_rollout:

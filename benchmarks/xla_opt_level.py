@@ -27,6 +27,20 @@ import time
 
 import numpy as np
 
+def fit_pack(experiment: str, transitions: int | None) -> tuple:
+    """(config, XLA's pool size, fit) for a pack under ``agent=ppo_jax``: its surrogate fitted on
+    the env's heuristic's data (``transitions`` of them, or the pack's number), XLA's CPU pool
+    sized by the config's ``jax_threads`` first (also used by ``benchmarks/eval_interlude.py``)."""
+    from sdrl_bench.cli.build import build_fit_job, compose
+    from sdrl_bench.pipeline import fit_dynamics
+    from sdrl_bench.rl import jax_agent
+
+    over = [f"experiment={experiment}", "agent=ppo_jax", "collector=heuristic"]
+    cfg = compose([*over, *([f"n_transitions={transitions}"] if transitions else [])])
+    pool = jax_agent.size_cpu_pool(int(cfg.jax_threads))
+    return cfg, pool, fit_dynamics(build_fit_job(cfg))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--experiment", default="fast_mountain_car", help="the pack (experiment=...) whose agent and surrogate are compiled")
@@ -42,18 +56,14 @@ def main() -> None:
     if args.cores:  # before jax starts its thread pool
         os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[: args.cores])
 
-    from sdrl_bench.cli.build import build_fit_job, compose, instantiate_key
-    from sdrl_bench.pipeline import fit_dynamics
-    from sdrl_bench.rl import jax_agent, jax_ppo
+    from sdrl_bench.cli.build import instantiate_key
+    from sdrl_bench.rl import jax_ppo
     from sdrl_bench.surrogate.model_env import ModelEnv
 
-    over = [f"experiment={args.experiment}", "agent=ppo_jax", "collector=heuristic"]
-    cfg = compose([*over, *([f"n_transitions={args.transitions}"] if args.transitions else [])])
-    pool = jax_agent.size_cpu_pool(int(cfg.jax_threads))
+    cfg, pool, fit = fit_pack(args.experiment, args.transitions)
     jax, _, _ = jax_ppo._modules()
     from jax.experimental import serialize_executable
 
-    fit = fit_dynamics(build_fit_job(cfg))
     pcfg = jax_ppo.PPOConfig.from_agent(instantiate_key(cfg.agent, "agent"))
     sur = jax_ppo.surrogate(ModelEnv(fit.model, fit.spec, seed=0))
     net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act, pcfg, sur.discrete)

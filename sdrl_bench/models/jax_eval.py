@@ -45,6 +45,7 @@ from __future__ import annotations
 
 import logging
 import os
+import warnings
 from typing import Any, NamedTuple
 from collections.abc import Callable, Sequence
 
@@ -108,10 +109,27 @@ def jax_modules(who: str = "sdrl_bench.models.jax_eval"):
         import jax.numpy as jnp  # noqa: PLC0415
     except ImportError as exc:
         raise ImportError(f"{who} needs jax, an optional extra: {INSTALL_HINT}") from exc
+    if extra and _backend_started(jax):
+        warnings.warn(f"{who}: JAX's backend started before sdrl_bench set XLA_FLAGS ({' '.join(extra)}); XLA reads "
+                      "them once, so this process's compiled programs run without them (slower here, and their "
+                      "numbers may differ by rounding from a run that starts jax through sdrl_bench). Set XLA_FLAGS "
+                      "before the first jax computation, or import sdrl_bench's jax modules first", stacklevel=2)
     jax.config.update("jax_enable_x64", True)
     # its backend probe logs a failed TPU/GPU lookup at INFO, which a Hydra run prints as noise
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
     return jax, jnp
+
+
+def _backend_started(jax: Any) -> bool:
+    """Whether this process's JAX backends exist (XLA has read ``XLA_FLAGS``). Hand-written: jax
+    has no public query for it; its private ``xla_bridge.backends_are_initialized`` (jax 0.10) is
+    read if it is there, else the answer is no (nothing to warn of)."""
+    try:
+        from jax._src import xla_bridge  # noqa: PLC0415
+    except ImportError:
+        return False
+    started = getattr(xla_bridge, "backends_are_initialized", None)
+    return bool(started()) if callable(started) else False
 
 
 def jax_namespace(jnp: Any) -> dict[str, Any]:

@@ -195,6 +195,35 @@ def test_jit_equals_eager_bit_for_bit_without_fma(tmp_path):
     assert len(lines) == len(ENVS) and all(" True " in line for line in lines), out.stdout
 
 
+def test_a_backend_started_before_the_harness_flags_is_warned_of():
+    """XLA reads XLA_FLAGS once, when jax's backend starts. A process that ran a jax computation
+    before sdrl_bench's jax modules set the harness's flags is told, once; one that starts jax
+    through them is not, and XLA_FLAGS then holds every harness flag."""
+    from sdrl_bench.models.jax_eval import DEFAULT_XLA_FLAGS
+
+    def run(first: str) -> subprocess.CompletedProcess:
+        code = (
+            "import os, warnings\n"
+            "warnings.simplefilter('always')\n"
+            f"{first}\n"
+            "from sdrl_bench.models.jax_eval import jax_modules\n"
+            "jax_modules('probe'); jax_modules('probe')\n"
+            "print(os.environ['XLA_FLAGS'])\n"
+        )
+        return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=_env())
+
+    early = run("import jax; jax.numpy.ones(2).block_until_ready()")
+    assert early.returncode == 0, early.stderr[-2000:]
+    said = [line for line in early.stderr.splitlines() if "started before sdrl_bench set XLA_FLAGS" in line]
+    assert len(said) == 1 and said[0].count("--xla_cpu") == len(DEFAULT_XLA_FLAGS), early.stderr[-2000:]
+    assert "probe: JAX's backend" in said[0]
+
+    through = run("import jax")  # imported, not started
+    assert through.returncode == 0, through.stderr[-2000:]
+    assert "started before sdrl_bench" not in through.stderr
+    assert all(flag in through.stdout for flag in DEFAULT_XLA_FLAGS.values()), through.stdout
+
+
 def _env() -> dict:
     return {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
 
