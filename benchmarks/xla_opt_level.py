@@ -27,6 +27,7 @@ import time
 
 import numpy as np
 
+
 def fit_pack(experiment: str, transitions: int | None) -> tuple:
     """(config, XLA's pool size, fit) for a pack under ``agent=ppo_jax``: its surrogate fitted on
     the env's heuristic's data (``transitions`` of them, or the pack's number), XLA's CPU pool
