@@ -855,13 +855,14 @@ def policy_fn(params: dict[str, Any]) -> JaxPolicy:
     return JaxPolicy(params)
 
 
-def evaluate_surrogate(model_env: Any, params: dict[str, Any], n_episodes: int, seed: int = 0) -> np.ndarray:
-    """Returns of ``n_episodes`` deterministic episodes (the mean action, clipped) in the surrogate,
-    side by side, compiled: each from a reset drawn with jax key ``seed``, up to
-    ``spec.max_episode_steps`` steps or its end (termination, divergence)."""
+def surrogate_evaluator(model_env: Any, n_episodes: int, low: Any = None, high: Any = None) -> Callable:
+    """``run(net, key) -> returns (n_episodes,)``, jitted once: ``n_episodes`` deterministic episodes
+    (the mean action clipped to [low, high], or the most probable index) in the surrogate, side by
+    side, each from a reset drawn with ``key``, up to ``spec.max_episode_steps`` steps or its end
+    (termination, divergence). Built once and called with each new ``net``, it compiles once (a
+    study that evaluates after every rollout)."""
     jax, jnp, _ = _modules()
     sur = surrogate(model_env)
-    low, high = params["action_low"], params["action_high"]
 
     def run(net, key):
         def body(carry, k):
@@ -877,4 +878,12 @@ def evaluate_surrogate(model_env: Any, params: dict[str, Any], n_episodes: int, 
         (_, _, ret, _), _ = jax.lax.scan(body, init, jax.random.split(k_steps, sur.max_steps))
         return ret
 
-    return np.asarray(jax.jit(run)(params["net"], jax.random.key(int(seed))))
+    return jax.jit(run)
+
+
+def evaluate_surrogate(model_env: Any, params: dict[str, Any], n_episodes: int, seed: int = 0) -> np.ndarray:
+    """Returns of ``n_episodes`` deterministic episodes (the mean action, clipped) in the surrogate,
+    side by side, compiled: each from a reset drawn with jax key ``seed`` (``surrogate_evaluator``)."""
+    jax, _, _ = _modules()
+    run = surrogate_evaluator(model_env, n_episodes, params["action_low"], params["action_high"])
+    return np.asarray(run(params["net"], jax.random.key(int(seed))))
