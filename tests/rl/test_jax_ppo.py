@@ -224,6 +224,19 @@ def test_a_short_training_run_improves_the_surrogate_return(trained):
     assert stats["episodes"].sum() == per_copy * TRAIN.n_envs
 
 
+
+def test_one_surrogate_evaluator_scores_each_net_without_compiling_again(trained):
+    """``surrogate_evaluator`` compiles once; each net it is called with gets the returns that
+    ``evaluate_surrogate`` gives it (same episodes, same key)."""
+    menv, params, _ = trained
+    first = jax_ppo.as_params(jax_ppo.init_net(jax.random.key(0), 3, 1), menv)
+    run = jax_ppo.surrogate_evaluator(menv, 20, params["action_low"], params["action_high"])
+    for p in (first, params):
+        got = np.asarray(run(p["net"], jax.random.key(7)))
+        np.testing.assert_array_equal(got, jax_ppo.evaluate_surrogate(menv, p, 20, 7))
+    assert run._cache_size() == 1
+    assert np.asarray(run(params["net"], jax.random.key(7))).mean() > np.asarray(run(first["net"], jax.random.key(7))).mean() + 300
+
 def test_the_policy_acts_in_the_real_env(trained):
     menv, params, _ = trained
     policy = jax_ppo.policy_fn(params)
