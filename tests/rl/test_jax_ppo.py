@@ -224,7 +224,6 @@ def test_a_short_training_run_improves_the_surrogate_return(trained):
     assert stats["episodes"].sum() == per_copy * TRAIN.n_envs
 
 
-
 def test_one_surrogate_evaluator_scores_each_net_without_compiling_again(trained):
     """``surrogate_evaluator`` compiles once; each net it is called with gets the returns that
     ``evaluate_surrogate`` gives it (same episodes, same key)."""
@@ -236,6 +235,7 @@ def test_one_surrogate_evaluator_scores_each_net_without_compiling_again(trained
         np.testing.assert_array_equal(got, jax_ppo.evaluate_surrogate(menv, p, 20, 7))
     assert run._cache_size() == 1
     assert np.asarray(run(params["net"], jax.random.key(7))).mean() > np.asarray(run(first["net"], jax.random.key(7))).mean() + 300
+
 
 def test_the_policy_acts_in_the_real_env(trained):
     menv, params, _ = trained
