@@ -108,6 +108,8 @@ def main() -> None:
             model.learn(args.budget, callback=stop)
             steps.append(stop.solved_at)
             print(f"  {name}, seed {seed}: {stop.solved_at if stop.solved_at else 'not solved'}", flush=True)
+        if model.rollout_backend != "compiled":
+            raise SystemExit(f"{name}: the surrogate's step is not covered by the compiled rollout; nothing to time")
         _, _, rollout, s = model._compiled
         update = model._updates["compiled"]
         times = []
