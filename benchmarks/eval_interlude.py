@@ -50,12 +50,10 @@ def main() -> None:
     from xla_opt_level import fit_pack  # this folder's: run as benchmarks/eval_interlude.py
 
     from sdrl_bench.cli.build import instantiate_key
-    from sdrl_bench.rl import jax_ppo
     from sdrl_bench.rl.agents import evaluate_real, make_agent
     from sdrl_bench.rl.transfer import surrogate_vec_env
 
     cfg, pool, fit = fit_pack(args.experiment, args.transitions)
-    jax, _, _ = jax_ppo._modules()
     agent = instantiate_key(cfg.agent, "agent")
     model = make_agent(agent, surrogate_vec_env(fit.model, fit.spec, agent.n_envs, 0), 0)
     if not model.compiled_rollout:
@@ -63,19 +61,7 @@ def main() -> None:
     model.learn(2 * model.cfg.rollout_size)  # compiles the programs
     if model.rollout_backend != "compiled":
         raise SystemExit(f"{args.experiment}: the surrogate's step is not covered by the compiled rollout")
-    _, _, rollout, sur = model._compiled
-    update = model._updates["compiled"]
     episodes, eval_seed = int(cfg.rl.eval_episodes), 10**6
-
-    def iteration() -> tuple[float, float]:
-        t0 = time.perf_counter()
-        env, obs, traj, last = rollout(model.net, model._cenv, model._cobs, model._host_key(), sur.params)
-        jax.block_until_ready(last)
-        t1 = time.perf_counter()
-        model.net, model._opt, stats = update(model.net, model._opt, traj, last, model._host_perms())
-        jax.block_until_ready(stats)
-        model._cenv, model._cobs = env, obs
-        return t1 - t0, time.perf_counter() - t1
 
     def evaluate() -> None:
         evaluate_real(model, fit.spec, episodes, eval_seed, Counter(), "evaluate")
@@ -106,7 +92,7 @@ def main() -> None:
             for _ in range(args.calls):
                 if before is not None:
                     before()
-                times[name].append(iteration())
+                times[name].append(model.compiled_iteration())
     base = float(np.median(np.sum(times["none"], axis=1)))
     head = f"{'after':<10} {'rollout ms':>10} {'update ms':>10} {'iteration ms':>12} {'/ none':>7}"
     print(head)

@@ -34,7 +34,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import time
 
 import numpy as np
 
@@ -110,16 +109,7 @@ def main() -> None:
             print(f"  {name}, seed {seed}: {stop.solved_at if stop.solved_at else 'not solved'}", flush=True)
         if model.rollout_backend != "compiled":
             raise SystemExit(f"{name}: the surrogate's step is not covered by the compiled rollout; nothing to time")
-        _, _, rollout, s = model._compiled
-        update = model._updates["compiled"]
-        times = []
-        for _ in range(args.calls + 3):
-            t = time.perf_counter()
-            env, obs, traj, last = rollout(model.net, model._cenv, model._cobs, model._host_key(), s.params)
-            model.net, model._opt, stats = update(model.net, model._opt, traj, last, model._host_perms())
-            jax.block_until_ready(stats)
-            model._cenv, model._cobs = env, obs
-            times.append(time.perf_counter() - t)
+        times = [sum(model.compiled_iteration()) for _ in range(args.calls + 3)]
         it_ms = float(np.median(times[3:])) * 1e3
         med = float(np.median([x if x is not None else np.inf for x in steps]))
         rows.append((name, over, sum(x is not None for x in steps), med, it_ms, med / model.cfg.rollout_size * it_ms))

@@ -116,8 +116,9 @@ LOWERED = "lowered"
 """The folder, inside JAX's persistent compilation cache, of the lowering cache
 (``compile_program``): one serialized ``jax.export.Exported`` per program."""
 _ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
-_lowering = {"warned": False}
-"""Whether this process warned that the lowering cache is off (``compile_program``)."""
+_lowering = {"off": False}
+"""Whether this process found jax.export's serialization missing and turned the lowering cache
+off, with one warning (``compile_program``)."""
 
 
 def _constants(jaxpr: Any, out: list) -> list:
@@ -182,9 +183,13 @@ def compile_program(fn: Any, args: tuple, options: dict[str, Any]) -> tuple[Any,
     from jax import export  # noqa: PLC0415
 
     traced = fn.trace(*args)
-    folder = jax.config.jax_compilation_cache_dir
-    if not folder or _lowering["warned"]:  # no persistent cache, or no serialization (warned once)
+
+    def direct() -> tuple[Any, bool]:
         return traced.lower().compile(compiler_options=options), False
+
+    folder = jax.config.jax_compilation_cache_dir
+    if not folder or _lowering["off"]:  # no persistent cache, or no serialization (warned once)
+        return direct()
     leaves, in_tree = jax.tree_util.tree_flatten(args)
     out_tree = jax.tree_util.tree_structure(traced.out_info)
     path = Path(folder) / LOWERED / lowering_key(traced, options)
@@ -204,10 +209,10 @@ def compile_program(fn: Any, args: tuple, options: dict[str, Any]) -> tuple[Any,
             blob = exported.serialize()
         except ImportError as exc:  # jax.export's serialization needs flatbuffers (the jax extra has it)
             warnings.warn(f"the lowering cache is off: {exc}", stacklevel=3)
-            _lowering["warned"] = True  # the later programs go straight to the direct path
-            return traced.lower().compile(compiler_options=options), False
+            _lowering["off"] = True  # the later programs go straight to the direct path
+            return direct()
         except Exception:  # noqa: BLE001 - a program export cannot hold: compiled as it is
-            return traced.lower().compile(compiler_options=options), False
+            return direct()
         tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
@@ -495,6 +500,26 @@ class JaxPPO:
             log.dump(step=self.num_timesteps)
         callback.on_training_end()
         return self
+
+    def compiled_iteration(self) -> tuple[float, float]:
+        """One training iteration in the surrogate, bare: the compiled rollout, then the compiled
+        update, each waited for, with no callback and no logging (what ``benchmarks/eval_interlude.py``
+        and ``studies/compiled_recipe.py`` time). It draws its keys and permutations as ``learn``
+        does, so it trains what another ``learn`` iteration would. Needs an earlier ``learn`` whose
+        rollout ran compiled. Returns (rollout seconds, update seconds)."""
+        if self.rollout_backend != "compiled" or self._compiled is None or "compiled" not in self._updates:
+            raise RuntimeError("JaxPPO.compiled_iteration: no compiled rollout and update yet (call learn first, "
+                               "in a surrogate the compiled rollout covers)")
+        _, _, rollout, sur = self._compiled
+        t0 = time.perf_counter()
+        env, obs, traj, last_value = rollout(self.net, self._cenv, self._cobs, self._host_key(), sur.params)
+        self._jax.block_until_ready(last_value)
+        t1 = time.perf_counter()
+        self.net, self._opt, stats = self._updates["compiled"](self.net, self._opt, traj, last_value, self._host_perms())
+        self._jax.block_until_ready(stats)
+        self._cenv, self._cobs = env, obs
+        self.num_timesteps += self.cfg.rollout_size
+        return t1 - t0, time.perf_counter() - t1
 
     def _compile_for(self, menv: Any) -> bool:
         """Whether the rollout runs compiled in ``menv`` (built, and compiled ahead of time, for

@@ -103,6 +103,26 @@ def test_a_saved_agent_loads_and_acts_the_same(fitted, tmp_path):
     assert not np.array_equal(leaves(ppo)[0], leaves(other)[0])
 
 
+def test_a_bare_compiled_iteration_trains_what_a_learn_iteration_trains(fitted):
+    """``compiled_iteration`` (the benchmarks' bare rollout and update) draws as ``learn`` does:
+    one learn iteration and one bare one train the networks two learn iterations train, bit for
+    bit; before any compiled learn it refuses."""
+    cfg, model, spec = fitted
+    agent = instantiate_key(cfg.agent, "agent")
+    bare, ref = (make_agent(agent, surrogate_vec_env(model, spec, agent.n_envs, seed=0), seed=3) for _ in range(2))
+    with pytest.raises(RuntimeError, match="no compiled rollout and update yet"):
+        bare.compiled_iteration()
+    n = bare.cfg.rollout_size
+    bare.learn(n)
+    bare.compiled_iteration()
+    ref.learn(2 * n)
+    assert bare.num_timesteps == ref.num_timesteps == 2 * n
+    leaves = lambda p: jax.tree_util.tree_leaves(p.net)  # noqa: E731
+    assert all(np.array_equal(x, y) for x, y in zip(leaves(bare), leaves(ref), strict=True))
+    assert not np.array_equal(leaves(bare)[0], jax.tree_util.tree_leaves(make_agent(
+        agent, surrogate_vec_env(model, spec, agent.n_envs, seed=0), seed=3).net)[0])  # it trained
+
+
 def test_the_lowering_key_changes_with_the_program_its_constants_shapes_and_options():
     from sdrl_bench.rl.jax_agent import lowering_key
 
