@@ -13,6 +13,9 @@ threshold (``rl.stop_when_solved=true``, 10 real episodes per evaluation):
   (e') (e) trained by the compiled PPO
   (t') (d') in the fast pack's terrain variant (``experiment=fast_<env>_terrain``, where the env has
        one: LunarLander's surrogate with the real env's terrain and its touchdown rules)
+  (k') the compiled PPO with a recipe of its own, chosen for the compiled loop in the surrogate
+       (``experiment=compiled_<env>``, where the env has one; ``studies/compiled_recipe.py --search``)
+  (r') (k')'s recipe, compiled PPO, its rollout in real envs (the control of (k'))
 
 (b'), (d') and (e') need the optional ``[jax]`` extra; their compile seconds (``compile_wall_seconds``, inside
 the training wall) are printed apart, and the ratios with the compiled arms are given with and without them.
@@ -67,7 +70,7 @@ from tabulate import tabulate
 
 from sdrl_bench.tracking.read import find_runs
 
-PACKS = {"mountain_car": {"zoo": "paper_mountain_car", "fast": "fast_mountain_car"},
+PACKS = {"mountain_car": {"zoo": "paper_mountain_car", "fast": "fast_mountain_car", "compiled": "compiled_mountain_car"},
          "lunar_lander": {"zoo": "paper_lunar_lander", "fast": "fast_lunar_lander",
                           "terrain": "fast_lunar_lander_terrain"}}
 AGENTS = {"mountain_car": {"zoo": "sac", "fast": "ppo_fast", "jax": "ppo_jax"},
@@ -75,19 +78,24 @@ AGENTS = {"mountain_car": {"zoo": "sac", "fast": "ppo_fast", "jax": "ppo_jax"},
 """The packs' agent names: how the runs of each recipe are told apart in the store."""
 ARMS = {"a": ("zoo", "real"), "b": ("fast", "real"), "c": ("zoo", "surrogate"), "d": ("fast", "surrogate"),
         "e": ("fast", "surrogate"), "B": ("jax", "real"), "D": ("jax", "surrogate"), "E": ("jax", "surrogate"),
-        "T": ("jax", "surrogate")}
+        "T": ("jax", "surrogate"), "K": ("jax", "surrogate"), "R": ("jax", "real")}
 """Arm letters; B, D and E are (b'), (d') and (e'): the fast pack with ``agent=ppo_jax``; T is (t'):
-(d') in the terrain pack."""
-PACK_KIND = {"a": "zoo", "c": "zoo", "T": "terrain"}
+(d') in the terrain pack; K and R are (k') and (r'): the compiled pack (its own recipe), in the
+surrogate and in real envs."""
+PACK_KIND = {"a": "zoo", "c": "zoo", "T": "terrain", "K": "compiled", "R": "compiled"}
 """Each arm's pack (``PACKS``) where it is not the fast one."""
-COLLECTOR = {"c": "expert", "d": "expert", "e": "heuristic", "D": "expert", "E": "heuristic", "T": "expert"}
+COLLECTOR = {"c": "expert", "d": "expert", "e": "heuristic", "D": "expert", "E": "heuristic", "T": "expert",
+             "K": "expert"}
 """The surrogate arms' data: the paper's (the pack's expert, eps = 0.2), or (e) the env's
 hand-written controller with the same eps, which needs no trained expert at all."""
 LABELS = {"a": "(a) zoo recipe, real env", "b": "(b) fast recipe, real envs (control)",
           "c": "(c) zoo recipe, surrogate (paper)", "d": "(d) fast recipe, surrogate",
           "e": "(e) = (d), heuristic data", "B": "(b') = (b), compiled PPO (control of d')",
           "D": "(d') = (d), compiled PPO", "E": "(e') = (e), compiled PPO",
-          "T": "(t') = (d'), terrain pack"}
+          "T": "(t') = (d'), terrain pack", "K": "(k') compiled PPO, the compiled loop's recipe",
+          "R": "(r') = (k'), real envs (control of k')"}
+CONTROL = {"D": "B", "E": "B", "T": "B", "K": "R"}
+"""Each compiled surrogate arm's own real control: the same agent and recipe in real envs."""
 # learning-curve cadence of the zoo recipes here (the fast packs set their own: one rollout):
 # finer than the paper packs' so the first solved point is not rounded up by a coarse grid
 ZOO_EVAL_EVERY = {"mountain_car": 1000, "lunar_lander": 16384}
@@ -300,7 +308,7 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, t
 
     print(f"wall (d)/(a) = {ratio('d', 'a', 'wall')}, (d)/(b) = {ratio('d', 'b', 'wall')}, "
           f"(b)/(a) = {ratio('b', 'a', 'wall')}; real transitions (d)/(b) = {ratio('d', 'b', 'real')}")
-    for k in "BDET":
+    for k in "BDETKR":
         r = rows[k]
         if r["seeds"] and math.isfinite(r["programs"]):
             cold = (f"cold, its warm-up (seed {WARM_SEED}) compiled {fmt(warm[k].get('compile_programs', math.nan))} "
@@ -309,17 +317,28 @@ def report(uri: str, env: str, seeds: list[int], expert_seconds: float | None, t
             print(f"compile, {LABELS[k].split(' ')[0]}: the timed runs loaded {fmt(r['cache_hits'])} of {fmt(r['programs'])} "
                   f"programs from the cache (median; their lowerings {fmt(r['lowered'])} from the lowering cache), "
                   f"in {fmt(r['compile'])} s; {cold}")
-    for k, name, sb3 in (("D", "(d')", "d"), ("E", "(e')", "e"), ("T", "(t')", "d")):
+
+    def fastest(key: str) -> str | None:
+        """The real arm with the shortest judged median by ``key`` (a conservative denominator)."""
+        real = [k for k in ARMS if ARMS[k][1] == "real" and rows[k]["seeds"] and math.isfinite(rows[k][key])]
+        return min(real, key=lambda k: rows[k][key], default=None)
+
+    for k, name, sb3 in (("D", "(d')", "d"), ("E", "(e')", "e"), ("T", "(t')", "d"), ("K", "(k')", "d")):
         if not rows[k]["seeds"]:
             continue
+        ctl, ctl_name = CONTROL[k], LABELS[CONTROL[k]].split(" ")[0]
         for label, key in (("", "wall"), (", judged", "wall_judged")):
             print(f"compiled{label}: wall {name}/(b) = {ratio(k, 'b', key)} (compile excluded: {ratio(k, 'b', key + '_ex_compile')}), "
-                  f"{name}/(b') = {ratio(k, 'B', key)} (compile excluded: {ratio(k, 'B', key + '_ex_compile')}), "
+                  f"{name}/{ctl_name} = {ratio(k, ctl, key)} (compile excluded: {ratio(k, ctl, key + '_ex_compile')}), "
                   f"{name}/({sb3}) = {ratio(k, sb3, key)}")
+        parts = [f"{ratio(k, f, key)} (of {LABELS[f].split(' ')[0]}{label})" for key, label in
+                 (("wall_judged", ""), ("wall_judged_ex_compile", ", compile excluded")) if (f := fastest(key))]
+        if parts:
+            print(f"compiled, judged: {name}/the fastest real control = {'; '.join(parts)}")
         if k in warm:
             print(f"compiled, judged, every run of {name} compiling cold (the warm-up's compile): "
                   f"{name}/(b) = {ratio(k, 'b', 'wall_judged_cold', 'wall_judged')}, "
-                  f"{name}/(b') = {ratio(k, 'B', 'wall_judged_cold', 'wall_judged')} (the real arms as measured)")
+                  f"{name}/{ctl_name} = {ratio(k, ctl, 'wall_judged_cold', 'wall_judged')} (the real arms as measured)")
     if expert_seconds is not None:
         print(f"expert collector trained once before the arms: {expert_seconds:.0f} s wall (not in (c) or (d))")
 
@@ -331,7 +350,8 @@ def main() -> None:
     ap.add_argument("--workdir", default=".", help="where mlruns/ (store, experts cache) lives")
     ap.add_argument("--uri", default=None, help="tracking URI (default: <workdir>/mlruns/mlflow.db)")
     ap.add_argument("--arms", default="abcde", help="which arms to run, e.g. bd; B, D and E: (b'), (d') and (e'), the "
-                    "compiled PPO (the [jax] extra); T: (t'), (d') in the env's terrain pack")
+                    "compiled PPO (the [jax] extra); T: (t'), (d') in the env's terrain pack; K and R: (k') and (r'), the env's "
+                    "compiled pack (a recipe chosen for the compiled loop) in the surrogate and in real envs")
     ap.add_argument("--jobs", type=int, default=2, help="jobs in parallel within an arm's sweep")
     ap.add_argument("--transitions", type=int, default=None, help="the surrogate arms' model data, real "
                     "transitions (n_transitions; default: the fast pack's)")
