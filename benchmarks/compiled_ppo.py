@@ -16,7 +16,9 @@ each with the same settings (gSDE and reward scaling included where a recipe set
 env's recipes (``ENVS``): on the swing-up its Dyna pack's (``experiment=dyna_cartpole_swingup``: 64
 envs x 256 steps, batch 1024, 4 epochs, gamma 0.995) and ``agent=ppo_fast`` (128 envs x 32 steps,
 batch 1024, 4 epochs, gamma 0.99); on MountainCar and LunarLander their fast packs
-(``experiment=fast_<env>``). For a fixed number of env
+(``experiment=fast_<env>``), and on MountainCar also its compiled pack (``experiment=compiled_mountain_car``:
+64 envs x 32 steps, batch 512, 3 epochs, gamma 0.995; ``--recipes "fast pack"`` for the fast pack
+alone). For a fixed number of env
 steps (``--steps``, rounded up to whole rollouts as SB3's ``learn`` does), repeated ``--repeats``
 times: median steps per second of training (rollout + update), the ratio (b)/(a), the share of
 the time in rollouts, each update's seconds and its achieved GFLOP/s (the FLOPs of the actor's and
@@ -57,13 +59,14 @@ ENVS = {
                          "recipes": {"dyna pack": ["experiment=dyna_cartpole_swingup"],
                                      "ppo_fast": ["env=cartpole_swingup", "agent=ppo_fast"]}},
     "mountain_car": {"fit": ["experiment=fast_mountain_car", "collector=heuristic"],
-                     "recipes": {"fast pack": ["experiment=fast_mountain_car"]}},
+                     "recipes": {"fast pack": ["experiment=fast_mountain_car"],
+                                 "compiled pack": ["experiment=compiled_mountain_car", "agent=ppo_fast"]}},
     "lunar_lander": {"fit": ["experiment=fast_lunar_lander", "collector=heuristic"],
                      "recipes": {"fast pack": ["experiment=fast_lunar_lander"]}},
 }
 """Per env: the surrogate's fit (its pack's model data, from the env's heuristic where the pack
 trains an expert first) and the recipes, as config overrides (their ``agent`` node is the SB3
-recipe)."""
+recipe: the compiled pack's own recipe under ``agent=ppo_fast``)."""
 
 
 class RolloutClock(BaseCallback):

@@ -10,24 +10,39 @@ heuristic's data, as ``benchmarks/compiled_ppo.py`` fits it), each candidate rec
 NAME=KEY=VALUE,...``: overrides on top of the pack under ``agent=ppo_jax``; ``pack`` is the pack's
 own) trains ``rl.jax_agent.JaxPPO`` in the surrogate on the tuning seeds (``--seeds``, default
 100-109: apart from the seeds that time-to-solve runs judge). After every rollout its deterministic
-policy plays ``--episodes`` episodes in the surrogate (``jax_ppo.surrogate_evaluator``, the same
-resets each time); training stops at the first mean at the env's solved threshold, or at
+policy plays ``--episodes`` episodes in the surrogate (``jax_ppo.surrogate_evaluator``); training stops at the first mean at the env's solved threshold, or at
 ``--budget`` steps. Then the candidate's compiled iteration (rollout and update, back to back, as
 ``benchmarks/eval_interlude.py`` runs them) is timed in the same process: median of ``--calls``.
 
+With ``--confirm N`` every evaluation draws fresh resets, and a mean at the threshold stops
+training only if N more fresh surrogate episodes reach it too (as ``rl.confirm_episodes`` does
+in the real env); without, every evaluation replays the same resets.
+
 Printed per candidate: the seeds solved, the median steps to the solve (unsolved seeds count as
 never), one iteration's milliseconds, and their product, the median training wall to a solve
-(evaluations excluded), with its ratio to the pack's. No real step is spent: the surrogate plays
-every episode. What it cannot tell: whether the surrogate's stop would pass the real env's judge.
+(evaluations excluded), with its ratio to the pack's; and the median of the seeds' training walls
+as measured (``learn``'s wall less its compile and the evaluations). No real step is spent: the
+surrogate plays every episode. What it cannot tell: whether the surrogate's stop would pass the
+real env's judge.
 
     .venv/bin/python studies/compiled_recipe.py --cores 1 \\
         --candidate epochs2=agent.algo.n_epochs=2 --candidate epochs1=agent.algo.n_epochs=1
 
+``--search`` runs an Optuna study instead (``run_search``: TPE over the rollout's shape, epochs,
+minibatches, learning rate, gamma, GAE's lambda, the clip and gSDE's initial log-std; the value a
+trial's mean training wall over the tuning seeds, unsolved seeds penalised), stored in
+``--storage`` under ``--study``: a rerun of the same command adds trials to it, and several
+workers (one per core, ``taskset``) share it. It prints the best trials' overrides, to check as
+``--candidate`` on seeds the search did not see.
+
 Measured (2026-11-27, MountainCar's fast pack, seeds 100-109, two processes, each on a core of
 its own): the pack 9/10 solved, median 131,072 steps at 15.0-15.2 ms an iteration; two epochs
 10/10, 196,608 steps at 8.3 ms, 0.82x the pack's wall; three epochs 0.86x; two epochs at a
-learning rate of 5e-3 0.69x but 7/10 solved; one epoch 1.10x (6/10); minibatches of 2,048 1.40x
-(docs/compiled.md).
+learning rate of 5e-3 0.69x but 7/10 solved; one epoch 1.10x (6/10); minibatches of 2,048 1.40x.
+The search (169 trials, two workers, ``--confirm 20 --budget 300000``) chose 64 envs x 32 steps,
+minibatches of 512, 3 epochs, learning rate 1.04e-2, gamma 0.995, clip 0.1, log-std -0.26
+(``experiment=compiled_mountain_car``); on seeds 200-219, beside the pack, it solved 20/20 (the
+pack 17/20) at 0.45x the pack's measured training wall (docs/compiled.md).
 """
 
 from __future__ import annotations
@@ -38,24 +53,38 @@ import os
 import numpy as np
 
 
-PACK_PARAMS = {"n_envs": 128, "n_steps": 32, "n_minibatches": 4, "n_epochs": 4, "learning_rate": 3e-3,
-               "gamma": 0.99, "gae_lambda": 0.95, "clip_range": 0.2, "log_std_init": -1.0}
-"""MountainCar's fast pack in the search's terms (``n_minibatches``: n_envs x n_steps / batch_size);
-enqueued as a study's first trial, so every study holds the pack's own score beside the others."""
+CHOICES = {"n_envs": [64, 128, 256, 512], "n_steps": [8, 16, 32, 64], "n_minibatches": [1, 2, 4, 8],
+           "gamma": [0.98, 0.99, 0.995], "gae_lambda": [0.9, 0.95, 0.98], "clip_range": [0.1, 0.2, 0.3]}
+"""The search's categorical choices (``suggest``)."""
+
+
+def pack_params(agent) -> dict | None:
+    """The pack's own recipe in the search's terms (``n_minibatches``: n_envs x n_steps /
+    batch_size), enqueued as a study's first trial so that every study holds the pack's score
+    beside the others; None where the pack lies outside the search space."""
+    a = agent.algo
+    p = {"n_envs": int(agent.n_envs), "n_steps": int(a.n_steps),
+         "n_minibatches": int(agent.n_envs) * int(a.n_steps) // int(a.batch_size), "n_epochs": int(a.n_epochs),
+         "learning_rate": float(a.learning_rate), "gamma": float(a.gamma), "gae_lambda": float(a.gae_lambda),
+         "clip_range": float(a.get("clip_range", 0.2)), "log_std_init": float(a.get("policy_kwargs", {}).get("log_std_init", 0.0))}
+    inside = (all(p[k] in v for k, v in CHOICES.items()) and 1 <= p["n_epochs"] <= 4
+              and 1e-3 <= p["learning_rate"] <= 1.5e-2 and -2.0 <= p["log_std_init"] <= 0.0)
+    return p if inside else None
 
 
 def suggest(trial) -> dict:
     """One recipe from the search space: the rollout's shape, the update's epochs and minibatches,
     the learning rate, the return's discount and GAE's lambda, the clip and gSDE's initial log-std.
     gSDE, reward scaling, the networks and every other setting stay the pack's."""
-    return {"n_envs": trial.suggest_categorical("n_envs", [64, 128, 256, 512]),
-            "n_steps": trial.suggest_categorical("n_steps", [8, 16, 32, 64]),
-            "n_minibatches": trial.suggest_categorical("n_minibatches", [1, 2, 4, 8]),
+    c = CHOICES
+    return {"n_envs": trial.suggest_categorical("n_envs", c["n_envs"]),
+            "n_steps": trial.suggest_categorical("n_steps", c["n_steps"]),
+            "n_minibatches": trial.suggest_categorical("n_minibatches", c["n_minibatches"]),
             "n_epochs": trial.suggest_int("n_epochs", 1, 4),
             "learning_rate": trial.suggest_float("learning_rate", 1e-3, 1.5e-2, log=True),
-            "gamma": trial.suggest_categorical("gamma", [0.98, 0.99, 0.995]),
-            "gae_lambda": trial.suggest_categorical("gae_lambda", [0.9, 0.95, 0.98]),
-            "clip_range": trial.suggest_categorical("clip_range", [0.1, 0.2, 0.3]),
+            "gamma": trial.suggest_categorical("gamma", c["gamma"]),
+            "gae_lambda": trial.suggest_categorical("gae_lambda", c["gae_lambda"]),
+            "clip_range": trial.suggest_categorical("clip_range", c["clip_range"]),
             "log_std_init": trial.suggest_float("log_std_init", -2.0, 0.0)}
 
 
@@ -80,6 +109,7 @@ class Bench:
 
         self.base = [f"experiment={experiment}", "agent=ppo_jax", "collector=heuristic"]
         cfg = compose(self.base)
+        self.agent = cfg.agent
         jax_agent.size_cpu_pool(int(cfg.jax_threads))
         if cache_dir:
             jax_agent.use_compilation_cache(cache_dir)
@@ -166,7 +196,11 @@ def run_search(args, bench: Bench, seeds: list[int]) -> None:
     study = optuna.create_study(study_name=args.study, storage=storage, sampler=sampler, pruner=pruner,
                                 direction="minimize", load_if_exists=True)
     if not study.trials:
-        study.enqueue_trial(PACK_PARAMS)
+        pack = pack_params(bench.agent)
+        if pack is None:
+            print(f"{args.experiment}: its own recipe lies outside the search space; not enqueued", flush=True)
+        else:
+            study.enqueue_trial(pack)
     for key, value in (("experiment", args.experiment), ("seeds", args.seeds), ("budget", args.budget),
                        ("episodes", args.episodes), ("confirm", args.confirm), ("penalty", args.penalty)):
         if study.user_attrs.get(key, value) != value:

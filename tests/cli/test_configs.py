@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import itertools
 from importlib import resources
 
@@ -96,8 +97,6 @@ def test_every_experiment_pack_composes_and_validates(pack):
     cfg = compose_cfg(f"experiment={pack}")
     assert cfg.task in ("train", "dyna", "fidelity")
     if cfg.task == "fidelity":  # a study pack: its first cluster builds; the compiled agent needs the [jax] extra
-        import importlib.util
-
         from sdrl_bench.cli.fidelity_task import build_cluster
 
         cluster, axes, _ = build_cluster(cfg, given=[f"experiment={pack}"])
@@ -109,8 +108,12 @@ def test_every_experiment_pack_composes_and_validates(pack):
                 cluster.check()
         return
     job = build_transfer_job(cfg, build_fit_job(cfg))
+    assert job.agent.name in {"sac", "ppo", "ppo_fast", "ppo_jax"} and set(job.arms) == set(cfg.rl.arms) and job.arms
+    if job.agent.name == "ppo_jax" and importlib.util.find_spec("jax") is None:  # a compiled pack, without the extra
+        with pytest.raises(ConfigError, match=r"\[jax\]"):
+            job.check()
+        return
     job.check()  # agent fits the action space, budgets positive; no expert is trained here
-    assert job.agent.name in {"sac", "ppo", "ppo_fast"} and set(job.arms) == set(cfg.rl.arms) and job.arms
     if cfg.task == "dyna":  # a Dyna pack validates, and finds the real arm of its fast pack (same key)
         build_dyna_job(cfg, build_fit_job(cfg)).check()
         base = pack.replace("dyna_", "fast_").removesuffix("_own")  # a variant: its base's
