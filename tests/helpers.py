@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import subprocess
 import sys
@@ -10,6 +11,16 @@ from pathlib import Path
 from sdrl_bench.cli.build import compose
 
 ROOT = Path(__file__).resolve().parents[1]
+
+
+def load_script(relpath: str):
+    """A script of the repository that is not a package module (``benchmarks/``, ``studies/``,
+    ``scripts/``), imported from its file: its functions tested without running its ``main``."""
+    path = ROOT / relpath
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def compose_cfg(*overrides: str):

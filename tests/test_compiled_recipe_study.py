@@ -5,26 +5,21 @@ measured wall (real training in the surrogate, tiny budgets)."""
 
 from __future__ import annotations
 
-import importlib.util
 from argparse import Namespace
-from pathlib import Path
 
 import pytest
+
+from helpers import load_script
 
 pytest.importorskip("jax")
 pytest.importorskip("optax")
 optuna = pytest.importorskip("optuna")
 pytestmark = pytest.mark.jax
 
-PATH = Path(__file__).resolve().parents[1] / "studies" / "compiled_recipe.py"
-
 
 @pytest.fixture(scope="module")
 def study_mod():
-    spec = importlib.util.spec_from_file_location("compiled_recipe", PATH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("studies/compiled_recipe.py")
 
 
 def test_a_search_starts_from_the_pack_and_a_rerun_adds_to_the_same_study(study_mod, tmp_path, monkeypatch):

@@ -4,21 +4,16 @@ warm-up's cold one (``wall_judged_cold``)."""
 
 from __future__ import annotations
 
-import importlib.util
 import math
-from pathlib import Path
 
 import pytest
 
-PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "time_to_solve.py"
+from helpers import load_script
 
 
 @pytest.fixture(scope="module")
 def tts():
-    spec = importlib.util.spec_from_file_location("time_to_solve", PATH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/time_to_solve.py")
 
 
 def run(wall: float | None, compile_s: float, judged: bool = True, hits: int = 3) -> dict[str, float]:

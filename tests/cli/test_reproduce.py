@@ -4,24 +4,16 @@ transfer sweeps come after the SINDy ones so their real arms are reused, not ret
 
 from __future__ import annotations
 
-import importlib.util
 import itertools
-from pathlib import Path
 
 import pytest
 
-from helpers import compose_cfg
+from helpers import compose_cfg, load_script
 from sdrl_bench.cli.build import build_dyna_job, build_fit_job, build_transfer_job
 from sdrl_bench.pipeline import check
 
-SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "reproduce.py"
-
-
 def _script():
-    spec = importlib.util.spec_from_file_location("reproduce", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_script("scripts/reproduce.py")
 
 
 def _jobs(sweep: list[str]) -> list[list[str]]:
