@@ -223,6 +223,7 @@ def run_search(args, bench: Bench, seeds: list[int]) -> None:
                 raise optuna.TrialPruned()
         it_ms = iteration_ms(model, args.calls)
         trial.set_user_attr("overrides", ",".join(over))
+        trial.set_user_attr("pack", p == pack_params(bench.agent))
         trial.set_user_attr("solved", sum(s is not None for s in steps))
         trial.set_user_attr("median_steps", float(np.median([s if s is not None else np.inf for s in steps])))
         trial.set_user_attr("median_wall_ms", float(np.median([w if s is not None else np.inf for w, s in zip(walls, steps, strict=True)])) * 1e3)
@@ -245,12 +246,12 @@ def print_study(study) -> None:
     pruned = sum(t.state == optuna.trial.TrialState.PRUNED for t in study.trials)
     print(f"study {study.study_name}: {len(done)} complete, {pruned} pruned; tuning seeds {study.user_attrs.get('seeds')}, "
           f"budget {study.user_attrs.get('budget'):,} steps, confirm {study.user_attrs.get('confirm')}")
-    pack = next((t for t in done if t.number == 0), None)
+    pack = next((t for t in done if t.user_attrs.get("pack")), None)
     for t in done[:10] + ([pack] if pack is not None and pack not in done[:10] else []):
         a = t.user_attrs
         print(f"  #{t.number:<4} {t.value:8.0f} ms  solved {a.get('solved')}  median steps {a.get('median_steps', np.nan):>9,.0f}  "
               f"median wall {a.get('median_wall_ms', np.nan):6.0f} ms  iteration {a.get('iteration_ms', np.nan):6.2f} ms"
-              f"{'  (the pack)' if t.number == 0 else ''}\n        {a.get('overrides')}")
+              f"{'  (the pack)' if a.get('pack') else ''}\n        {a.get('overrides')}")
 
 
 def run_candidates(args, bench: Bench, seeds: list[int]) -> None:

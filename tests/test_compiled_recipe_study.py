@@ -34,7 +34,7 @@ def test_a_search_starts_from_the_pack_and_a_rerun_adds_to_the_same_study(study_
     (first,) = study.trials
     assert first.params == study_mod.pack_params(bench.agent)  # the pack's own recipe, enqueued
     assert first.params["n_envs"] == 128 and first.params["n_minibatches"] == 4 and first.params["n_epochs"] == 4
-    assert "agent.algo.batch_size=1024" in first.user_attrs["overrides"].split(",")
+    assert "agent.algo.batch_size=1024" in first.user_attrs["overrides"].split(",") and first.user_attrs["pack"]
     assert first.user_attrs["solved"] == 0  # one rollout of 4,096 steps does not solve MountainCar
     assert first.value >= 2000.0  # an unsolved seed counts the 2 s penalty at least
     assert first.user_attrs["iteration_ms"] > 0.0
@@ -42,6 +42,7 @@ def test_a_search_starts_from_the_pack_and_a_rerun_adds_to_the_same_study(study_
     study_mod.run_search(args, bench, [100])  # a rerun: one more trial in the same study, sampled
     study = optuna.load_study(study_name="t", storage=args.storage)
     assert [t.number for t in study.trials] == [0, 1] and study.trials[1].state.is_finished()
+    assert study.trials[1].params != first.params
     assert study.user_attrs["budget"] == 4096 and study.user_attrs["real_transitions"] == 75
 
     args.budget = 8192
