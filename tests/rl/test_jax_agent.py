@@ -255,6 +255,24 @@ def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path)
     assert JaxPPO.load(path).num_timesteps == 1024
 
 
+def test_the_compiled_pack_validates_and_trains_its_own_recipe(fitted):
+    """experiment=compiled_mountain_car: its recipe passes the compiled PPO's config check and is
+    the one it trains (the clip, gamma, minibatches and gSDE's log-std of the search's choice)."""
+    from sdrl_bench.cli.train import build_transfer_job
+
+    cfg = compose_cfg("experiment=compiled_mountain_car")
+    job = build_transfer_job(cfg, build_fit_job(cfg))
+    job.check()
+    assert job.agent.name == "ppo_jax" and job.agent.tuning_real_steps == 711_075
+    _, model, spec = fitted
+    agent = make_agent(job.agent, surrogate_vec_env(model, spec, job.agent.n_envs, 0), 0)
+    c = agent.cfg
+    assert (c.n_envs, c.n_steps, c.batch_size, c.n_epochs, c.gamma, c.clip_range) == (64, 32, 512, 3, 0.995, 0.1)
+    assert (c.learning_rate, c.log_std_init, c.use_sde, c.normalize_reward) == (1.04e-2, -0.259, True, True)
+    agent.learn(2048)  # one compiled rollout and update in the surrogate
+    assert agent.rollout_backend == "compiled" and agent.num_timesteps == 2048
+
+
 @pytest.mark.parametrize("override,message", [
     ("+agent.algo.target_kl=0.01", "agent.algo sets ['target_kl']"),  # a setting the compiled PPO lacks
     ("jax_threads=-1", "jax_threads must be >= 0, got -1"),
