@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from typing import Any
 
 import numpy as np
 
@@ -110,6 +111,7 @@ class Bench:
         self.base = [f"experiment={experiment}", "agent=ppo_jax", "collector=heuristic"]
         cfg = compose(self.base)
         self.agent = cfg.agent
+        self._agents: dict[tuple[str, ...], Any] = {}  # a recipe's agent config, composed once for all its seeds
         jax_agent.size_cpu_pool(int(cfg.jax_threads))
         if cache_dir:
             jax_agent.use_compilation_cache(cache_dir)
@@ -141,7 +143,10 @@ class Bench:
         from sdrl_bench.rl.transfer import surrogate_vec_env
 
         bench, jax = self, self.jax
-        agent = instantiate_key(compose([*self.base, *overrides]).agent, "agent")
+        key = tuple(overrides)
+        if key not in self._agents:
+            self._agents[key] = instantiate_key(compose([*self.base, *overrides]).agent, "agent")
+        agent = self._agents[key]
         model = make_agent(agent, surrogate_vec_env(self.fit.model, self.spec, agent.n_envs, seed), seed)
         base_key = jax.random.key(10**6 + seed)
 

@@ -72,6 +72,15 @@ def test_the_tables_leave_the_warm_ups_out_and_take_a_cold_one_as_the_cold_compi
     assert cold["T"][w]["compile_wall_seconds"] == 4.8 and cold["B"] == {}  # only a warm-up with no cache hit
 
 
+def mountain_car_run(seed: int, arm: str, pack: str, wall: float, compile_s: float = 0.1) -> dict:
+    """A finished MountainCar run of ``pack``, stopped when solved and judged solved (the surrogate arm's model fitted on 75 expert transitions)."""
+    r = stored(seed, arm, True, solved_wall_seconds=wall, compile_wall_seconds=compile_s, judged_solved=1.0)
+    r["tags"].update(env="mountain_car", **{"sdrl.experiment": pack})
+    if arm == "surrogate":
+        r["params"].update({"collector.name": "expert", "n_transitions": "75"})
+    return r
+
+
 def test_the_compiled_packs_arms_run_and_read_back_as_their_own(tts, monkeypatch):
     """(k') and (r'): the env's compiled pack under the compiled PPO, in the surrogate (on the
     expert's data, as (d')) and in real envs; the store's runs of that pack are theirs, not (d')'s
@@ -85,15 +94,8 @@ def test_the_compiled_packs_arms_run_and_read_back_as_their_own(tts, monkeypatch
     with pytest.raises(SystemExit, match="no compiled pack"):
         tts.arm_overrides("lunar_lander", "K", [0], "sqlite:///x.db", 1)
 
-    def run_of(seed, arm, pack, wall, collector="expert"):
-        r = stored(seed, arm, True, solved_wall_seconds=wall, compile_wall_seconds=0.1, judged_solved=1.0)
-        r["tags"].update(env="mountain_car", **{"sdrl.experiment": pack})
-        if arm == "surrogate":
-            r["params"].update({"collector.name": collector, "n_transitions": "75"})
-        return r
-
-    runs = [run_of(0, "surrogate", "compiled_mountain_car", 0.4), run_of(0, "real", "compiled_mountain_car", 1.5),
-            run_of(0, "surrogate", "fast_mountain_car", 0.7), run_of(0, "real", "fast_mountain_car", 2.5)]
+    runs = [mountain_car_run(0, "surrogate", "compiled_mountain_car", 0.4), mountain_car_run(0, "real", "compiled_mountain_car", 1.5),
+            mountain_car_run(0, "surrogate", "fast_mountain_car", 0.7), mountain_car_run(0, "real", "fast_mountain_car", 2.5)]
     monkeypatch.setattr(tts, "find_runs", lambda *a, **k: runs)
     got = tts.collect("sqlite:///x.db", "mountain_car", 75, confirm=20)
     walls = {k: v[0]["solved_wall_seconds"] for k, v in got.items() if v}
@@ -101,15 +103,8 @@ def test_the_compiled_packs_arms_run_and_read_back_as_their_own(tts, monkeypatch
 
 
 def test_the_report_sets_each_compiled_arm_beside_the_fastest_real_control(tts, monkeypatch, capsys):
-    def run_of(seed, arm, pack, wall, compile_s):
-        r = stored(seed, arm, True, solved_wall_seconds=wall, compile_wall_seconds=compile_s, judged_solved=1.0)
-        r["tags"].update(env="mountain_car", **{"sdrl.experiment": pack})
-        if arm == "surrogate":
-            r["params"].update({"collector.name": "expert", "n_transitions": "75"})
-        return r
-
-    runs = [run_of(0, "surrogate", "compiled_mountain_car", 0.4, 0.1), run_of(0, "real", "compiled_mountain_car", 1.5, 0.1),
-            run_of(0, "real", "fast_mountain_car", 2.5, 0.2)]
+    runs = [mountain_car_run(0, "surrogate", "compiled_mountain_car", 0.4), mountain_car_run(0, "real", "compiled_mountain_car", 1.5),
+            mountain_car_run(0, "real", "fast_mountain_car", 2.5, compile_s=0.2)]
     monkeypatch.setattr(tts, "find_runs", lambda *a, **k: runs)
     tts.report("sqlite:///x.db", "mountain_car", [0], None, 75, confirm=20)
     out = capsys.readouterr().out
