@@ -57,6 +57,8 @@ import numpy as np
 CHOICES = {"n_envs": [64, 128, 256, 512], "n_steps": [8, 16, 32, 64], "n_minibatches": [1, 2, 4, 8],
            "gamma": [0.98, 0.99, 0.995], "gae_lambda": [0.9, 0.95, 0.98], "clip_range": [0.1, 0.2, 0.3]}
 """The search's categorical choices (``suggest``)."""
+RANGES = {"n_epochs": (1, 4), "learning_rate": (1e-3, 1.5e-2), "log_std_init": (-2.0, 0.0)}
+"""The search's numeric ranges, bounds included (``suggest``; learning rate on a log scale)."""
 
 
 def pack_params(agent) -> dict | None:
@@ -68,8 +70,7 @@ def pack_params(agent) -> dict | None:
          "n_minibatches": int(agent.n_envs) * int(a.n_steps) // int(a.batch_size), "n_epochs": int(a.n_epochs),
          "learning_rate": float(a.learning_rate), "gamma": float(a.gamma), "gae_lambda": float(a.gae_lambda),
          "clip_range": float(a.get("clip_range", 0.2)), "log_std_init": float(a.get("policy_kwargs", {}).get("log_std_init", 0.0))}
-    inside = (all(p[k] in v for k, v in CHOICES.items()) and 1 <= p["n_epochs"] <= 4
-              and 1e-3 <= p["learning_rate"] <= 1.5e-2 and -2.0 <= p["log_std_init"] <= 0.0)
+    inside = all(p[k] in v for k, v in CHOICES.items()) and all(lo <= p[k] <= hi for k, (lo, hi) in RANGES.items())
     return p if inside else None
 
 
@@ -77,16 +78,16 @@ def suggest(trial) -> dict:
     """One recipe from the search space: the rollout's shape, the update's epochs and minibatches,
     the learning rate, the return's discount and GAE's lambda, the clip and gSDE's initial log-std.
     gSDE, reward scaling, the networks and every other setting stay the pack's."""
-    c = CHOICES
+    c, r = CHOICES, RANGES
     return {"n_envs": trial.suggest_categorical("n_envs", c["n_envs"]),
             "n_steps": trial.suggest_categorical("n_steps", c["n_steps"]),
             "n_minibatches": trial.suggest_categorical("n_minibatches", c["n_minibatches"]),
-            "n_epochs": trial.suggest_int("n_epochs", 1, 4),
-            "learning_rate": trial.suggest_float("learning_rate", 1e-3, 1.5e-2, log=True),
+            "n_epochs": trial.suggest_int("n_epochs", *r["n_epochs"]),
+            "learning_rate": trial.suggest_float("learning_rate", *r["learning_rate"], log=True),
             "gamma": trial.suggest_categorical("gamma", c["gamma"]),
             "gae_lambda": trial.suggest_categorical("gae_lambda", c["gae_lambda"]),
             "clip_range": trial.suggest_categorical("clip_range", c["clip_range"]),
-            "log_std_init": trial.suggest_float("log_std_init", -2.0, 0.0)}
+            "log_std_init": trial.suggest_float("log_std_init", *r["log_std_init"])}
 
 
 def overrides_of(p: dict) -> list[str]:
@@ -200,8 +201,8 @@ def run_search(args, bench: Bench, seeds: list[int]) -> None:
     pruner = optuna.pruners.MedianPruner(n_startup_trials=8, n_warmup_steps=3)
     study = optuna.create_study(study_name=args.study, storage=storage, sampler=sampler, pruner=pruner,
                                 direction="minimize", load_if_exists=True)
+    pack = pack_params(bench.agent)
     if not study.trials:
-        pack = pack_params(bench.agent)
         if pack is None:
             print(f"{args.experiment}: its own recipe lies outside the search space; not enqueued", flush=True)
         else:
@@ -228,7 +229,7 @@ def run_search(args, bench: Bench, seeds: list[int]) -> None:
                 raise optuna.TrialPruned()
         it_ms = iteration_ms(model, args.calls)
         trial.set_user_attr("overrides", ",".join(over))
-        trial.set_user_attr("pack", p == pack_params(bench.agent))
+        trial.set_user_attr("pack", p == pack)
         trial.set_user_attr("solved", sum(s is not None for s in steps))
         trial.set_user_attr("median_steps", float(np.median([s if s is not None else np.inf for s in steps])))
         trial.set_user_attr("median_wall_ms", float(np.median([w if s is not None else np.inf for w, s in zip(walls, steps, strict=True)])) * 1e3)

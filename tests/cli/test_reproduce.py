@@ -12,6 +12,7 @@ from helpers import compose_cfg, load_script
 from sdrl_bench.cli.build import build_dyna_job, build_fit_job, build_transfer_job
 from sdrl_bench.pipeline import check
 
+
 def _script():
     return load_script("scripts/reproduce.py")
 
