@@ -49,7 +49,7 @@ def prepare(cfg: DictConfig, job):
 
     torch.set_num_threads(int(cfg.torch_threads))
     jax_threads = int_key(cfg, "jax_threads", minimum=0)  # checked whatever the agent
-    compiled = getattr(getattr(job.agent.algo, "func", None), "__name__", None) == "JaxPPO"
+    compiled = bool(getattr(getattr(job.agent.algo, "func", None), "USES_JAX", False))  # rl.jax_agent's agents
     if compiled:  # before anything creates JAX's backend (the job's check may)
         from sdrl_bench.rl.jax_agent import size_cpu_pool
 

@@ -308,7 +308,72 @@ def _compiled_rollout(kwargs: dict[str, Any]) -> bool:
     return value
 
 
-class JaxPPO:
+class _CompiledAgent:
+    """What the compiled agents (``JaxPPO``, ``JaxSAC``) share behind SB3's interface: the
+    compile counters the runners record, ``get_env``, ``set_logger``, the callback's set-up, and
+    the ahead-of-time, timed compile of a program (``compile_program``)."""
+
+    USES_JAX = True
+    """Read by the CLI (``cli.train.prepare``): size XLA's CPU pool and turn the compilation cache
+    on before anything creates JAX's backend."""
+
+    def _init_counters(self) -> None:
+        self.num_timesteps = 0
+        self.compile_seconds = 0.0
+        """Seconds spent compiling (counted inside ``learn``'s wall)."""
+        self.compile_programs = 0
+        """Programs compiled ahead of time."""
+        self.compile_cache_hits = 0
+        """Of ``compile_programs``, those loaded from JAX's persistent compilation cache
+        (``use_compilation_cache``) instead of compiled: a cold compile has none."""
+        self.lowering_cache_hits = 0
+        """Of ``compile_programs``, those whose lowering came from the lowering cache
+        (``compile_program``): traced, not lowered."""
+        self.pool_threads: int | None = None
+        """Threads in XLA's CPU pool when the networks were built (``cpu_pool_threads``; config
+        ``jax_threads``): they run every compiled program."""
+        self.rollout_compiles = 0
+        """Rollouts compiled with the surrogate's step (0: every rollout stepped in Python)."""
+        self.logger: Any = None
+
+    def _timed_compile(self, fn: Any, *args: Any) -> Any:
+        hits, t0 = cache_hits(), time.perf_counter()
+        out, lowered = compile_program(fn, args, jax_ppo.COMPILER_OPTIONS)
+        self.compile_seconds += time.perf_counter() - t0
+        self.compile_programs += 1
+        self.compile_cache_hits += cache_hits() - hits
+        self.lowering_cache_hits += lowered
+        return out
+
+    def get_env(self) -> Any:
+        return self.env
+
+    def set_logger(self, logger: Any) -> None:
+        self.logger = logger
+
+    def _logger(self) -> Any:
+        if self.logger is None:
+            from stable_baselines3.common.logger import Logger  # noqa: PLC0415
+
+            self.logger = Logger(folder=None, output_formats=[])
+        return self.logger
+
+    def _callback(self, callback: Any, progress_bar: bool) -> Any:
+        """SB3's callback handling in ``learn``: a list, a function or None made one callback,
+        with a progress bar when asked, initialised with this agent."""
+        from stable_baselines3.common.callbacks import CallbackList, ConvertCallback, ProgressBarCallback  # noqa: PLC0415
+
+        if isinstance(callback, list):
+            callback = CallbackList(callback)
+        if not hasattr(callback, "init_callback"):
+            callback = ConvertCallback(callback)
+        if progress_bar:
+            callback = CallbackList([callback, ProgressBarCallback()])
+        callback.init_callback(self)
+        return callback
+
+
+class JaxPPO(_CompiledAgent):
     """PPO with the rollout and the update compiled by jax, behind SB3's interface (module
     docstring)."""
 
@@ -323,22 +388,7 @@ class JaxPPO:
         self.env = env
         self.seed = int(seed or 0)
         self.verbose = verbose
-        self.num_timesteps = 0
-        self.compile_seconds = 0.0
-        """Seconds spent compiling (rollout and update; counted inside ``learn``'s wall)."""
-        self.compile_programs = 0
-        """Programs compiled ahead of time (the env's start, the rollout, the update)."""
-        self.compile_cache_hits = 0
-        """Of ``compile_programs``, those loaded from JAX's persistent compilation cache
-        (``use_compilation_cache``) instead of compiled: a cold compile has none."""
-        self.lowering_cache_hits = 0
-        """Of ``compile_programs``, those whose lowering came from the lowering cache
-        (``compile_program``): traced, not lowered."""
-        self.pool_threads: int | None = None
-        """Threads in XLA's CPU pool when the networks were built (``cpu_pool_threads``; config
-        ``jax_threads``): they run every compiled program."""
-        self.rollout_compiles = 0
-        """Rollouts compiled: one per surrogate structure trained in."""
+        self._init_counters()  # compile_programs: the env's start, the rollout, the update
         self.rollout_swaps = 0
         """Surrogate models (a Dyna refit) stepped by a rollout compiled before: the same
         structure (``JaxStepper.key``) and spec, new numbers, no compile."""
@@ -346,7 +396,6 @@ class JaxPPO:
         """Surrogate episodes ended by the model's divergence guard in compiled rollouts."""
         self.rollout_backend: str | None = None
         """"compiled" or "python": where the last ``learn`` stepped."""
-        self.logger: Any = None
         self._jax, self._jnp, _ = jax_ppo._modules()
         self._key = self._jax.random.key(self.seed)
         self._host_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 31]))
@@ -436,47 +485,17 @@ class JaxPPO:
         self._value = jax.jit(jax_ppo.value)
         self._explore = jax.jit(lambda net, key: jax_ppo.exploration_matrices(net, key, cfg.n_envs))
 
-    def _timed_compile(self, fn: Any, *args: Any) -> Any:
-        hits, t0 = cache_hits(), time.perf_counter()
-        out, lowered = compile_program(fn, args, jax_ppo.COMPILER_OPTIONS)
-        self.compile_seconds += time.perf_counter() - t0
-        self.compile_programs += 1
-        self.compile_cache_hits += cache_hits() - hits
-        self.lowering_cache_hits += lowered
-        return out
-
     # ------------------------------------------------------------------ SB3's interface
-    def get_env(self) -> Any:
-        return self.env
-
-    def set_logger(self, logger: Any) -> None:
-        self.logger = logger
-
-    def _logger(self) -> Any:
-        if self.logger is None:
-            from stable_baselines3.common.logger import Logger  # noqa: PLC0415
-
-            self.logger = Logger(folder=None, output_formats=[])
-        return self.logger
-
     def learn(self, total_timesteps: int, callback: Any = None, log_interval: int = 1, tb_log_name: str = "JaxPPO",
               reset_num_timesteps: bool = True, progress_bar: bool = False) -> JaxPPO:
         """Train for at least ``total_timesteps`` more env steps (whole rollouts), as SB3's
         ``learn``: a callback returning False from ``on_step`` ends it."""
-        from stable_baselines3.common.callbacks import CallbackList, ConvertCallback, ProgressBarCallback  # noqa: PLC0415
-
         if self.env is None:
             raise ValueError("JaxPPO.learn: no env (load(path, env=...) to train on)")
         if reset_num_timesteps:
             self.num_timesteps = 0
             self._cenv = self._last_obs = None
-        if isinstance(callback, list):
-            callback = CallbackList(callback)
-        if not hasattr(callback, "init_callback"):
-            callback = ConvertCallback(callback)
-        if progress_bar:
-            callback = CallbackList([callback, ProgressBarCallback()])
-        callback.init_callback(self)
+        callback = self._callback(callback, progress_bar)
         target = self.num_timesteps + int(total_timesteps)
         callback.on_training_start(locals(), globals())
         menv, _ = _surrogate_of(self.env)
@@ -658,5 +677,246 @@ class JaxPPO:
         if env is not None:
             if env.num_envs != cfg.n_envs:
                 raise ConfigError(f"JaxPPO.load: {path} was trained with {cfg.n_envs} env copies, the env has {env.num_envs}")
+            agent.env = env
+        return agent
+
+
+SAC_FORMAT = "sdrl-bench-jax-sac-v1"
+
+
+class JaxSAC(_CompiledAgent):
+    """SAC with its update compiled by jax (``rl.jax_sac``), behind SB3's interface:
+    ``agent=sac_jax``. ``JaxSAC(policy="MlpPolicy", env=..., seed=..., **sac_kwargs)`` takes SB3's
+    SAC keyword arguments (``jax_sac.SACConfig.from_kwargs`` refuses the rest in one line).
+
+    ``learn`` is SB3's off-policy loop: ``train_freq`` vector steps collected in Python (the
+    actor's actions by numpy, ``jax_sac.HostActor``; callbacks' ``on_step`` after every vector
+    step, ``on_rollout_start`` / ``on_rollout_end`` around each collection), then
+    ``gradient_steps`` gradient steps in one compiled call on batches drawn on the host from the
+    replay buffer (``jax_sac.Replay``). The same path serves the surrogate (its vector env, a Dyna
+    refit included) and the real env (the control). The update is compiled once, ahead of time
+    and timed (``compile_seconds``); ``rollout_compiles`` stays 0. ``predict`` is SB3's: tanh of
+    the (clipped) mean, or a sample, scaled to the action space. Rewards are the env's: a
+    ``VecNormalize`` around it (``agent.normalize_reward``) is refused, as is any space but Box.
+
+    Not kept by ``save`` (as SB3's ``save`` does not keep it): the replay buffer; nor, unlike
+    SB3's, the optimisers' moments: a loaded agent trains on with fresh Adam states."""
+
+    def __init__(self, policy: str = "MlpPolicy", env: Any = None, seed: int | None = None, verbose: int = 0,
+                 device: Any = None, **kwargs: Any):
+        from sdrl_bench.rl import jax_sac  # noqa: PLC0415
+
+        if policy != "MlpPolicy":
+            raise ConfigError(f"agent.algo.policy: JaxSAC has MlpPolicy only, got {policy!r}")
+        self._kwargs = dict(kwargs)
+        self._sac = jax_sac
+        self.env = env
+        self.seed = int(seed or 0)
+        self.verbose = verbose
+        self._init_counters()
+        self.gradient_steps_done = 0
+        """Gradient steps taken over this agent's life (SB3's ``_n_updates``)."""
+        self.rollout_backend = "python"
+        self._jax, self._jnp, _ = jax_ppo._modules()
+        self._host_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 53]))
+        """Collection's draws (gSDE matrices, Gaussian noise, warm-up actions), replay samples and
+        the update's keys: one stream, from the seed."""
+        self.cfg = None
+        self.state = None
+        self._train_exe = None
+        self._host: Any = None
+        self._replay = None
+        self._last_obs = None
+        self._episodes = 0
+        self._ep_returns: list[float] = []
+        if env is not None:
+            self._setup(env)
+            env.seed(self.seed)
+
+    @staticmethod
+    def check_config(kwargs: dict[str, Any], n_envs: int) -> None:
+        """Config-time validation (``rl.agents.AgentConfig.check``): the optional extra is
+        installed and the keyword arguments are ones this SAC has, each failure one line."""
+        try:
+            jax_ppo._modules()
+        except ImportError as exc:
+            raise ConfigError(f"agent.algo: {exc}") from None
+        from sdrl_bench.rl.jax_sac import SACConfig  # noqa: PLC0415
+
+        SACConfig.from_kwargs(dict(kwargs), n_envs, "agent.algo")
+
+    def _setup(self, env: Any) -> None:
+        from stable_baselines3.common.vec_env import VecNormalize  # noqa: PLC0415
+
+        if isinstance(env, VecNormalize):
+            raise ConfigError("agent=sac_jax: the compiled SAC trains on the env's own rewards; set "
+                              "agent.normalize_reward=false")
+        space = env.action_space
+        if not hasattr(space, "low"):
+            raise ConfigError(f"agent=sac_jax: SAC acts in Box spaces, not {type(space).__name__}")
+        cfg = self._sac.SACConfig.from_kwargs(self._kwargs, env.num_envs, "agent.algo")
+        self._init(cfg, int(np.prod(env.observation_space.shape)), int(np.prod(space.shape)),
+                   np.asarray(space.low, np.float32), np.asarray(space.high, np.float32))
+
+    def _init(self, cfg: Any, n_obs: int, n_act: int, low: np.ndarray, high: np.ndarray, nets: Any = None) -> None:
+        """The networks (fresh from the seed, or ``nets``), Adam's states, the replay buffer and
+        the update's jitted function (compiled on first use)."""
+        sac = self._sac
+        self.cfg, self._n_obs, self._n_act, self._bounds = cfg, n_obs, n_act, (low, high)
+        self.state = sac.init_state(cfg, nets if nets is not None else sac.init_nets(self.seed, cfg, n_obs, n_act))
+        self.pool_threads = cpu_pool_threads()
+        self._replay = sac.Replay(cfg.rows, cfg.n_envs, n_obs, n_act)
+        self._train_fn = self._jax.jit(sac.make_train(cfg, n_act))
+        self._train_exe = None
+        self._host = None
+
+    def _actor(self) -> Any:
+        """The host's copy of the actor, made again after each update."""
+        if self._host is None:
+            self._host = self._sac.HostActor(self.cfg, self.state.nets.actor, *self._bounds)
+        return self._host
+
+    def _host_key(self) -> np.ndarray:
+        return self._host_rng.integers(0, 2**32, size=2, dtype=np.uint32)
+
+    # ------------------------------------------------------------------ SB3's interface
+    def learn(self, total_timesteps: int, callback: Any = None, log_interval: int = 4, tb_log_name: str = "JaxSAC",
+              reset_num_timesteps: bool = True, progress_bar: bool = False) -> JaxSAC:
+        """Train for at least ``total_timesteps`` more env steps (whole collections of
+        ``train_freq`` vector steps), as SB3's off-policy ``learn``: a callback returning False
+        from ``on_step`` ends it."""
+        if self.env is None:
+            raise ValueError("JaxSAC.learn: no env (load(path, env=...) to train on)")
+        if reset_num_timesteps:
+            self.num_timesteps = 0
+            self._last_obs = None
+        callback = self._callback(callback, progress_bar)
+        target = self.num_timesteps + int(total_timesteps)
+        callback.on_training_start(locals(), globals())
+        cfg = self.cfg
+        while self.num_timesteps < target:
+            if not self._collect(callback, log_interval):
+                break
+            if self.num_timesteps > cfg.learning_starts and cfg.gradient_steps > 0:
+                self._train()
+        callback.on_training_end()
+        return self
+
+    def _collect(self, callback: Any, log_interval: int) -> bool:
+        """``train_freq`` vector steps into the replay buffer, as SB3's ``collect_rollouts``;
+        False when a callback stops training."""
+        env, cfg, n = self.env, self.cfg, self.env.num_envs
+        if self._last_obs is None:
+            self._last_obs = env.reset()
+        actor, rng = self._actor(), self._host_rng
+        explore = actor.exploration(rng, n)
+        callback.on_rollout_start()
+        for _ in range(cfg.train_freq):
+            obs = np.asarray(self._last_obs, np.float32).reshape(n, -1)
+            if self.num_timesteps < cfg.learning_starts and not (cfg.use_sde and cfg.use_sde_at_warmup):
+                scaled = rng.uniform(-1.0, 1.0, (n, self._n_act)).astype(np.float32)
+            else:
+                scaled = actor.sample(obs, rng, explore).astype(np.float32)
+            new_obs, rewards, dones, infos = env.step(actor.unscale(scaled))
+            self.num_timesteps += n
+            callback.update_locals(locals())
+            if not callback.on_step():
+                return False
+            next_obs = np.array(new_obs, np.float32).reshape(n, -1)
+            stored_dones = np.asarray(dones, np.float32).copy()
+            for i, done in enumerate(dones):
+                info = infos[i]
+                if not done:
+                    continue
+                if info.get("terminal_observation") is not None:
+                    next_obs[i] = np.asarray(info["terminal_observation"], np.float32).reshape(-1)
+                if info.get("TimeLimit.truncated", False):
+                    stored_dones[i] = 0.0
+                if "episode" in info:
+                    self._ep_returns = [*self._ep_returns[-99:], float(info["episode"]["r"])]
+                self._episodes += 1
+                if log_interval and self._episodes % log_interval == 0:
+                    self._dump()
+            self._replay.add(obs, next_obs, scaled, np.asarray(rewards, np.float32), stored_dones)
+            self._last_obs = new_obs
+        callback.on_rollout_end()
+        return True
+
+    def _train(self) -> None:
+        """``gradient_steps`` gradient steps in one compiled call (compiled ahead of time on the
+        first, and timed)."""
+        cfg = self.cfg
+        batches = self._replay.sample(self._host_rng, cfg.gradient_steps, cfg.batch_size)
+        args = (self.state, batches, self._host_key())
+        if self._train_exe is None:
+            self._train_exe = self._timed_compile(self._train_fn, *args)
+        self.state, stats = self._train_exe(*args)
+        self._host = None
+        self.gradient_steps_done += cfg.gradient_steps
+        log = self._logger()
+        log.record("train/n_updates", self.gradient_steps_done, exclude="tensorboard")
+        for k, v in stats.items():
+            log.record(f"train/{k}", float(v))
+
+    def _dump(self) -> None:
+        log = self._logger()
+        if self._ep_returns:
+            log.record("rollout/ep_rew_mean", float(np.mean(self._ep_returns)))
+        log.record("time/episodes", self._episodes, exclude="tensorboard")
+        log.dump(step=self.num_timesteps)
+
+    def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
+                deterministic: bool = False) -> tuple[np.ndarray, None]:
+        """The action for one observation or a batch, in the action space's bounds: tanh of the
+        (clipped) mean when ``deterministic``, else a sample (gSDE: fresh matrices)."""
+        obs = np.asarray(observation, np.float32)
+        single = obs.ndim == 1
+        batch = obs.reshape(1 if single else obs.shape[0], -1)
+        actor = self._actor()
+        scaled = (actor.deterministic(batch) if deterministic
+                  else actor.sample(batch, self._host_rng, actor.exploration(self._host_rng, batch.shape[0])))
+        out = actor.unscale(scaled).astype(np.float32)
+        return (out[0] if single else out), None
+
+    # ------------------------------------------------------------------ files
+    def save(self, path: str | Path) -> None:
+        """A zip: ``config.json`` (the SAC config, sizes, action bounds, steps) and ``params.npz``
+        (the networks, targets and log-alpha in pytree order)."""
+        leaves = self._jax.tree_util.tree_leaves(self.state.nets)
+        low, high = self._bounds
+        meta = {"format": SAC_FORMAT, "config": asdict(self.cfg), "n_obs": self._n_obs, "n_act": self._n_act,
+                "action_low": low.tolist(), "action_high": high.tolist(), "num_timesteps": int(self.num_timesteps),
+                "gradient_steps_done": int(self.gradient_steps_done), "seed": self.seed}
+        buf = io.BytesIO()
+        np.savez(buf, *[np.asarray(x) for x in leaves])
+        with zipfile.ZipFile(path, "w") as zf:
+            zf.writestr("config.json", json.dumps(meta, indent=1))
+            zf.writestr("params.npz", buf.getvalue())
+
+    @classmethod
+    def load(cls, path: str | Path, env: Any = None, device: Any = None, **_: Any) -> JaxSAC:
+        """An agent ``save`` wrote (``env``: to train on; its copy count must be the saved one)."""
+        from sdrl_bench.rl import jax_sac  # noqa: PLC0415
+
+        with zipfile.ZipFile(path) as zf:
+            meta = json.loads(zf.read("config.json"))
+            arrays = np.load(io.BytesIO(zf.read("params.npz")))
+            leaves = [arrays[f"arr_{i}"] for i in range(len(arrays.files))]
+        if meta.get("format") != SAC_FORMAT:
+            raise ValueError(f"{path}: not a JaxSAC agent ({meta.get('format')!r})")
+        config = dict(meta["config"])
+        for k in ("net_arch", "qf_arch"):
+            config[k] = tuple(config[k])
+        cfg = jax_sac.SACConfig(**config)
+        agent = cls(seed=meta["seed"])
+        low, high = (np.asarray(meta[k], np.float32) for k in ("action_low", "action_high"))
+        fresh = jax_sac.init_nets(agent.seed, cfg, meta["n_obs"], meta["n_act"])
+        treedef = agent._jax.tree_util.tree_structure(fresh)
+        agent._init(cfg, meta["n_obs"], meta["n_act"], low, high, agent._jax.tree_util.tree_unflatten(treedef, leaves))
+        agent.num_timesteps = int(meta["num_timesteps"])
+        agent.gradient_steps_done = int(meta.get("gradient_steps_done", 0))
+        if env is not None:
+            if env.num_envs != cfg.n_envs:
+                raise ConfigError(f"JaxSAC.load: {path} was trained with {cfg.n_envs} env copies, the env has {env.num_envs}")
             agent.env = env
         return agent
