@@ -50,7 +50,7 @@ class AgentConfig:
         kind = "discrete" if discrete else "continuous (Box)"
         check = getattr(getattr(self.algo, "func", None), "check_config", None)
         if callable(check):  # an algorithm that validates its own settings (rl.jax_agent.JaxPPO)
-            check(dict(getattr(self.algo, "keywords", {})), self.n_envs)
+            check(dict(getattr(self.algo, "keywords", {})), self.n_envs, normalize_reward=self.normalize_reward)
         if (self.action_space == "continuous" and discrete) or (self.action_space == "discrete" and not discrete):
             other = "agent=ppo or agent=dqn" if discrete else "agent=sac, agent=td3 or agent=ppo"
             raise ConfigError(

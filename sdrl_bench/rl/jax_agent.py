@@ -414,10 +414,10 @@ class JaxPPO(_CompiledAgent):
             env.seed(self.seed)
 
     @staticmethod
-    def check_config(kwargs: dict[str, Any], n_envs: int) -> None:
+    def check_config(kwargs: dict[str, Any], n_envs: int, normalize_reward: bool = False) -> None:
         """Config-time validation (``rl.agents.AgentConfig.check``, before any env step): the
         optional extra is installed and the recipe's keyword arguments are ones this PPO has,
-        each failure one line naming the key."""
+        each failure one line naming the key. Reward scaling it has (``normalize_reward``)."""
         try:
             jax_ppo._modules()
         except ImportError as exc:
@@ -682,6 +682,8 @@ class JaxPPO(_CompiledAgent):
 
 
 SAC_FORMAT = "sdrl-bench-jax-sac-v1"
+NO_REWARD_SCALING = ("agent.normalize_reward: the compiled SAC (agent=sac_jax) trains on the env's own rewards; "
+                     "set agent.normalize_reward=false")
 
 
 class JaxSAC(_CompiledAgent):
@@ -734,9 +736,12 @@ class JaxSAC(_CompiledAgent):
             env.seed(self.seed)
 
     @staticmethod
-    def check_config(kwargs: dict[str, Any], n_envs: int) -> None:
+    def check_config(kwargs: dict[str, Any], n_envs: int, normalize_reward: bool = False) -> None:
         """Config-time validation (``rl.agents.AgentConfig.check``): the optional extra is
-        installed and the keyword arguments are ones this SAC has, each failure one line."""
+        installed, the keyword arguments are ones this SAC has and rewards are not scaled, each
+        failure one line."""
+        if normalize_reward:
+            raise ConfigError(NO_REWARD_SCALING)
         try:
             jax_ppo._modules()
         except ImportError as exc:
@@ -749,8 +754,7 @@ class JaxSAC(_CompiledAgent):
         from stable_baselines3.common.vec_env import VecNormalize  # noqa: PLC0415
 
         if isinstance(env, VecNormalize):
-            raise ConfigError("agent=sac_jax: the compiled SAC trains on the env's own rewards; set "
-                              "agent.normalize_reward=false")
+            raise ConfigError(NO_REWARD_SCALING)
         space = env.action_space
         if not hasattr(space, "low"):
             raise ConfigError(f"agent=sac_jax: SAC acts in Box spaces, not {type(space).__name__}")
@@ -799,6 +803,7 @@ class JaxSAC(_CompiledAgent):
                 break
             if self.num_timesteps > cfg.learning_starts and cfg.gradient_steps > 0:
                 self._train()
+        self._dump()  # the last losses, also where no episode ended (SB3 logs at episode ends only)
         callback.on_training_end()
         return self
 
