@@ -1,4 +1,7 @@
-"""The compiled PPO (``rl.jax_ppo``) behind stable-baselines3's interface: ``agent=ppo_jax``.
+"""The compiled agents behind stable-baselines3's interface: the compiled PPO (``rl.jax_ppo``,
+``agent=ppo_jax``, ``JaxPPO``, described below) and SAC with its gradient steps compiled
+(``rl.jax_sac``, ``agent=sac_jax``, ``JaxSAC``: see its docstring); with what they share (the
+compiles' caches and counts, XLA's CPU pool).
 
 ``JaxPPO(policy="MlpPolicy", env=..., seed=..., **ppo_kwargs)`` takes SB3's PPO keyword arguments
 (``n_steps``, ``batch_size``, ``n_epochs``, ``gamma``, ``use_sde``, ``policy_kwargs.log_std_init``,

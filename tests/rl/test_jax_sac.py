@@ -199,3 +199,24 @@ def test_a_bad_compiled_sac_setting_is_one_line_before_any_run(store, tmp_path, 
     err = res.stderr.strip().splitlines()
     assert len(err) == 1 and message in err[0], err
     assert not (tmp_path / "mlruns" / "mlflow.db").exists() or search(store).empty
+
+
+def test_dyna_trains_it_across_refits(store):
+    """Dyna on MountainCar with the compiled SAC: each round's surrogate training continues the
+    same agent (steps, gradient steps and replay buffer) on the refitted surrogate, with one
+    compile in all."""
+    from sdrl_bench.cli.build import build_dyna_job
+    from sdrl_bench.rl.dyna import run_dyna
+
+    cfg = compose_cfg("experiment=dyna_mountain_car", "agent=sac_jax", "agent.algo.batch_size=64",
+                      "agent.algo.learning_rate=3e-4", "n_transitions=30", "rl.dyna.collect_per_round=20",
+                      "rl.dyna.first_round_steps=256", "rl.dyna.surrogate_steps_per_round=256", "rl.dyna.max_rounds=2",
+                      "rl.dyna.eval_episodes=1", "rl.dyna.final_episodes=1", "rl.dyna.audit_episodes=0",
+                      "rl.dyna.max_real_transitions=100000", "progress_bar=false", f"tracking.uri={store}")
+    job = build_dyna_job(cfg, build_fit_job(cfg))
+    outcome = run_dyna(job, job.check(), None)
+    sac = outcome.agent
+    assert isinstance(sac, JaxSAC) and sac.compile_programs == 1
+    assert [r.surrogate_steps for r in outcome.rounds] == [0, 256, 512] and sac.num_timesteps == 512
+    assert sac.gradient_steps_done == 512 and sac._replay.size == 512
+    assert outcome.summary["agent_compile_programs"] == 1
