@@ -29,13 +29,11 @@ import time
 
 import numpy as np
 
-from compiled_ppo import RolloutClock, sb3_surrogate_returns  # this folder's: the script's own directory is on the path
+from compiled_ppo import sb3_run, sb3_surrogate_returns  # this folder's: the script's own directory is on the path
 
 from sdrl_bench.cli.build import build_fit_job, compose, instantiate_key
 from sdrl_bench.pipeline import fit_dynamics
 from sdrl_bench.rl import jax_agent
-from sdrl_bench.rl.agents import make_agent
-from sdrl_bench.rl.transfer import surrogate_vec_env
 
 FIT = ["experiment=quick_mountain_car"]
 """The main job's surrogate (its fit: the pack's collector, library and optimizer)."""
@@ -43,16 +41,11 @@ ARMS = {"a": ("agent=sac", "(a) SB3 SAC"), "b": ("agent=sac_jax", "(b) compiled 
 
 
 def run_arm(agent, model, spec, steps: int, seed: int, eval_episodes: int) -> dict:
-    """One training run in the surrogate: wall, collection wall, compile, return; the agent."""
-    venv = surrogate_vec_env(model, spec, agent.n_envs, seed)
-    algo = make_agent(agent, venv, seed)
-    clock = RolloutClock()
-    t = time.perf_counter()
-    algo.learn(total_timesteps=int(steps), callback=clock)
-    wall = time.perf_counter() - t
-    compile_s = float(getattr(algo, "compile_seconds", 0.0))
-    ret = float(np.mean(sb3_surrogate_returns(algo, venv.surrogate, eval_episodes, seed + 1000)))
-    return {"wall": wall, "collect": clock.rollout_seconds, "compile": compile_s, "ret": ret,
+    """One training run in the surrogate (``compiled_ppo.sb3_run``: any agent behind SB3's
+    interface): wall, collection wall, compile, the policy's surrogate return; the agent."""
+    wall, collect, _, algo = sb3_run(agent, model, spec, steps, seed)
+    ret = float(np.mean(sb3_surrogate_returns(algo, algo.get_env().surrogate, eval_episodes, seed + 1000)))
+    return {"wall": wall, "collect": collect, "compile": float(getattr(algo, "compile_seconds", 0.0)), "ret": ret,
             "steps": int(algo.num_timesteps), "algo": algo}
 
 

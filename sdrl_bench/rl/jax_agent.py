@@ -311,6 +311,27 @@ def _compiled_rollout(kwargs: dict[str, Any]) -> bool:
     return value
 
 
+def _write_agent(path: str | Path, meta: dict[str, Any], leaves: list) -> None:
+    """A compiled agent's file: a zip of ``config.json`` (``meta``) and ``params.npz`` (the
+    parameters' arrays in pytree order)."""
+    buf = io.BytesIO()
+    np.savez(buf, *[np.asarray(x) for x in leaves])
+    with zipfile.ZipFile(path, "w") as zf:
+        zf.writestr("config.json", json.dumps(meta, indent=1))
+        zf.writestr("params.npz", buf.getvalue())
+
+
+def _read_agent(path: str | Path, fmt: str, name: str) -> tuple[dict[str, Any], list[np.ndarray]]:
+    """(meta, arrays) of a file ``_write_agent`` wrote; another format is one error naming it."""
+    with zipfile.ZipFile(path) as zf:
+        meta = json.loads(zf.read("config.json"))
+        arrays = np.load(io.BytesIO(zf.read("params.npz")))
+        leaves = [arrays[f"arr_{i}"] for i in range(len(arrays.files))]
+    if meta.get("format") != fmt:
+        raise ValueError(f"{path}: not a {name} agent ({meta.get('format')!r})")
+    return meta, leaves
+
+
 class _CompiledAgent:
     """What the compiled agents (``JaxPPO``, ``JaxSAC``) share behind SB3's interface: the
     compile counters the runners record, ``get_env``, ``set_logger``, the callback's set-up, and
@@ -654,21 +675,12 @@ class JaxPPO(_CompiledAgent):
         meta = {"format": FORMAT, "config": asdict(self.cfg), "n_obs": self._n_obs, "n_act": self._n_act,
                 "action_low": None if low is None else low.tolist(), "action_high": None if high is None else high.tolist(),
                 "num_timesteps": int(self.num_timesteps), "seed": self.seed, "compiled_rollout": self.compiled_rollout}
-        buf = io.BytesIO()
-        np.savez(buf, *[np.asarray(x) for x in leaves])
-        with zipfile.ZipFile(path, "w") as zf:
-            zf.writestr("config.json", json.dumps(meta, indent=1))
-            zf.writestr("params.npz", buf.getvalue())
+        _write_agent(path, meta, leaves)
 
     @classmethod
     def load(cls, path: str | Path, env: Any = None, device: Any = None, **_: Any) -> JaxPPO:
         """An agent ``save`` wrote (``env``: to train on; its copy count must be the saved one)."""
-        with zipfile.ZipFile(path) as zf:
-            meta = json.loads(zf.read("config.json"))
-            arrays = np.load(io.BytesIO(zf.read("params.npz")))
-            leaves = [arrays[f"arr_{i}"] for i in range(len(arrays.files))]
-        if meta.get("format") != FORMAT:
-            raise ValueError(f"{path}: not a JaxPPO agent ({meta.get('format')!r})")
+        meta, leaves = _read_agent(path, FORMAT, "JaxPPO")
         agent = cls(seed=meta["seed"], compiled_rollout=bool(meta.get("compiled_rollout", True)))
         cfg = PPOConfig(**meta["config"])
         bounds = [None if meta[k] is None else np.asarray(meta[k], np.float32) for k in ("action_low", "action_high")]
@@ -895,23 +907,14 @@ class JaxSAC(_CompiledAgent):
         meta = {"format": SAC_FORMAT, "config": asdict(self.cfg), "n_obs": self._n_obs, "n_act": self._n_act,
                 "action_low": low.tolist(), "action_high": high.tolist(), "num_timesteps": int(self.num_timesteps),
                 "gradient_steps_done": int(self.gradient_steps_done), "seed": self.seed}
-        buf = io.BytesIO()
-        np.savez(buf, *[np.asarray(x) for x in leaves])
-        with zipfile.ZipFile(path, "w") as zf:
-            zf.writestr("config.json", json.dumps(meta, indent=1))
-            zf.writestr("params.npz", buf.getvalue())
+        _write_agent(path, meta, leaves)
 
     @classmethod
     def load(cls, path: str | Path, env: Any = None, device: Any = None, **_: Any) -> JaxSAC:
         """An agent ``save`` wrote (``env``: to train on; its copy count must be the saved one)."""
         from sdrl_bench.rl import jax_sac  # noqa: PLC0415
 
-        with zipfile.ZipFile(path) as zf:
-            meta = json.loads(zf.read("config.json"))
-            arrays = np.load(io.BytesIO(zf.read("params.npz")))
-            leaves = [arrays[f"arr_{i}"] for i in range(len(arrays.files))]
-        if meta.get("format") != SAC_FORMAT:
-            raise ValueError(f"{path}: not a JaxSAC agent ({meta.get('format')!r})")
+        meta, leaves = _read_agent(path, SAC_FORMAT, "JaxSAC")
         config = dict(meta["config"])
         for k in ("net_arch", "qf_arch"):
             config[k] = tuple(config[k])
