@@ -1,4 +1,5 @@
-"""Does the compiled PPO (``agent=ppo_jax``) learn as SB3's PPO does, over many seeds?
+"""Does the compiled PPO (``agent=ppo_jax``) learn as SB3's PPO does, over many seeds? And the
+compiled SAC (``agent=sac_jax``) as SB3's SAC (``--env mountain_car_sac``)?
 
 The tests check the pieces against SB3 (the policy, the reward scaling, GAE and one update on SB3's
 own rollout and weights). This checks the whole loop: for each seed, SB3's PPO (``rl.agents.make_agent``
@@ -11,6 +12,7 @@ test (``scipy.stats``).
 
     .venv/bin/python studies/compiled_ppo_parity.py [--env lunar_lander] [--seeds 0-15] [--steps 262144]
     .venv/bin/python studies/compiled_ppo_parity.py --env cartpole_swingup --steps 1048576
+    .venv/bin/python studies/compiled_ppo_parity.py --env mountain_car_sac --steps 20000 --jobs 2  # SAC: agent=sac_jax
 
 Measured (LunarLander, seeds 0-15, 262,144 steps, 20 episodes; about 6 min on this 2-core
 machine beside another job): SB3 median 230.7, IQM 226.4, lowest 47.9; compiled median 232.1, IQM
@@ -24,6 +26,9 @@ MountainCar (seeds 0-31, 20 episodes): at 98,304 steps SB3 median 78.9 (IQM 76.5
 from __future__ import annotations
 
 import argparse
+import functools
+import multiprocessing
+from concurrent.futures import ProcessPoolExecutor
 
 import numpy as np
 import torch
@@ -31,6 +36,7 @@ from scipy import stats
 
 from sdrl_bench.cli.build import build_fit_job, compose, instantiate_key
 from sdrl_bench.pipeline import fit_dynamics
+from sdrl_bench.rl import jax_agent
 from sdrl_bench.rl.agents import make_agent
 from sdrl_bench.rl.transfer import surrogate_vec_env
 from sdrl_bench.surrogate.model_env import ModelEnv
@@ -55,9 +61,32 @@ PACKS = {
     "lunar_lander": (["experiment=fast_lunar_lander", "collector=heuristic"], ["experiment=fast_lunar_lander"]),
     "mountain_car": (["experiment=fast_mountain_car", "collector=heuristic"], ["experiment=fast_mountain_car"]),
     "cartpole_swingup": (["env=cartpole_swingup", "collector=random"], ["experiment=dyna_cartpole_swingup"]),
+    "mountain_car_sac": (["experiment=quick_mountain_car"], ["experiment=quick_mountain_car"]),
 }
 """Per env: the surrogate's fit (the env's heuristic, or for the swing-up 8,000 uniform-random steps
-as ``benchmarks/compiled_ppo.py`` fits it) and the recipe (the fast pack's; the swing-up's Dyna pack)."""
+as ``benchmarks/compiled_ppo.py`` fits it) and the recipe (the fast pack's; the swing-up's Dyna pack;
+``mountain_car_sac``: the README's main job, its SAC against ``agent=sac_jax``)."""
+COMPILED = {"mountain_car_sac": "sac_jax"}
+"""The compiled agent each recipe is compared with (``ppo_jax`` where not named)."""
+
+
+def one_seed(env: str, steps: int, episodes: int, seed: int) -> dict[str, float]:
+    """Both agents trained on one seed in the pack's surrogate (fitted here: the same data and
+    model in every process), each scored in it: {arm name: surrogate return}."""
+    fit_overrides, pack = PACKS[env]
+    compiled = COMPILED.get(env, "ppo_jax")
+    cfg = compose(fit_overrides)
+    torch.set_num_threads(int(cfg.torch_threads))  # as the harness trains SB3 (cli.train.prepare)
+    jax_agent.size_cpu_pool(int(cfg.jax_threads))  # and the compiled agents
+    fit = fit_dynamics(build_fit_job(cfg))
+    menv = ModelEnv(fit.model, fit.spec, seed=0)
+    out = {}
+    for extra in ([], [f"agent={compiled}"]):
+        agent = instantiate_key(compose([*pack, *extra]).agent, "agent")
+        model = make_agent(agent, surrogate_vec_env(fit.model, fit.spec, agent.n_envs, seed), seed)
+        model.learn(steps)
+        out[agent.name if extra else f"SB3 {agent.name}"] = surrogate_return(model, menv, episodes, seed=123)
+    return out
 
 
 def main() -> None:
@@ -66,22 +95,17 @@ def main() -> None:
     ap.add_argument("--seeds", default="0-15")
     ap.add_argument("--steps", type=int, default=262_144)
     ap.add_argument("--episodes", type=int, default=20)
+    ap.add_argument("--jobs", type=int, default=1, help="seeds trained at once, one process each")
     args = ap.parse_args()
     lo, _, hi = args.seeds.partition("-")
     seeds = list(range(int(lo), int(hi or lo) + 1))
-    fit_overrides, pack = PACKS[args.env]
-    cfg = compose(fit_overrides)
-    torch.set_num_threads(int(cfg.torch_threads))  # as the harness trains SB3 (cli.train.prepare)
-    fit = fit_dynamics(build_fit_job(cfg))
-    menv = ModelEnv(fit.model, fit.spec, seed=0)
-    out: dict[str, list[float]] = {"SB3 PPO": [], "compiled (ppo_jax)": []}
-    for seed in seeds:
-        for name, extra in (("SB3 PPO", []), ("compiled (ppo_jax)", ["agent=ppo_jax"])):
-            agent = instantiate_key(compose([*pack, *extra]).agent, "agent")
-            model = make_agent(agent, surrogate_vec_env(fit.model, fit.spec, agent.n_envs, seed), seed)
-            model.learn(args.steps)
-            out[name].append(surrogate_return(model, menv, args.episodes, seed=123))
-        print(f"seed {seed}: " + ", ".join(f"{k} {v[-1]:.1f}" for k, v in out.items()), flush=True)
+    out: dict[str, list[float]] = {}
+    with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        for seed, got in zip(seeds, pool.map(functools.partial(one_seed, args.env, args.steps, args.episodes), seeds),
+                             strict=True):
+            for k, v in got.items():
+                out.setdefault(k, []).append(v)
+            print(f"seed {seed}: " + ", ".join(f"{k} {v:.1f}" for k, v in got.items()), flush=True)
     for name, v in out.items():
         print(f"{name}: median {np.median(v):.1f}, IQM {stats.trim_mean(v, 0.25):.1f}, min {min(v):.1f}")
     print(f"Mann-Whitney U: p = {stats.mannwhitneyu(*out.values()).pvalue:.2f}")
