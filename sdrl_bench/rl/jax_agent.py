@@ -311,25 +311,41 @@ def _compiled_rollout(kwargs: dict[str, Any]) -> bool:
     return value
 
 
-def _write_agent(path: str | Path, meta: dict[str, Any], leaves: list) -> None:
-    """A compiled agent's file: a zip of ``config.json`` (``meta``) and ``params.npz`` (the
-    parameters' arrays in pytree order)."""
-    buf = io.BytesIO()
-    np.savez(buf, *[np.asarray(x) for x in leaves])
+def _write_agent(path: str | Path, meta: dict[str, Any], leaves: list, optimizer: list) -> None:
+    """A compiled agent's file: a zip of ``config.json`` (``meta``), ``params.npz`` (the
+    parameters' arrays in pytree order) and ``optimizer.npz`` (the optimisers' states, Adam's
+    moments and step counts, in pytree order: as SB3's ``save`` keeps its optimisers', so that a
+    loaded agent trains on where it stopped)."""
     with zipfile.ZipFile(path, "w") as zf:
         zf.writestr("config.json", json.dumps(meta, indent=1))
-        zf.writestr("params.npz", buf.getvalue())
+        for name, arrays in (("params.npz", leaves), ("optimizer.npz", optimizer)):
+            buf = io.BytesIO()
+            np.savez(buf, *[np.asarray(x) for x in arrays])
+            zf.writestr(name, buf.getvalue())
 
 
-def _read_agent(path: str | Path, fmt: str, name: str) -> tuple[dict[str, Any], list[np.ndarray]]:
-    """(meta, arrays) of a file ``_write_agent`` wrote; another format is one error naming it."""
+def _read_agent(path: str | Path, fmt: str, name: str) -> tuple[dict[str, Any], list[np.ndarray], list[np.ndarray] | None]:
+    """(meta, parameters, optimiser states or None) of a file ``_write_agent`` wrote (None: a
+    file from before the optimisers were kept); another format is one error naming it."""
     with zipfile.ZipFile(path) as zf:
         meta = json.loads(zf.read("config.json"))
-        arrays = np.load(io.BytesIO(zf.read("params.npz")))
-        leaves = [arrays[f"arr_{i}"] for i in range(len(arrays.files))]
+        got = [np.load(io.BytesIO(zf.read(part))) if part in zf.namelist() else None
+               for part in ("params.npz", "optimizer.npz")]
     if meta.get("format") != fmt:
         raise ValueError(f"{path}: not a {name} agent ({meta.get('format')!r})")
-    return meta, leaves
+    leaves, opt = ([a[f"arr_{i}"] for i in range(len(a.files))] if a is not None else None for a in got)
+    return meta, leaves, opt
+
+
+def _restore(jax: Any, fresh: Any, saved: list[np.ndarray] | None) -> Any:
+    """``fresh``'s pytree with ``saved``'s arrays (jax arrays), or ``fresh`` where nothing was saved;
+    a file whose arrays do not fit it is one error."""
+    if saved is None:
+        return fresh
+    treedef = jax.tree_util.tree_structure(fresh)
+    if treedef.num_leaves != len(saved):
+        raise ValueError(f"a saved compiled agent holds {len(saved)} arrays where its config builds {treedef.num_leaves}")
+    return jax.tree_util.tree_unflatten(treedef, [jax.numpy.asarray(x) for x in saved])
 
 
 class _CompiledAgent:
@@ -668,26 +684,25 @@ class JaxPPO(_CompiledAgent):
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | Path) -> None:
-        """A zip: ``config.json`` (the PPO config, sizes, action bounds, steps) and
-        ``params.npz`` (the networks' arrays in pytree order)."""
+        """A zip (``_write_agent``): ``config.json`` (the PPO config, sizes, action bounds, steps),
+        the networks' arrays and Adam's state."""
         leaves = self._jax.tree_util.tree_leaves(self.net)
         low, high = self._bounds
         meta = {"format": FORMAT, "config": asdict(self.cfg), "n_obs": self._n_obs, "n_act": self._n_act,
                 "action_low": None if low is None else low.tolist(), "action_high": None if high is None else high.tolist(),
                 "num_timesteps": int(self.num_timesteps), "seed": self.seed, "compiled_rollout": self.compiled_rollout}
-        _write_agent(path, meta, leaves)
+        _write_agent(path, meta, leaves, self._jax.tree_util.tree_leaves(self._opt))
 
     @classmethod
     def load(cls, path: str | Path, env: Any = None, device: Any = None, **_: Any) -> JaxPPO:
         """An agent ``save`` wrote (``env``: to train on; its copy count must be the saved one)."""
-        meta, leaves = _read_agent(path, FORMAT, "JaxPPO")
+        meta, leaves, opt = _read_agent(path, FORMAT, "JaxPPO")
         agent = cls(seed=meta["seed"], compiled_rollout=bool(meta.get("compiled_rollout", True)))
         cfg = PPOConfig(**meta["config"])
         bounds = [None if meta[k] is None else np.asarray(meta[k], np.float32) for k in ("action_low", "action_high")]
         agent._init(cfg, meta["n_obs"], meta["n_act"], *bounds)
-        treedef = agent._jax.tree_util.tree_structure(agent.net)
-        agent.net = agent._jax.tree_util.tree_unflatten(treedef, [agent._jnp.asarray(x) for x in leaves])
-        agent._opt = jax_ppo.optimizer(cfg).init(agent.net)
+        agent.net = _restore(agent._jax, agent.net, leaves)
+        agent._opt = _restore(agent._jax, jax_ppo.optimizer(cfg).init(agent.net), opt)
         agent.num_timesteps = int(meta["num_timesteps"])
         if env is not None:
             if env.num_envs != cfg.n_envs:
@@ -716,8 +731,9 @@ class JaxSAC(_CompiledAgent):
     the (clipped) mean, or a sample, scaled to the action space. Rewards are the env's: a
     ``VecNormalize`` around it (``agent.normalize_reward``) is refused, as is any space but Box.
 
-    Not kept by ``save`` (as SB3's ``save`` does not keep it): the replay buffer; nor, unlike
-    SB3's, the optimisers' moments: a loaded agent trains on with fresh Adam states."""
+    ``save`` keeps the networks, the targets, the entropy coefficient and the three Adam states,
+    as SB3's does; not the replay buffer (SB3 keeps it apart, ``save_replay_buffer``, which this
+    class does not have)."""
 
     def __init__(self, policy: str = "MlpPolicy", env: Any = None, seed: int | None = None, verbose: int = 0,
                  device: Any = None, **kwargs: Any):
@@ -900,30 +916,31 @@ class JaxSAC(_CompiledAgent):
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | Path) -> None:
-        """A zip: ``config.json`` (the SAC config, sizes, action bounds, steps) and ``params.npz``
-        (the networks, targets and log-alpha in pytree order)."""
+        """A zip (``_write_agent``): ``config.json`` (the SAC config, sizes, action bounds, steps),
+        the networks, targets and log-alpha, and the three Adam states."""
         leaves = self._jax.tree_util.tree_leaves(self.state.nets)
         low, high = self._bounds
         meta = {"format": SAC_FORMAT, "config": asdict(self.cfg), "n_obs": self._n_obs, "n_act": self._n_act,
                 "action_low": low.tolist(), "action_high": high.tolist(), "num_timesteps": int(self.num_timesteps),
                 "gradient_steps_done": int(self.gradient_steps_done), "seed": self.seed}
-        _write_agent(path, meta, leaves)
+        _write_agent(path, meta, leaves, self._jax.tree_util.tree_leaves(self.state[1:]))
 
     @classmethod
     def load(cls, path: str | Path, env: Any = None, device: Any = None, **_: Any) -> JaxSAC:
         """An agent ``save`` wrote (``env``: to train on; its copy count must be the saved one)."""
         from sdrl_bench.rl import jax_sac  # noqa: PLC0415
 
-        meta, leaves = _read_agent(path, SAC_FORMAT, "JaxSAC")
+        meta, leaves, opt = _read_agent(path, SAC_FORMAT, "JaxSAC")
         config = dict(meta["config"])
         for k in ("net_arch", "qf_arch"):
             config[k] = tuple(config[k])
         cfg = jax_sac.SACConfig(**config)
         agent = cls(seed=meta["seed"])
         low, high = (np.asarray(meta[k], np.float32) for k in ("action_low", "action_high"))
-        fresh = jax_sac.init_nets(agent.seed, cfg, meta["n_obs"], meta["n_act"])
-        treedef = agent._jax.tree_util.tree_structure(fresh)
-        agent._init(cfg, meta["n_obs"], meta["n_act"], low, high, agent._jax.tree_util.tree_unflatten(treedef, leaves))
+        nets = _restore(agent._jax, jax_sac.init_nets(agent.seed, cfg, meta["n_obs"], meta["n_act"]), leaves)
+        agent._init(cfg, meta["n_obs"], meta["n_act"], low, high, nets)
+        state = agent.state
+        agent.state = state._replace(**dict(zip(state._fields[1:], _restore(agent._jax, tuple(state[1:]), opt), strict=True)))
         agent.num_timesteps = int(meta["num_timesteps"])
         agent.gradient_steps_done = int(meta.get("gradient_steps_done", 0))
         if env is not None:

@@ -10,6 +10,7 @@ import json
 import shutil
 import subprocess
 import sys
+import zipfile
 from collections import Counter
 
 import numpy as np
@@ -90,6 +91,15 @@ def test_a_saved_agent_loads_and_acts_the_same(fitted, tmp_path):
     a, _ = ppo.predict(obs, deterministic=True)
     assert np.array_equal(a, again.predict(obs, deterministic=True)[0]) and again.num_timesteps == 1024
     assert again.cfg == ppo.cfg and np.abs(a).max() <= 1.0
+    kept, loaded = (jax.tree_util.tree_leaves(x._opt) for x in (ppo, again))  # Adam's state, as SB3's save keeps it
+    assert len(kept) == len(loaded) and all(np.array_equal(x, y) for x, y in zip(kept, loaded, strict=True))
+    assert max(float(np.abs(x).max()) for x in loaded if np.asarray(x).dtype.kind == "f") > 0  # moments, not zeros
+    with zipfile.ZipFile(tmp_path / "a.zip") as src, zipfile.ZipFile(tmp_path / "old.zip", "w") as dst:
+        for part in ("config.json", "params.npz"):  # a file saved before the optimiser's state was kept
+            dst.writestr(part, src.read(part))
+    old = JaxPPO.load(tmp_path / "old.zip")
+    assert np.array_equal(a, old.predict(obs, deterministic=True)[0])
+    assert all(not np.asarray(x).any() for x in jax.tree_util.tree_leaves(old._opt))  # Adam starts afresh
     one, _ = again.predict(obs[0], deterministic=True)
     assert one.shape == (1,) and np.allclose(one, a[0], rtol=0, atol=1e-6)  # a batch of one: rounding apart
     sampled, _ = again.predict(obs, deterministic=False)

@@ -137,7 +137,7 @@ def test_in_real_envs_it_collects_as_sb3_and_every_step_is_counted(fitted):
 def test_it_learns_the_surrogate_and_a_saved_agent_acts_the_same(fitted, tmp_path):
     """3,072 steps of the package's recipe (batches of 64) in MountainCar's surrogate: the critic's
     loss is finite, the actor's mean moved; the same seed trains the same networks, another seed
-    others; a saved agent loads and acts the same."""
+    others; a saved agent loads and acts the same, with its optimisers' states."""
     cfg, model, spec = fitted
     agent = instantiate_key(cfg.agent, "agent")
 
@@ -162,6 +162,10 @@ def test_it_learns_the_surrogate_and_a_saved_agent_acts_the_same(fitted, tmp_pat
     want, _ = sac.predict(obs, deterministic=True)
     got, _ = back.predict(obs, deterministic=True)
     assert np.array_equal(want, got) and back.num_timesteps == 3072
+    # Adam's moments and step counts come back too (SB3's save keeps its optimisers)
+    kept, loaded = (jax.tree_util.tree_leaves(a.state[1:]) for a in (sac, back))
+    assert len(kept) == len(loaded) and all(np.array_equal(a, b) for a, b in zip(kept, loaded, strict=True))
+    assert int(back.state.actor_opt[0].count) == 3072 and np.abs(np.asarray(back.state.critic_opt[0].nu[0][0][0])).max() > 0
     assert np.abs(want).max() <= 1.0 and want.shape == (50, 1)
     sampled, _ = sac.predict(obs)
     assert not np.array_equal(sampled, want) and np.abs(sampled).max() <= 1.0
