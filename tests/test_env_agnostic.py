@@ -26,9 +26,9 @@ GENERIC = ("surrogate", "rl", "report", "cli", "tracking", "search", "models", "
            "plots.py", "metrics.py", "seeds.py")
 ENV_AGNOSTIC = {"sdrl_bench.envs", "sdrl_bench.envs.base", "sdrl_bench.envs.task", "sdrl_bench.envs.functional"}
 """The modules of ``envs`` that generic code may import."""
-TRIVIAL = {0.5, 0.1, 0.01, 0.2, 0.25, 0.05, 0.001}
+TRIVIAL = {0.5, 0.1, 0.01, 0.2, 0.25, 0.05, 0.001, 0.005}
 """Numbers too common to be an env's constant (absolute values; integers count only below -10: a
-crash reward)."""
+crash reward). 0.005: SB3's SAC default ``tau`` (``rl.jax_sac``), and in envs/ only a grid's step."""
 LAYOUT = {"figsize", "dpi", "fontsize", "shrink", "alpha", "linewidth", "lw", "pad", "wspace", "hspace", "markersize",
           "rotation", "size", "s", "width", "height"}
 """Keyword arguments whose numbers are a figure's layout, never an env's constant."""
