@@ -10,6 +10,13 @@ in the same SINDy surrogate (fitted once, ``PACKS``), and each trained policy pl
 draws for every policy). Printed: per seed, both returns; their medians, IQMs and a Mann-Whitney
 test (``scipy.stats``).
 
+Resumable: each seed's returns are appended to ``--results`` (JSON lines, default
+``mlruns/compiled_parity.jsonl``) as soon as the seed ends, with the host's CPU. A rerun of the same
+command (the same ``--env``, ``--steps`` and ``--episodes``) trains only the seeds not yet there and
+prints them all; a line cut short by a kill is passed over. A seed's numbers differ between hosts
+(the libraries' float32 kernels follow the CPU's vector units), while both arms of one seed always
+share a host.
+
     .venv/bin/python studies/compiled_ppo_parity.py [--env lunar_lander] [--seeds 0-15] [--steps 262144]
     .venv/bin/python studies/compiled_ppo_parity.py --env cartpole_swingup --steps 1048576
     .venv/bin/python studies/compiled_ppo_parity.py --env mountain_car_sac --steps 20000 --jobs 2  # SAC: agent=sac_jax
@@ -29,8 +36,12 @@ from __future__ import annotations
 
 import argparse
 import functools
+import json
 import multiprocessing
-from concurrent.futures import ProcessPoolExecutor
+import os
+import platform
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -91,6 +102,40 @@ def one_seed(env: str, steps: int, episodes: int, seed: int) -> dict[str, float]
     return out
 
 
+def host() -> str:
+    """The CPU's model name (Linux's /proc/cpuinfo; else the platform's processor string)."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def stored(path: Path, key: dict) -> dict[int, dict[str, float]]:
+    """{seed: returns} of ``path``'s lines made with ``key`` (env, steps, episodes)."""
+    done: dict[int, dict[str, float]] = {}
+    if path.exists():
+        for line in path.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:  # the last line of a killed run
+                continue
+            if isinstance(rec, dict) and all(rec.get(k) == v for k, v in key.items()):
+                done[int(rec["seed"])] = rec["returns"]
+    return done
+
+
+def append(path: Path, rec: dict) -> None:
+    """One line, on disk before the next seed ends."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("a") as f:
+        f.write(json.dumps(rec) + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--env", default="lunar_lander", choices=list(PACKS))
@@ -98,16 +143,30 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=262_144)
     ap.add_argument("--episodes", type=int, default=20)
     ap.add_argument("--jobs", type=int, default=1, help="seeds trained at once, one process each")
+    ap.add_argument("--results", type=Path, default=Path("mlruns/compiled_parity.jsonl"),
+                    help="each seed's returns, appended as it ends; a rerun adopts the seeds already there")
     args = ap.parse_args()
     lo, _, hi = args.seeds.partition("-")
     seeds = list(range(int(lo), int(hi or lo) + 1))
+    key = {"env": args.env, "steps": args.steps, "episodes": args.episodes}
+    done = {s: r for s, r in stored(args.results, key).items() if s in seeds}
+    todo = [s for s in seeds if s not in done]
+    if done:
+        print(f"{len(done)} seed(s) from {args.results}; training {len(todo)}", flush=True)
+    if todo:
+        train = functools.partial(one_seed, args.env, args.steps, args.episodes)
+        with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = {pool.submit(train, seed): seed for seed in todo}
+            for fut in as_completed(futures):
+                seed, got = futures[fut], fut.result()
+                append(args.results, {**key, "seed": seed, "returns": got, "host": host()})
+                done[seed] = got
+                print(f"seed {seed} (trained): " + ", ".join(f"{k} {v:.1f}" for k, v in got.items()), flush=True)
     out: dict[str, list[float]] = {}
-    with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
-        for seed, got in zip(seeds, pool.map(functools.partial(one_seed, args.env, args.steps, args.episodes), seeds),
-                             strict=True):
-            for k, v in got.items():
-                out.setdefault(k, []).append(v)
-            print(f"seed {seed}: " + ", ".join(f"{k} {v:.1f}" for k, v in got.items()), flush=True)
+    for seed in seeds:
+        for k, v in done[seed].items():
+            out.setdefault(k, []).append(v)
+        print(f"seed {seed}: " + ", ".join(f"{k} {v:.1f}" for k, v in done[seed].items()), flush=True)
     for name, v in out.items():
         print(f"{name}: median {np.median(v):.1f}, IQM {stats.trim_mean(v, 0.25):.1f}, min {min(v):.1f}")
     print(f"Mann-Whitney U: p = {stats.mannwhitneyu(*out.values()).pvalue:.2f}")
