@@ -13,9 +13,9 @@ test (``scipy.stats``).
 Resumable: each seed's returns are appended to ``--results`` (JSON lines, default
 ``mlruns/compiled_parity.jsonl``) as soon as the seed ends, with the host's CPU. A rerun of the same
 command (the same ``--env``, ``--steps`` and ``--episodes``) trains only the seeds not yet there and
-prints them all; a line cut short by a kill is passed over. A seed's numbers differ between hosts
-(the libraries' float32 kernels follow the CPU's vector units), while both arms of one seed always
-share a host.
+prints them all; a line cut short by a kill is passed over. A seed's numbers may differ between hosts
+(measured: an AVX2-only host against an earlier one), while both arms of one seed always share a
+host.
 
     .venv/bin/python studies/compiled_ppo_parity.py [--env lunar_lander] [--seeds 0-15] [--steps 262144]
     .venv/bin/python studies/compiled_ppo_parity.py --env cartpole_swingup --steps 1048576
