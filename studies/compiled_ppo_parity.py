@@ -155,11 +155,12 @@ def main() -> None:
         print(f"{len(done)} seed(s) from {args.results}; training {len(todo)}", flush=True)
     if todo:
         train = functools.partial(one_seed, args.env, args.steps, args.episodes)
+        cpu = host()
         with ProcessPoolExecutor(max_workers=args.jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
             futures = {pool.submit(train, seed): seed for seed in todo}
             for fut in as_completed(futures):
                 seed, got = futures[fut], fut.result()
-                append(args.results, {**key, "seed": seed, "returns": got, "host": host()})
+                append(args.results, {**key, "seed": seed, "returns": got, "host": cpu})
                 done[seed] = got
                 print(f"seed {seed} (trained): " + ", ".join(f"{k} {v:.1f}" for k, v in got.items()), flush=True)
     out: dict[str, list[float]] = {}

@@ -939,8 +939,7 @@ class JaxSAC(_CompiledAgent):
         low, high = (np.asarray(meta[k], np.float32) for k in ("action_low", "action_high"))
         nets = _restore(agent._jax, jax_sac.init_nets(agent.seed, cfg, meta["n_obs"], meta["n_act"]), leaves)
         agent._init(cfg, meta["n_obs"], meta["n_act"], low, high, nets)
-        state = agent.state
-        agent.state = state._replace(**dict(zip(state._fields[1:], _restore(agent._jax, tuple(state[1:]), opt), strict=True)))
+        agent.state = jax_sac.State(agent.state.nets, *_restore(agent._jax, tuple(agent.state[1:]), opt))
         agent.num_timesteps = int(meta["num_timesteps"])
         agent.gradient_steps_done = int(meta.get("gradient_steps_done", 0))
         if env is not None:
