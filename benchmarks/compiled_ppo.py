@@ -247,6 +247,10 @@ def main() -> None:
     args = ap.parse_args()
     if args.quick:
         args.steps, args.repeats, args.eval_episodes = 2**14, 1, 2
+    unknown = sorted(set(args.recipes or ()) - set(ENVS[args.env]["recipes"]))
+    if unknown:
+        ap.error(f"--recipes: {', '.join(map(repr, unknown))} is not one of {args.env}'s recipes "
+                 f"({', '.join(map(repr, ENVS[args.env]['recipes']))})")
     if args.cores:  # before jax starts its thread pool
         os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[: args.cores])
 
