@@ -128,10 +128,12 @@ def stored(path: Path, key: dict) -> dict[int, dict[str, float]]:
 
 
 def append(path: Path, rec: dict) -> None:
-    """One line, on disk before the next seed ends."""
+    """One line, on disk before the next seed ends; after a line a killed run cut short, on a
+    line of its own (the cut line stays unreadable, this one is read)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    with path.open("a") as f:
-        f.write(json.dumps(rec) + "\n")
+    with path.open("a+b") as f:
+        cut = f.seek(0, os.SEEK_END) > 0 and (f.seek(-1, os.SEEK_END), f.read(1))[1] != b"\n"
+        f.write((("\n" if cut else "") + json.dumps(rec) + "\n").encode())
         f.flush()
         os.fsync(f.fileno())
 

@@ -44,6 +44,8 @@ def test_a_rerun_adopts_the_stored_seeds_and_trains_the_rest(tmp_path):
     stored = {rec["seed"]: rec["returns"] for rec in lines}
     assert f"seed 0: SB3 sac {stored[0]['SB3 sac']:.1f}, sac_jax {stored[0]['sac_jax']:.1f}" in again.stdout
     assert "Mann-Whitney U: p =" in again.stdout
+    key = {"env": "mountain_car_sac", "steps": 64, "episodes": 1}
+    assert sorted(load_script("studies/compiled_ppo_parity.py").stored(tmp_path / "parity.jsonl", key)) == [0, 1, 2]
 
 
 def test_only_lines_of_the_same_command_are_adopted(tmp_path):
@@ -58,3 +60,15 @@ def test_only_lines_of_the_same_command_are_adopted(tmp_path):
     assert mod.stored(path, key) == {0: {"a": 1.0}}
     assert mod.stored(path, {**key, "steps": 128}) == {1: {"a": 2.0}}
     assert mod.stored(tmp_path / "none.jsonl", key) == {}
+
+
+def test_a_line_after_a_cut_line_is_its_own(tmp_path):
+    mod = load_script("studies/compiled_ppo_parity.py")
+    path = tmp_path / "r.jsonl"
+    key = {"env": "mountain_car_sac", "steps": 64, "episodes": 1}
+    mod.append(path, {**key, "seed": 0, "returns": {"a": 1.0}, "host": "h"})
+    with path.open("a") as f:
+        f.write('{"env": "mountain_car_sac", "ste')  # a kill mid-line
+    mod.append(path, {**key, "seed": 1, "returns": {"a": 2.0}, "host": "h"})
+    assert mod.stored(path, key) == {0: {"a": 1.0}, 1: {"a": 2.0}}
+    assert len(path.read_text().splitlines()) == 3 and path.read_text().endswith("\n")
