@@ -315,22 +315,37 @@ def _write_agent(path: str | Path, meta: dict[str, Any], leaves: list, optimizer
     """A compiled agent's file: a zip of ``config.json`` (``meta``), ``params.npz`` (the
     parameters' arrays in pytree order) and ``optimizer.npz`` (the optimisers' states, Adam's
     moments and step counts, in pytree order: as SB3's ``save`` keeps its optimisers', so that a
-    loaded agent trains on where it stopped)."""
-    with zipfile.ZipFile(path, "w") as zf:
-        zf.writestr("config.json", json.dumps(meta, indent=1))
-        for name, arrays in (("params.npz", leaves), ("optimizer.npz", optimizer)):
-            buf = io.BytesIO()
-            np.savez(buf, *[np.asarray(x) for x in arrays])
-            zf.writestr(name, buf.getvalue())
+    loaded agent trains on where it stopped). Written beside ``path`` and renamed onto it, so an
+    interrupted save leaves the file that was there, not half of a new one."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        with zipfile.ZipFile(tmp, "w") as zf:
+            zf.writestr("config.json", json.dumps(meta, indent=1))
+            for name, arrays in (("params.npz", leaves), ("optimizer.npz", optimizer)):
+                buf = io.BytesIO()
+                np.savez(buf, *[np.asarray(x) for x in arrays])
+                zf.writestr(name, buf.getvalue())
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _read_agent(path: str | Path, fmt: str, name: str) -> tuple[dict[str, Any], list[np.ndarray], list[np.ndarray] | None]:
     """(meta, parameters, optimiser states or None) of a file ``_write_agent`` wrote (None: a
-    file from before the optimisers were kept); another format is one error naming it."""
-    with zipfile.ZipFile(path) as zf:
-        meta = json.loads(zf.read("config.json"))
-        got = [np.load(io.BytesIO(zf.read(part))) if part in zf.namelist() else None
-               for part in ("params.npz", "optimizer.npz")]
+    file from before the optimisers were kept); another format, or a file that is not a whole
+    agent (cut short, or without its parameters), is one error naming the file."""
+    try:
+        with zipfile.ZipFile(path) as zf:
+            missing = [part for part in ("config.json", "params.npz") if part not in zf.namelist()]
+            if missing:
+                raise ValueError(f"{path}: not a whole {name} agent file (no {' or '.join(missing)} in it; "
+                                 f"cut short?)")
+            meta = json.loads(zf.read("config.json"))
+            got = [np.load(io.BytesIO(zf.read(part))) if part in zf.namelist() else None
+                   for part in ("params.npz", "optimizer.npz")]
+    except (zipfile.BadZipFile, EOFError, json.JSONDecodeError) as e:
+        raise ValueError(f"{path}: not a readable {name} agent file ({type(e).__name__}: {e})") from None
     if meta.get("format") != fmt:
         raise ValueError(f"{path}: not a {name} agent ({meta.get('format')!r})")
     leaves, opt = ([a[f"arr_{i}"] for i in range(len(a.files))] if a is not None else None for a in got)
@@ -346,6 +361,34 @@ def _restore(jax: Any, fresh: Any, saved: list[np.ndarray] | None) -> Any:
     if treedef.num_leaves != len(saved):
         raise ValueError(f"a saved compiled agent holds {len(saved)} arrays where its config builds {treedef.num_leaves}")
     return jax.tree_util.tree_unflatten(treedef, [jax.numpy.asarray(x) for x in saved])
+
+
+def _check_loaded_env(who: str, path: Any, env: Any, n_envs: int, n_obs: int, n_act: int,
+                      bounds: tuple[np.ndarray | None, np.ndarray | None], normalize_reward: bool) -> None:
+    """The env a saved agent is loaded to train on fits the file, each mismatch one line naming
+    it: the copy count, the observation's size, the action space (a categorical agent's count, a
+    Box agent's size and bounds: the file's bounds scale its actions), and the reward scaling
+    (``VecNormalize``'s ``norm_reward``). SB3's ``check_for_correct_spaces`` compares two gymnasium
+    spaces; the file keeps sizes and bounds, not spaces, so the comparison is written here."""
+    if env.num_envs != n_envs:
+        raise ConfigError(f"{who}.load: {path} was trained with {n_envs} env copies, the env has {env.num_envs}")
+    got_obs = int(np.prod(env.observation_space.shape))
+    if got_obs != n_obs:
+        raise ConfigError(f"{who}.load: {path} takes observations of size {n_obs}, the env's are {got_obs}")
+    space, (low, high) = env.action_space, bounds
+    if low is None:
+        if getattr(space, "n", None) != n_act or hasattr(space, "low"):
+            raise ConfigError(f"{who}.load: {path} acts in Discrete({n_act}), the env in {space}")
+    elif not hasattr(space, "low") or int(np.prod(space.shape)) != n_act or not (
+            np.array_equal(np.asarray(space.low, np.float32).ravel(), np.ravel(low))
+            and np.array_equal(np.asarray(space.high, np.float32).ravel(), np.ravel(high))):
+        raise ConfigError(f"{who}.load: {path} acts in a Box of size {n_act} between {np.ravel(low).tolist()} and "
+                          f"{np.ravel(high).tolist()}, the env in {space}")
+    _, norm = _surrogate_of(env)
+    scaled = norm is not None and bool(norm.norm_reward)
+    if scaled != normalize_reward:
+        raise ConfigError(f"{who}.load: {path} was trained {'with' if normalize_reward else 'without'} reward scaling "
+                          f"(agent.normalize_reward), the env is {'wrapped in' if scaled else 'not in'} VecNormalize's")
 
 
 class _CompiledAgent:
@@ -536,7 +579,7 @@ class JaxPPO(_CompiledAgent):
             self.num_timesteps = 0
             self._cenv = self._last_obs = None
         callback = self._callback(callback, progress_bar)
-        target = self.num_timesteps + int(total_timesteps)
+        total_timesteps = target = self.num_timesteps + int(total_timesteps)  # SB3's locals: the target, not the increment
         callback.on_training_start(locals(), globals())
         menv, _ = _surrogate_of(self.env)
         compiled = self.compiled_rollout and menv is not None and self._compile_for(menv)
@@ -641,9 +684,11 @@ class JaxPPO(_CompiledAgent):
         callback.on_rollout_start()
         for _ in range(cfg.n_steps):
             obs = np.asarray(self._last_obs, np.float32).reshape(n, -1)
-            action, logp, v = (np.asarray(x) for x in self._act(self.net, obs, self._split(), explore))
-            new_obs, rewards, dones, infos = env.step(action if self.discrete else np.clip(action, low, high))
+            actions, logp, v = (np.asarray(x) for x in self._act(self.net, obs, self._split(), explore))
+            clipped_actions = actions if self.discrete else np.clip(actions, low, high)
+            new_obs, rewards, dones, infos = env.step(clipped_actions)
             self.num_timesteps += n
+            callback.update_locals(locals())  # SB3's names: actions, clipped_actions, new_obs, rewards, dones, infos
             if not callback.on_step():
                 return None
             rewards = np.asarray(rewards, np.float32).copy()
@@ -654,7 +699,7 @@ class JaxPPO(_CompiledAgent):
                 if done and info.get("terminal_observation") is not None and info.get("TimeLimit.truncated", False):
                     term_obs = np.asarray(info["terminal_observation"], np.float32).reshape(1, -1)
                     rewards[i] += gamma * float(np.asarray(self._value(self.net, term_obs))[0])
-            obs_b.append(obs), act_b.append(action), logp_b.append(logp), val_b.append(v)
+            obs_b.append(obs), act_b.append(actions), logp_b.append(logp), val_b.append(v)
             rew_b.append(rewards), done_b.append(np.asarray(dones, bool))
             self._last_obs = new_obs
         last_value = self._value(self.net, np.asarray(self._last_obs, np.float32).reshape(n, -1))
@@ -705,8 +750,8 @@ class JaxPPO(_CompiledAgent):
         agent._opt = _restore(agent._jax, jax_ppo.optimizer(cfg).init(agent.net), opt)
         agent.num_timesteps = int(meta["num_timesteps"])
         if env is not None:
-            if env.num_envs != cfg.n_envs:
-                raise ConfigError(f"JaxPPO.load: {path} was trained with {cfg.n_envs} env copies, the env has {env.num_envs}")
+            _check_loaded_env("JaxPPO", path, env, cfg.n_envs, agent._n_obs, agent._n_act, agent._bounds,
+                              cfg.normalize_reward)
             agent.env = env
         return agent
 
@@ -822,11 +867,11 @@ class JaxSAC(_CompiledAgent):
         from ``on_step`` ends it."""
         if self.env is None:
             raise ValueError("JaxSAC.learn: no env (load(path, env=...) to train on)")
-        if reset_num_timesteps:
-            self.num_timesteps = 0
+        if reset_num_timesteps:  # as SB3's _setup_learn: the episode count and the returns' window too
+            self.num_timesteps, self._episodes, self._ep_returns = 0, 0, []
             self._last_obs = None
         callback = self._callback(callback, progress_bar)
-        target = self.num_timesteps + int(total_timesteps)
+        total_timesteps = target = self.num_timesteps + int(total_timesteps)  # SB3's locals: the target, not the increment
         callback.on_training_start(locals(), globals())
         cfg = self.cfg
         while self.num_timesteps < target:
@@ -850,12 +895,13 @@ class JaxSAC(_CompiledAgent):
         for _ in range(cfg.train_freq):
             obs = np.asarray(self._last_obs, np.float32).reshape(n, -1)
             if self.num_timesteps < cfg.learning_starts and not (cfg.use_sde and cfg.use_sde_at_warmup):
-                scaled = rng.uniform(-1.0, 1.0, (n, self._n_act)).astype(np.float32)
+                buffer_actions = rng.uniform(-1.0, 1.0, (n, self._n_act)).astype(np.float32)
             else:
-                scaled = actor.sample(obs, rng, explore).astype(np.float32)
-            new_obs, rewards, dones, infos = env.step(actor.unscale(scaled))
+                buffer_actions = actor.sample(obs, rng, explore).astype(np.float32)
+            actions = actor.unscale(buffer_actions)
+            new_obs, rewards, dones, infos = env.step(actions)
             self.num_timesteps += n
-            callback.update_locals(locals())
+            callback.update_locals(locals())  # SB3's names: actions, buffer_actions, new_obs, rewards, dones, infos
             if not callback.on_step():
                 return False
             next_obs = np.array(new_obs, np.float32).reshape(n, -1)
@@ -873,7 +919,7 @@ class JaxSAC(_CompiledAgent):
                 self._episodes += 1
                 if log_interval and self._episodes % log_interval == 0:
                     self._dump()
-            self._replay.add(obs, next_obs, scaled, np.asarray(rewards, np.float32), stored_dones)
+            self._replay.add(obs, next_obs, buffer_actions, np.asarray(rewards, np.float32), stored_dones)
             self._last_obs = new_obs
         callback.on_rollout_end()
         return True
@@ -943,7 +989,6 @@ class JaxSAC(_CompiledAgent):
         agent.num_timesteps = int(meta["num_timesteps"])
         agent.gradient_steps_done = int(meta.get("gradient_steps_done", 0))
         if env is not None:
-            if env.num_envs != cfg.n_envs:
-                raise ConfigError(f"JaxSAC.load: {path} was trained with {cfg.n_envs} env copies, the env has {env.num_envs}")
+            _check_loaded_env("JaxSAC", path, env, cfg.n_envs, agent._n_obs, agent._n_act, agent._bounds, False)
             agent.env = env
         return agent

@@ -109,6 +109,16 @@ class SACConfig:
         auto = isinstance(self.ent_coef, str)
         if auto and not (self.ent_coef == "auto" or self.ent_coef.startswith("auto_")):
             raise ConfigError(f"SACConfig.ent_coef: a number, 'auto' or 'auto_<init>', got {self.ent_coef!r}")
+        if auto:
+            try:
+                init = self.alpha_init()
+            except ValueError:
+                raise ConfigError(f"SACConfig.ent_coef: 'auto_<init>' needs a number after 'auto_', "
+                                  f"got {self.ent_coef!r}") from None
+            if not init > 0:
+                raise ConfigError(f"SACConfig.ent_coef: a learned coefficient starts above 0, got {self.ent_coef!r}")
+        elif not float(self.ent_coef) >= 0:
+            raise ConfigError(f"SACConfig.ent_coef: a fixed coefficient is >= 0, got {self.ent_coef!r}")
         if isinstance(self.target_entropy, str) and self.target_entropy != "auto":
             raise ConfigError(f"SACConfig.target_entropy: a number or 'auto', got {self.target_entropy!r}")
 
@@ -161,7 +171,10 @@ class SACConfig:
         for k, kind in (("log_std_init", float), ("clip_mean", float), ("n_critics", int)):
             if k in policy_kwargs:
                 extra[k] = kind(policy_kwargs[k])
-        return cls(n_envs=int(n_envs), **extra, **{k: kw[k] for k in names if k in kw})
+        try:
+            return cls(n_envs=int(n_envs), **extra, **{k: kw[k] for k in names if k in kw})
+        except ConfigError as e:
+            raise ConfigError(f"{who}: {e}") from None
 
 
 # ---------------------------------------------------------------------- the networks
@@ -181,7 +194,7 @@ class Nets(NamedTuple):
     """The learned parameters: ``actor`` {"hidden": [(w, b), ...], "mu": (w, b), "log_std": a
     (features, actions) array with gSDE or the head (w, b) without}, ``critics`` (one layer list
     per critic), their ``targets``, and ``log_alpha`` (the entropy coefficient's log; learned only
-    with ``ent_coef='auto'``)."""
+    with ``ent_coef='auto'``, and not read with a fixed one)."""
 
     actor: dict
     critics: list
@@ -200,7 +213,8 @@ def init_nets(seed: int, cfg: SACConfig, n_obs: int, n_act: int) -> Nets:
                         else _linear(rng, last, n_act))
     critics = [_mlp_init(rng, [n_obs + n_act, *cfg.qf_arch, 1]) for _ in range(cfg.n_critics)]
     targets = [[(w.copy(), b.copy()) for w, b in c] for c in critics]
-    return Nets(actor, critics, targets, np.float32(math.log(cfg.alpha_init())))
+    alpha = cfg.alpha_init()  # 0 for a fixed ent_coef=0 (no entropy term): its log is -inf, never read
+    return Nets(actor, critics, targets, np.float32(math.log(alpha) if alpha > 0 else -np.inf))
 
 
 def _features(layers: list, x: Any) -> Any:
@@ -307,7 +321,8 @@ def gradient_step(cfg: SACConfig, n_act: int, state: State, batch: Batch, noise:
     _, logp = sample(cfg, nets.actor, batch.obs, noise[0])
     stats: dict[str, Any] = {}
     alpha_opt, log_alpha = state.alpha_opt, nets.log_alpha
-    alpha = jnp.exp(sg(log_alpha))
+    # a fixed coefficient is SB3's constant itself, not exp(log(.)), so that 0 stays 0
+    alpha = jnp.exp(sg(log_alpha)) if cfg.learns_alpha else jnp.float32(cfg.alpha_init())
     if cfg.learns_alpha:
         target_entropy = cfg.entropy_target(n_act)
 

@@ -78,6 +78,18 @@ def test_in_real_envs_it_steps_in_python_and_every_step_is_counted(fitted):
     ppo.learn(1024)
     assert ppo.rollout_backend == "python" and ppo.rollout_compiles == 0
     assert counts["train"] == ppo.num_timesteps == 1024 and counts["resets/train"] == agent.n_envs
+    from stable_baselines3.common.callbacks import BaseCallback, StopTrainingOnMaxEpisodes
+
+    seen = []
+
+    class Locals(BaseCallback):  # SB3's collect_rollouts locals, by SB3's names
+        def _on_step(self) -> bool:
+            seen.append((self.locals["actions"].shape, np.abs(self.locals["clipped_actions"]).max(), len(self.locals["dones"])))
+            return True
+
+    ppo.learn(512, callback=[Locals(), StopTrainingOnMaxEpisodes(10**6)], reset_num_timesteps=False)
+    assert ppo.num_timesteps == 1536 and len(seen) == 32 and seen[0][0] == (agent.n_envs, 1)
+    assert all(m <= 1.0 and n == agent.n_envs for _, m, n in seen)
 
 
 def test_a_saved_agent_loads_and_acts_the_same(fitted, tmp_path):
@@ -87,6 +99,14 @@ def test_a_saved_agent_loads_and_acts_the_same(fitted, tmp_path):
     ppo.learn(1024)
     ppo.save(tmp_path / "a.zip")
     again = JaxPPO.load(tmp_path / "a.zip", device="cpu")
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from sdrl_bench import ConfigError
+
+    with pytest.raises(ConfigError, match="trained with reward scaling .* the env is not in VecNormalize's"):
+        JaxPPO.load(tmp_path / "a.zip", env=surrogate_vec_env(model, spec, agent.n_envs, seed=1))
+    scaled = VecNormalize(surrogate_vec_env(model, spec, agent.n_envs, seed=1), norm_obs=False)
+    assert JaxPPO.load(tmp_path / "a.zip", env=scaled).env is scaled
     obs = np.random.default_rng(0).uniform([-1.2, -0.07], [0.6, 0.07], size=(50, 2)).astype(np.float32)
     a, _ = ppo.predict(obs, deterministic=True)
     assert np.array_equal(a, again.predict(obs, deterministic=True)[0]) and again.num_timesteps == 1024
@@ -357,7 +377,7 @@ def test_compiled_rollout_false_steps_the_surrogate_in_python_with_the_same_upda
     # the surrogate's vector env was stepped (its step counters moved), which the compiled path never does
     assert np.all(np.asarray(venv.get_attr("elapsed_steps")) > 0)
     ppo.save(tmp_path / "agent.zip")
-    loaded = JaxPPO.load(tmp_path / "agent.zip", env=venv)
+    loaded = JaxPPO.load(tmp_path / "agent.zip", env=ppo.env)  # with the VecNormalize make_agent put around venv
     assert loaded.compiled_rollout is False  # a saved agent keeps where it steps
     loaded.learn(512, reset_num_timesteps=False)
     assert loaded.rollout_backend == "python" and loaded.num_timesteps == 1536

@@ -9,6 +9,8 @@ with its compile recorded; a setting it lacks is one line before any run."""
 from __future__ import annotations
 
 import copy
+import re
+import zipfile
 from collections import Counter
 
 import numpy as np
@@ -38,6 +40,8 @@ RECIPE = dict(ent_coef=0.1, train_freq=32, gradient_steps=32, gamma=0.9999, tau=
 """agent=sac's settings (gSDE, a fixed entropy coefficient)."""
 DEFAULTS = dict(policy_kwargs={"net_arch": [32, 32]})
 """SB3's SAC defaults (plain Gaussian, ent_coef 'auto', tau 0.005), smaller networks."""
+NO_ENTROPY = dict(ent_coef=0.0, policy_kwargs={"net_arch": [32, 32]})
+"""A fixed coefficient of 0: no entropy term (SB3 takes it; its log would be -inf)."""
 
 
 def _linear(m: th.nn.Linear) -> tuple[np.ndarray, np.ndarray]:
@@ -54,12 +58,15 @@ def nets_of(sac: SAC, cfg: jax_sac.SACConfig) -> jax_sac.Nets:
     mu = a.mu[0] if isinstance(a.mu, th.nn.Sequential) else a.mu  # gSDE: Linear then Hardtanh (clip_mean)
     actor = {"hidden": _layers(a.latent_pi), "mu": _linear(mu),
              "log_std": a.log_std.detach().numpy().copy() if cfg.use_sde else _linear(a.log_std)}
-    log_alpha = sac.log_ent_coef.detach().numpy()[0] if sac.log_ent_coef is not None else np.log(cfg.alpha_init())
+    fixed = cfg.alpha_init()
+    log_alpha = (sac.log_ent_coef.detach().numpy()[0] if sac.log_ent_coef is not None
+                 else np.log(fixed) if fixed > 0 else -np.inf)
     return jax_sac.Nets(actor, [_layers(q) for q in sac.critic.q_networks],
                         [_layers(q) for q in sac.critic_target.q_networks], np.float32(log_alpha))
 
 
-@pytest.mark.parametrize("kwargs", [RECIPE, DEFAULTS], ids=["gsde-fixed-alpha", "gaussian-auto-alpha"])
+@pytest.mark.parametrize("kwargs", [RECIPE, DEFAULTS, NO_ENTROPY],
+                         ids=["gsde-fixed-alpha", "gaussian-auto-alpha", "gaussian-no-entropy"])
 def test_three_gradient_steps_are_sb3s(kwargs):
     """SB3 fills its replay buffer without training (learning_starts beyond the steps), then takes
     three gradient steps (``SAC.train``), each with numpy's and torch's generators seeded. The same
@@ -100,7 +107,8 @@ def test_three_gradient_steps_are_sb3s(kwargs):
         assert float(stats["ent_coef"]) == pytest.approx(logged["train/ent_coef"], rel=1e-6)
     ours = [np.asarray(x) for x in jax.tree_util.tree_leaves(state.nets)]
     sb3 = jax.tree_util.tree_leaves(nets_of(sac, cfg))
-    moved = [np.abs(b - a).max() for a, b in zip(jax.tree_util.tree_leaves(start), sb3, strict=True)]
+    moved = [np.abs(b - a).max() for a, b in zip(jax.tree_util.tree_leaves(start), sb3, strict=True)
+             if np.isfinite(a).all()]  # not a fixed 0's log-alpha, -inf on both sides
     assert len(ours) == len(sb3) == (7 if cfg.use_sde else 8) + 2 * 12 + 1  # actor, critics, targets, log-alpha
     for x, y in zip(ours, sb3, strict=True):
         np.testing.assert_allclose(x, y, rtol=0, atol=1e-6)
@@ -171,6 +179,61 @@ def test_it_learns_the_surrogate_and_a_saved_agent_acts_the_same(fitted, tmp_pat
     assert not np.array_equal(sampled, want) and np.abs(sampled).max() <= 1.0
 
 
+def test_no_entropy_trains_and_a_loaded_agent_refuses_an_env_or_file_that_does_not_fit(fitted, tmp_path):
+    """ent_coef=0 (SB3 takes it) builds and trains; loading to train on checks the env against
+    the file (copies, observation size, action bounds, reward scaling) and the file itself (its
+    parameters, a file cut short), each one error naming it; the callback's locals are SB3's
+    (the absolute target, the actions by SB3's names)."""
+    from stable_baselines3.common.callbacks import BaseCallback
+    from stable_baselines3.common.env_util import make_vec_env
+    from stable_baselines3.common.vec_env import VecNormalize
+
+    from sdrl_bench import ConfigError
+
+    cfg, model, spec = fitted
+    seen: list = []
+
+    class Locals(BaseCallback):
+        def _on_training_start(self) -> None:
+            seen.append(("start", self.locals["total_timesteps"]))
+
+        def _on_step(self) -> bool:
+            seen.append((self.locals["actions"].shape, self.locals["buffer_actions"].shape, len(self.locals["dones"])))
+            return True
+
+    env = surrogate_vec_env(model, spec, 1, 0)
+    sac = JaxSAC(env=env, seed=0, ent_coef=0.0, learning_starts=0, train_freq=16, gradient_steps=16, batch_size=16,
+                 policy_kwargs={"net_arch": [16, 16]})
+    sac.learn(32, callback=Locals())
+    sac.learn(32, callback=Locals(), reset_num_timesteps=False)
+    assert sac.gradient_steps_done == 64 and float(sac.state.nets.log_alpha) == -np.inf
+    assert all(np.isfinite(np.asarray(x)).all() for x in jax.tree_util.tree_leaves(sac.state.nets.critics))
+    assert [x for x in seen if x[0] == "start"] == [("start", 32), ("start", 64)]  # SB3's: the target, not the increment
+    assert seen[1] == ((1, 1), (1, 1), 1)
+    path = tmp_path / "sac.zip"
+    sac.save(path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sac.zip"]  # no temporary file left beside it
+    assert JaxSAC.load(path, env=surrogate_vec_env(model, spec, 1, 1)).num_timesteps == 64
+    wrong = {
+        "trained with 1 env copies, the env has 2": surrogate_vec_env(model, spec, 2, 1),
+        "observations of size 2, the env's are 3": make_vec_env("Pendulum-v1", n_envs=1, seed=0),
+        "acts in a Box of size 1 between [-1.0] and [1.0]": make_vec_env(
+            lambda: gym.wrappers.RescaleAction(gym.make("MountainCarContinuous-v0"), np.float32(-2), np.float32(2)), n_envs=1),
+        "trained without reward scaling": VecNormalize(surrogate_vec_env(model, spec, 1, 1)),
+    }
+    for message, other in wrong.items():
+        with pytest.raises(ConfigError, match=re.escape(message)):
+            JaxSAC.load(path, env=other)
+    with zipfile.ZipFile(path) as src, zipfile.ZipFile(tmp_path / "bare.zip", "w") as dst:
+        dst.writestr("config.json", src.read("config.json"))  # the parameters missing: not fresh weights
+    with pytest.raises(ValueError, match="no params.npz in it"):
+        JaxSAC.load(tmp_path / "bare.zip")
+    data = path.read_bytes()
+    (tmp_path / "cut.zip").write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match=r"cut\.zip: not a (whole|readable) JaxSAC agent file"):
+        JaxSAC.load(tmp_path / "cut.zip")
+
+
 def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path):
     res = run_cli(*SMALL, "rl.surrogate_steps=512", "rl.real_steps=512", "rl.eval_every=512", "rl.eval_episodes=1",
                   "rl.final_episodes=1", "rl.stop_when_solved=false", "seed=0", "progress_bar=false",
@@ -196,6 +259,7 @@ def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path)
     ("+agent.algo.replay_buffer_class=null", "agent.algo sets ['replay_buffer_class']"),
     ("+agent.normalize_reward=true", "agent.normalize_reward: the compiled SAC"),
     ("agent.algo.ent_coef=automatic", "ent_coef: a number, 'auto' or 'auto_<init>'"),
+    ("agent.algo.ent_coef=-0.1", "agent.algo: SACConfig.ent_coef: a fixed coefficient is >= 0, got -0.1"),
 ])
 def test_a_bad_compiled_sac_setting_is_one_line_before_any_run(store, tmp_path, override, message):
     res = run_cli(*SMALL, override, f"tracking.uri={store}", cwd=tmp_path)
