@@ -666,6 +666,9 @@ class JaxPPO(_CompiledAgent):
         self._cenv, self._cobs = env, obs
         self.num_timesteps += self.cfg.rollout_size
         self.diverged_episodes += int(np.asarray(traj.diverged).sum())
+        # one callback step for the whole rollout: its episode ends and task rewards, (n_steps, n_envs),
+        # under SB3's names (an episode-counting callback counts right; a per-step one sees a rollout)
+        callback.update_locals({"dones": np.asarray(traj.done), "rewards": np.asarray(traj.task_reward)})
         if not callback.on_step():
             return None
         callback.on_rollout_end()

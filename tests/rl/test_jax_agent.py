@@ -60,7 +60,20 @@ def test_in_the_surrogate_it_trains_compiled_and_the_callback_sees_whole_rollout
     before = np.asarray(ppo.net["actor"][0][0]).copy()
     obs = np.random.default_rng(0).uniform([-1.2, -0.07], [0.6, 0.07], size=(50, 2)).astype(np.float32)
     acted, _ = ppo.predict(obs, deterministic=True)
-    ppo.learn(512, reset_num_timesteps=False)  # trains on: one more rollout and update
+    from stable_baselines3.common.callbacks import BaseCallback, StopTrainingOnMaxEpisodes
+
+    seen = []
+
+    class Locals(BaseCallback):  # one step for the rollout: its episode ends and task rewards
+        def _on_step(self) -> bool:
+            seen.append((self.locals["dones"].shape, self.locals["dones"].dtype, self.locals["rewards"].shape))
+            ended.append(int(self.locals["dones"].sum()))
+            return True
+
+    ended: list[int] = []
+    stop = StopTrainingOnMaxEpisodes(10**6)
+    ppo.learn(512, reset_num_timesteps=False, callback=[Locals(), stop])  # trains on: one more rollout and update
+    assert seen == [((32, 16), np.dtype(bool), (32, 16))] and stop.n_episodes == ended[0]  # SB3's count, whole
     assert ppo.num_timesteps == 2560 and ppo.rollout_compiles == 1 and not np.array_equal(before, ppo.net["actor"][0][0])
     # the deterministic action (on the host) is the trained net's: the jitted action's, not the one before
     now, _ = ppo.predict(obs, deterministic=True)
