@@ -39,7 +39,6 @@ import functools
 import json
 import multiprocessing
 import os
-import platform
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
@@ -53,6 +52,7 @@ from sdrl_bench.rl import jax_agent
 from sdrl_bench.rl.agents import make_agent
 from sdrl_bench.rl.transfer import surrogate_vec_env
 from sdrl_bench.surrogate.model_env import ModelEnv
+from sdrl_bench.tracking import cpu_tags
 
 
 def surrogate_return(policy, menv: ModelEnv, episodes: int, seed: int) -> float:
@@ -103,14 +103,10 @@ def one_seed(env: str, steps: int, episodes: int, seed: int) -> dict[str, float]
 
 
 def host() -> str:
-    """The CPU's model name (Linux's /proc/cpuinfo; else the platform's processor string)."""
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+    """The CPU's model name and vector extensions (``tracking.cpu_tags``, as every run records them):
+    seeds repeat bit for bit only on machines alike in these (docs/seeds.md)."""
+    tags = cpu_tags()
+    return f"{tags['sdrl.cpu']} [{tags['sdrl.cpu_vectors']}]"
 
 
 def stored(path: Path, key: dict) -> dict[int, dict[str, float]]:

@@ -7,8 +7,10 @@ Default store: ``sqlite:///<cwd>/mlruns/mlflow.db`` with artifacts under ``mlrun
 from __future__ import annotations
 
 import contextlib
+import functools
 import logging
 import os
+import platform
 import socket
 import subprocess
 import tempfile
@@ -248,6 +250,32 @@ def process_tags() -> dict[str, str]:
     return {"sdrl.host": socket.gethostname(), "sdrl.pid": str(os.getpid())}
 
 
+VECTOR_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_bf16", "avx512_fp16", "avx_vnni", "amx_tile")
+"""The CPU's vector extensions a run records (``cpu_tags``): the ones the numeric libraries pick
+their kernels by."""
+
+
+@functools.lru_cache(maxsize=1)
+def cpu_tags() -> dict[str, str]:
+    """The machine's CPU, recorded on every run (``sdrl.cpu``: its model name, family and model;
+    ``sdrl.cpu_vectors``: which of ``VECTOR_FLAGS`` it has). torch, MKL, OpenBLAS and XLA choose their kernels by these
+    extensions, and kernels round differently, so runs of one seed agree bit for bit only on
+    machines alike in them (docs/seeds.md, "On another machine"). Read from Linux's
+    ``/proc/cpuinfo``; elsewhere the platform's processor string and no vector list."""
+    first: dict[str, str] = {}
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            key, _, value = line.partition(":")
+            first.setdefault(key.strip(), value.strip())
+    except OSError:
+        pass
+    flags = set(first.get("flags", "").split())
+    name = first.get("model name") or platform.processor() or platform.machine() or "unknown"
+    if "cpu family" in first and "model" in first:  # a vendor's name alone may cover several generations
+        name = f"{name} (family {first['cpu family']}, model {first['model']})"
+    return {"sdrl.cpu": name, "sdrl.cpu_vectors": " ".join(f for f in VECTOR_FLAGS if f in flags) or "unknown"}
+
+
 @contextlib.contextmanager
 def start_run(
     uri: str,
@@ -259,7 +287,7 @@ def start_run(
     """Create a run; it ends FINISHED, or FAILED (KILLED on Ctrl-C) if the body raises. A run that
     fails carries its reason in one line (tag ``sdrl.error``: the exception's type and message)."""
     exp_id = ensure_experiment(uri, experiment)
-    all_tags = {RUN_NAME_TAG: run_name, **process_tags(), **(tags or {})}
+    all_tags = {RUN_NAME_TAG: run_name, **process_tags(), **cpu_tags(), **(tags or {})}
     if parent_run_id:
         all_tags[PARENT_TAG] = parent_run_id
     run_info = mlflow_client(uri).create_run(exp_id, tags={k: str(v) for k, v in all_tags.items()}, run_name=run_name)
@@ -288,7 +316,7 @@ def _one_line(exc: BaseException) -> str:
 def create_parent_run(uri: str, experiment: str, run_name: str, tags: Mapping[str, Any]) -> str:
     """Create a sweep's parent run (left RUNNING; end it with ``end_run``)."""
     exp_id = ensure_experiment(uri, experiment)
-    all_tags = {RUN_NAME_TAG: run_name, **process_tags(), **tags}
+    all_tags = {RUN_NAME_TAG: run_name, **process_tags(), **cpu_tags(), **tags}
     info = mlflow_client(uri).create_run(exp_id, tags={k: str(v) for k, v in all_tags.items()}, run_name=run_name)
     return info.info.run_id
 

@@ -34,6 +34,15 @@ def test_fit_run_lands_in_the_store_with_metrics_params_tags_and_artifacts(store
                        "dataset_sha256": result.dataset_hash}.items():
         assert run[f"tags.{tag}"] == value
     assert len(run["tags.git_commit"]) in (7, 40) or run["tags.git_commit"] == "unknown"
+    # the machine's CPU and its vector extensions (seeds repeat bit for bit only on machines alike in these)
+    cpuinfo = open("/proc/cpuinfo").read().splitlines()
+    name = next(x.split(":", 1)[1].strip() for x in cpuinfo if x.startswith("model name"))
+    flags = next(x.split(":", 1)[1].split() for x in cpuinfo if x.startswith("flags"))
+    assert run["tags.sdrl.cpu"].startswith(name)
+    assert ("family" in run["tags.sdrl.cpu"]) == any(x.startswith("cpu family") for x in cpuinfo)
+    vectors = run["tags.sdrl.cpu_vectors"].split()
+    assert vectors and all(v in flags for v in vectors)
+    assert ("avx2" in vectors) == ("avx2" in flags) and ("avx512f" in vectors) == ("avx512f" in flags)
 
     client = MlflowClient(store)
     run_id = run["run_id"]
