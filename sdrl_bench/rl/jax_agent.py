@@ -339,8 +339,8 @@ def _read_agent(path: str | Path, fmt: str, name: str) -> tuple[dict[str, Any], 
         with zipfile.ZipFile(path) as zf:
             missing = [part for part in ("config.json", "params.npz") if part not in zf.namelist()]
             if missing:
-                raise ValueError(f"{path}: not a whole {name} agent file (no {' or '.join(missing)} in it; "
-                                 f"cut short?)")
+                raise ValueError(f"{path}: not a whole {name} agent file (no {' or '.join(missing)} in it: "
+                                 f"cut short, or another kind of file)")
             meta = json.loads(zf.read("config.json"))
             got = [np.load(io.BytesIO(zf.read(part))) if part in zf.namelist() else None
                    for part in ("params.npz", "optimizer.npz")]

@@ -117,8 +117,13 @@ class SACConfig:
                                   f"got {self.ent_coef!r}") from None
             if not init > 0:
                 raise ConfigError(f"SACConfig.ent_coef: a learned coefficient starts above 0, got {self.ent_coef!r}")
-        elif not float(self.ent_coef) >= 0:
-            raise ConfigError(f"SACConfig.ent_coef: a fixed coefficient is >= 0, got {self.ent_coef!r}")
+        else:
+            try:
+                fixed = float(self.ent_coef)
+            except (TypeError, ValueError):
+                fixed = float("nan")
+            if not fixed >= 0:
+                raise ConfigError(f"SACConfig.ent_coef: a fixed coefficient is a number >= 0, got {self.ent_coef!r}")
         if isinstance(self.target_entropy, str) and self.target_entropy != "auto":
             raise ConfigError(f"SACConfig.target_entropy: a number or 'auto', got {self.target_entropy!r}")
 

@@ -255,13 +255,18 @@ VECTOR_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_bf16", "avx51
 their kernels by."""
 
 
-@functools.lru_cache(maxsize=1)
 def cpu_tags() -> dict[str, str]:
-    """The machine's CPU, recorded on every run (``sdrl.cpu``: its model name, family and model;
-    ``sdrl.cpu_vectors``: which of ``VECTOR_FLAGS`` it has). torch, MKL, OpenBLAS and XLA choose their kernels by these
-    extensions, and kernels round differently, so runs of one seed agree bit for bit only on
-    machines alike in them (docs/seeds.md, "On another machine"). Read from Linux's
-    ``/proc/cpuinfo``; elsewhere the platform's processor string and no vector list."""
+    """The machine's CPU, recorded on every run: ``sdrl.cpu`` (its model name, family and model)
+    and ``sdrl.cpu_vectors`` (which of ``VECTOR_FLAGS`` it has). torch, MKL, OpenBLAS and XLA
+    choose their kernels by these extensions, and kernels round differently, so runs of one seed
+    agree bit for bit only on machines alike in them (docs/seeds.md, "On another machine")."""
+    return dict(_cpu_tags())
+
+
+@functools.lru_cache(maxsize=1)
+def _cpu_tags() -> tuple[tuple[str, str], ...]:
+    """Read once from Linux's ``/proc/cpuinfo`` (its first processor); elsewhere the platform's
+    processor string and no vector list."""
     first: dict[str, str] = {}
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
@@ -273,7 +278,7 @@ def cpu_tags() -> dict[str, str]:
     name = first.get("model name") or platform.processor() or platform.machine() or "unknown"
     if "cpu family" in first and "model" in first:  # a vendor's name alone may cover several generations
         name = f"{name} (family {first['cpu family']}, model {first['model']})"
-    return {"sdrl.cpu": name, "sdrl.cpu_vectors": " ".join(f for f in VECTOR_FLAGS if f in flags) or "unknown"}
+    return (("sdrl.cpu", name), ("sdrl.cpu_vectors", " ".join(f for f in VECTOR_FLAGS if f in flags) or "unknown"))
 
 
 @contextlib.contextmanager
