@@ -52,7 +52,7 @@ from sdrl_bench.rl import jax_agent
 from sdrl_bench.rl.agents import make_agent
 from sdrl_bench.rl.transfer import surrogate_vec_env
 from sdrl_bench.surrogate.model_env import ModelEnv
-from sdrl_bench.tracking import cpu_tags
+from sdrl_bench.tracking import cpu_tags, machine_label
 
 
 def surrogate_return(policy, menv: ModelEnv, episodes: int, seed: int) -> float:
@@ -105,8 +105,7 @@ def one_seed(env: str, steps: int, episodes: int, seed: int) -> dict[str, float]
 def host() -> str:
     """The CPU's model name and vector extensions (``tracking.cpu_tags``, as every run records them):
     seeds repeat bit for bit only on machines alike in these (docs/seeds.md)."""
-    tags = cpu_tags()
-    return f"{tags['sdrl.cpu']} [{tags['sdrl.cpu_vectors']}]"
+    return machine_label(cpu_tags())
 
 
 def stored(path: Path, key: dict) -> dict[int, dict[str, float]]:

@@ -116,10 +116,9 @@ def main() -> None:
     if args.worker:
         worker(args.worker, args.steps, args.out)
         return
-    from sdrl_bench.tracking import cpu_tags
+    from sdrl_bench.tracking import cpu_tags, machine_label
 
-    cpu = cpu_tags()
-    print(f"machine: {cpu['sdrl.cpu']} [{cpu['sdrl.cpu_vectors']}]")
+    print(f"machine: {machine_label(cpu_tags())}")
     print("| row | changed | numbers' hash | same as the reference | numbers that differ | largest difference | probe |")
     print("|---|---|---|---|---|---|---|")
     with tempfile.TemporaryDirectory() as tmp:

@@ -463,11 +463,8 @@ def overview_blocks(inp: ReportInput, runs: Sequence[Mapping[str, Any]], problem
 def _machines_sentence(runs: Sequence[Mapping[str, Any]]) -> str:
     """Which machines made the runs (their ``sdrl.cpu`` and ``sdrl.cpu_vectors`` tags, with counts):
     a seed's digits repeat only on machines alike in these (docs/seeds.md)."""
-    def machine(r: Mapping[str, Any]) -> str:
-        cpu = r["tags"].get("sdrl.cpu")
-        return f"{cpu} [{r['tags'].get('sdrl.cpu_vectors', '?')}]" if cpu else "not recorded (runs from before the tag)"
-
-    counts = pd.Series([machine(r) for r in runs]).value_counts().sort_index()
+    unknown = "not recorded (runs from before the tag)"
+    counts = pd.Series([tracking.machine_label(r["tags"]) or unknown for r in runs]).value_counts().sort_index()
     return ("Machines: " + "; ".join(f"{k}: {v} run(s)" for k, v in counts.items())
             + ". A seed repeats bit for bit only on machines alike in CPU and vector extensions; "
             "compare other machines' runs over seeds (docs/seeds.md).")

@@ -263,6 +263,13 @@ def cpu_tags() -> dict[str, str]:
     return dict(_cpu_tags())
 
 
+def machine_label(tags: Mapping[str, Any]) -> str | None:
+    """A run's machine in one phrase, ``<sdrl.cpu> [<sdrl.cpu_vectors>]`` from its tags (or from
+    ``cpu_tags()``); None for a run from before the tags."""
+    cpu = tags.get("sdrl.cpu")
+    return f"{cpu} [{tags.get('sdrl.cpu_vectors', '?')}]" if cpu else None
+
+
 @functools.lru_cache(maxsize=1)
 def _cpu_tags() -> tuple[tuple[str, str], ...]:
     """Read once from Linux's ``/proc/cpuinfo`` (its first processor); elsewhere the platform's
