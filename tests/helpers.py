@@ -48,3 +48,30 @@ def search(uri: str, experiment: str = "sdrl-bench", filter_string: str = ""):
         return mlflow.search_runs(experiment_names=[experiment], filter_string=filter_string)
     finally:
         mlflow.set_tracking_uri(None)
+
+
+def held_sde_noise(model, ob, mean, copies: int | None = None) -> None:
+    """Checks a compiled agent's stochastic ``predict`` under gSDE against SB3's semantics: one
+    matrix held across calls until ``reset_noise`` (an episode follows one perturbed policy), one
+    per row for a batch of the copies' count, one for every row of a batch of another size; drawn
+    from a stream of its own, so that sampling moves nothing training draws next. ``mean``: the
+    deterministic action at ``ob``; ``copies``: draw for that many copies first (else the first
+    stochastic call draws for the config's)."""
+    import numpy as np  # noqa: PLC0415
+
+    state, key = model._host_rng.bit_generator.state, getattr(model, "_key", None)
+    if copies is not None:
+        model.reset_noise(copies)
+    n = copies or model.cfg.n_envs
+    first, _ = model.predict(ob, deterministic=False)
+    assert np.array_equal(first, model.predict(ob, deterministic=False)[0]) and not np.array_equal(first, mean)
+    rows = np.repeat(ob[None], n, axis=0)
+    per_row, _ = model.predict(rows, deterministic=False)
+    assert len({float(x) for x in per_row[:, 0]}) > n // 2  # a matrix per copy (a clipped few may tie)
+    shared, _ = model.predict(rows[:3], deterministic=False)
+    # the single matrix for every row (a batch of one and of three round apart)
+    assert np.allclose(shared, first[None], rtol=0, atol=1e-6) and np.abs(per_row - first[None]).max() > 1e-3
+    model.reset_noise()
+    assert not np.array_equal(first, model.predict(ob, deterministic=False)[0])
+    assert state == model._host_rng.bit_generator.state  # training's streams untouched (a split replaces the key)
+    assert getattr(model, "_key", None) is key

@@ -418,6 +418,40 @@ class _CompiledAgent:
         self.rollout_compiles = 0
         """Rollouts compiled with the surrogate's step (0: every rollout stepped in Python)."""
         self.logger: Any = None
+        self._predict_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 61]))
+        """Stochastic ``predict``'s draws: a stream of its own, so that sampling actions never moves
+        what training draws next."""
+        self._noise: np.ndarray | None = None
+        """gSDE's matrices for stochastic ``predict`` (``reset_noise``): row 0 for a single
+        observation, rows 1.. one per env copy."""
+
+    def _sde_scale(self) -> np.ndarray | None:
+        """exp(log_std) (features, actions) under gSDE, else None."""
+        raise NotImplementedError
+
+    def reset_noise(self, n_envs: int = 1) -> None:
+        """gSDE: draw the exploration matrices stochastic ``predict`` uses, as SB3's
+        ``policy.reset_noise(n_envs)`` does. A batch of ``n_envs`` observations gets one matrix
+        per row; a single observation, or a batch of another size, one matrix for every row.
+        They stay until the next call or the next ``learn`` (whose trained log_std the next
+        draw uses), so an episode played by stochastic ``predict`` follows one perturbed policy,
+        as under SB3. SB3 keeps its last rollout's matrices after training; these are drawn
+        afresh from this agent's own predict stream. Without gSDE it does nothing."""
+        scale = self._sde_scale()
+        self._noise = None if scale is None else (
+            scale * self._predict_rng.standard_normal((int(n_envs) + 1, *scale.shape))).astype(np.float32)
+
+    def _sde_matrices(self, rows: int) -> np.ndarray | None:
+        """The held gSDE matrices for a batch of ``rows`` observations (``reset_noise``; drawn for
+        the config's copies on first use), (rows, features, actions); None without gSDE."""
+        if self._sde_scale() is None:
+            return None
+        if self._noise is None:
+            self.reset_noise(self.cfg.n_envs)
+        per_copy = self._noise[1:]
+        if rows > 1 and rows == len(per_copy):
+            return per_copy
+        return np.broadcast_to(self._noise[0], (rows, *self._noise.shape[1:]))
 
     def _timed_compile(self, fn: Any, *args: Any) -> Any:
         hits, t0 = cache_hits(), time.perf_counter()
@@ -513,6 +547,10 @@ class JaxPPO(_CompiledAgent):
         self._key, k = self._jax.random.split(self._key)
         return k
 
+    def _sde_scale(self) -> np.ndarray | None:
+        log_std = None if self.net is None else self.net.get("log_std")
+        return None if log_std is None or log_std.ndim == 1 else np.exp(np.asarray(log_std))
+
     def _host_key(self) -> np.ndarray:
         """A jax key's data (uint32 (2,)) drawn by numpy, for a compiled program to wrap. Why on the
         host: an eager ``jax.random.split`` costs 83 us, a numpy draw 1 us (MountainCar's fast pack,
@@ -600,6 +638,7 @@ class JaxPPO(_CompiledAgent):
             for k, v in stats.items():
                 log.record(f"train/{k}", float(v))
             log.dump(step=self.num_timesteps)
+        self._noise = None  # stochastic predict's next gSDE draw uses the trained log_std
         callback.on_training_end()
         return self
 
@@ -715,8 +754,8 @@ class JaxPPO(_CompiledAgent):
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool = False) -> tuple[np.ndarray, None]:
         """The action for one observation or a batch: the mean clipped to the action space or
-        the most probable index (``deterministic``), or a sample (plain Gaussian noise; gSDE draws
-        fresh matrices; categorical draws), clipped."""
+        the most probable index (``deterministic``), or a sample, clipped: plain Gaussian noise,
+        a categorical draw, or gSDE's held matrices (``reset_noise``)."""
         obs = np.asarray(observation, np.float32)
         single = obs.ndim == 1
         batch = obs.reshape(1 if single else obs.shape[0], -1)
@@ -724,9 +763,13 @@ class JaxPPO(_CompiledAgent):
             if self._host is None or self._host[0] is not self.net:
                 self._host = (self.net, jax_ppo.HostPolicy(self.net, *self._bounds))
             out = self._host[1](batch)
-        else:
-            explore = jax_ppo.exploration_matrices(self.net, self._split(), batch.shape[0])
-            action, _, _ = jax_ppo.sample_action(self.net, batch, self._split(), explore)
+        else:  # from the predict stream, never the training's (_CompiledAgent.reset_noise)
+            explore = self._sde_matrices(len(batch))
+            noise = None
+            if explore is None:
+                draw = self._predict_rng.gumbel if self.discrete else self._predict_rng.standard_normal
+                noise = draw(size=(len(batch), self._n_act)).astype(np.float32)
+            action, _, _ = jax_ppo.sample_action(self.net, batch, None, explore, noise)
             out = np.asarray(action) if self.discrete else np.clip(np.asarray(action), *self._bounds)
         return (out[0] if single else out), None
 
@@ -853,6 +896,9 @@ class JaxSAC(_CompiledAgent):
         self._train_exe = None
         self._host = None
 
+    def _sde_scale(self) -> np.ndarray | None:
+        return np.exp(self._actor().log_std) if self.cfg is not None and self.cfg.use_sde else None
+
     def _actor(self) -> Any:
         """The host's copy of the actor, made again after each update."""
         if self._host is None:
@@ -883,6 +929,7 @@ class JaxSAC(_CompiledAgent):
             if self.num_timesteps > cfg.learning_starts and cfg.gradient_steps > 0:
                 self._train()
         self._dump()  # the last losses, also where no episode ended (SB3 logs at episode ends only)
+        self._noise = None  # stochastic predict's next gSDE draw uses the trained log_std
         callback.on_training_end()
         return self
 
@@ -953,13 +1000,13 @@ class JaxSAC(_CompiledAgent):
     def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
                 deterministic: bool = False) -> tuple[np.ndarray, None]:
         """The action for one observation or a batch, in the action space's bounds: tanh of the
-        (clipped) mean when ``deterministic``, else a sample (gSDE: fresh matrices)."""
+        (clipped) mean when ``deterministic``, else a sample (gSDE: the held matrices, ``reset_noise``)."""
         obs = np.asarray(observation, np.float32)
         single = obs.ndim == 1
         batch = obs.reshape(1 if single else obs.shape[0], -1)
         actor = self._actor()
-        scaled = (actor.deterministic(batch) if deterministic
-                  else actor.sample(batch, self._host_rng, actor.exploration(self._host_rng, batch.shape[0])))
+        scaled = (actor.deterministic(batch) if deterministic  # else the predict stream (reset_noise)
+                  else actor.sample(batch, self._predict_rng, self._sde_matrices(len(batch))))
         out = actor.unscale(scaled).astype(np.float32)
         return (out[0] if single else out), None
 

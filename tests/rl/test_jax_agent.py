@@ -21,7 +21,7 @@ jnp = pytest.importorskip("jax.numpy")
 pytest.importorskip("optax")
 pytestmark = pytest.mark.jax
 
-from helpers import compose_cfg, run_cli, search  # noqa: E402
+from helpers import compose_cfg, held_sde_noise, run_cli, search  # noqa: E402
 from sdrl_bench.cli.build import build_dyna_job, build_fit_job, instantiate_key  # noqa: E402
 from sdrl_bench.pipeline import fit_dynamics  # noqa: E402
 from sdrl_bench.rl.agents import RealEvalCallback, make_agent, real_vec_env, train  # noqa: E402
@@ -137,6 +137,8 @@ def test_a_saved_agent_loads_and_acts_the_same(fitted, tmp_path):
     assert one.shape == (1,) and np.allclose(one, a[0], rtol=0, atol=1e-6)  # a batch of one: rounding apart
     sampled, _ = again.predict(obs, deterministic=False)
     assert sampled.shape == a.shape and not np.array_equal(sampled, a) and np.abs(sampled).max() <= 1.0
+    mid = int(np.argmin(np.abs(a[:, 0])))  # an observation whose action is inside the bounds, not clipped
+    held_sde_noise(again, obs[mid], a[mid])
     # the same seed trains the same networks (jax keys and the host's draws alike); another seed others
     twin = make_agent(agent, surrogate_vec_env(model, spec, agent.n_envs, seed=0), seed=3)
     other = make_agent(agent, surrogate_vec_env(model, spec, agent.n_envs, seed=0), seed=4)

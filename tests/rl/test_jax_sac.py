@@ -24,7 +24,7 @@ import gymnasium as gym  # noqa: E402
 import torch as th  # noqa: E402
 from stable_baselines3 import SAC  # noqa: E402
 
-from helpers import compose_cfg, run_cli, search  # noqa: E402
+from helpers import compose_cfg, held_sde_noise, run_cli, search  # noqa: E402
 from sdrl_bench.cli.build import build_fit_job, instantiate_key  # noqa: E402
 from sdrl_bench.pipeline import fit_dynamics  # noqa: E402
 from sdrl_bench.rl import jax_sac  # noqa: E402
@@ -177,6 +177,8 @@ def test_it_learns_the_surrogate_and_a_saved_agent_acts_the_same(fitted, tmp_pat
     assert np.abs(want).max() <= 1.0 and want.shape == (50, 1)
     sampled, _ = sac.predict(obs)
     assert not np.array_equal(sampled, want) and np.abs(sampled).max() <= 1.0
+    assert sac.cfg.use_sde
+    held_sde_noise(back, obs[0], want[0], copies=5)  # the recipe has one env copy: drawn for five
 
 
 def test_no_entropy_trains_and_a_loaded_agent_refuses_an_env_or_file_that_does_not_fit(fitted, tmp_path):
