@@ -141,11 +141,17 @@ def test_a_saved_agent_loads_and_acts_the_same(fitted, tmp_path):
     held_sde_noise(again, obs[mid], a[mid])
     # the same seed trains the same networks (jax keys and the host's draws alike); another seed others
     twin = make_agent(agent, surrogate_vec_env(model, spec, agent.n_envs, seed=0), seed=3)
+    twin.predict(obs, deterministic=False)  # sampling first moves none of training's draws
     other = make_agent(agent, surrogate_vec_env(model, spec, agent.n_envs, seed=0), seed=4)
     twin.learn(1024), other.learn(1024)
     leaves = lambda p: jax.tree_util.tree_leaves(p.net)  # noqa: E731
     assert all(np.array_equal(x, y) for x, y in zip(leaves(ppo), leaves(twin), strict=True))
     assert not np.array_equal(leaves(ppo)[0], leaves(other)[0])
+    assert twin._noise is None  # learn dropped the matrices that sampling drew before it
+    twin.predict(obs, deterministic=False)
+    assert twin._noise is not None
+    twin.learn(1, reset_num_timesteps=False)
+    assert twin._noise is None  # the next stochastic predict draws anew, with the trained log-std
 
 
 def test_a_bare_compiled_iteration_trains_what_a_learn_iteration_trains(fitted):
