@@ -425,8 +425,9 @@ class _CompiledAgent:
         """gSDE's matrices for stochastic ``predict`` (``reset_noise``): row 0 for a single
         observation, rows 1.. one per env copy."""
 
-    def _sde_scale(self) -> np.ndarray | None:
-        """exp(log_std) (features, actions) under gSDE, else None."""
+    def _exploration(self, rng: np.random.Generator, n: int) -> np.ndarray | None:
+        """gSDE: ``n`` exploration matrices (n, features, actions) drawn from ``rng``, entries
+        N(0, exp(log_std)^2); None without gSDE."""
         raise NotImplementedError
 
     def reset_noise(self, n_envs: int = 1) -> None:
@@ -437,17 +438,15 @@ class _CompiledAgent:
         draw uses), so an episode played by stochastic ``predict`` follows one perturbed policy,
         as under SB3. SB3 keeps its last rollout's matrices after training; these are drawn
         afresh from this agent's own predict stream. Without gSDE it does nothing."""
-        scale = self._sde_scale()
-        self._noise = None if scale is None else (
-            scale * self._predict_rng.standard_normal((int(n_envs) + 1, *scale.shape))).astype(np.float32)
+        self._noise = self._exploration(self._predict_rng, int(n_envs) + 1)
 
     def _sde_matrices(self, rows: int) -> np.ndarray | None:
         """The held gSDE matrices for a batch of ``rows`` observations (``reset_noise``; drawn for
         the config's copies on first use), (rows, features, actions); None without gSDE."""
-        if self._sde_scale() is None:
-            return None
         if self._noise is None:
             self.reset_noise(self.cfg.n_envs)
+        if self._noise is None:  # no gSDE
+            return None
         per_copy = self._noise[1:]
         if rows > 1 and rows == len(per_copy):
             return per_copy
@@ -547,9 +546,12 @@ class JaxPPO(_CompiledAgent):
         self._key, k = self._jax.random.split(self._key)
         return k
 
-    def _sde_scale(self) -> np.ndarray | None:
+    def _exploration(self, rng: np.random.Generator, n: int) -> np.ndarray | None:
+        """As ``jax_ppo.exploration_matrices``, drawn by numpy (``_CompiledAgent.reset_noise``)."""
         log_std = None if self.net is None else self.net.get("log_std")
-        return None if log_std is None or log_std.ndim == 1 else np.exp(np.asarray(log_std))
+        if log_std is None or log_std.ndim == 1:
+            return None
+        return (np.exp(np.asarray(log_std)) * rng.standard_normal((n, *log_std.shape))).astype(np.float32)
 
     def _host_key(self) -> np.ndarray:
         """A jax key's data (uint32 (2,)) drawn by numpy, for a compiled program to wrap. Why on the
@@ -896,8 +898,8 @@ class JaxSAC(_CompiledAgent):
         self._train_exe = None
         self._host = None
 
-    def _sde_scale(self) -> np.ndarray | None:
-        return np.exp(self._actor().log_std) if self.cfg is not None and self.cfg.use_sde else None
+    def _exploration(self, rng: np.random.Generator, n: int) -> np.ndarray | None:
+        return self._actor().exploration(rng, n)  # the draw collection makes (jax_sac.HostActor)
 
     def _actor(self) -> Any:
         """The host's copy of the actor, made again after each update."""
