@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
 
 from helpers import compose_cfg, run_cli, search
-from sdrl_bench import ConfigError
+from sdrl_bench import ConfigError, tracking
 from sdrl_bench.cli.main import run_fit
 
 
 def no_running_runs(uri: str) -> int:
+    """The count of runs in the store at ``uri`` (0 where no store was made), none RUNNING."""
+    if not Path(tracking.sqlite_path(uri)).is_file():
+        return 0
     try:
         runs = search(uri)
     except Exception:  # experiment never created: no run at all
@@ -24,12 +29,14 @@ def no_running_runs(uri: str) -> int:
     ("env=moon", "env"), ("library=splines", "library"), ("optimizer=adam", "optimizer"),
     ("collector=oracle", "collector"),
 ])
-def test_unknown_group_option_fails_at_composition(store, tmp_path, override, needle):
+def test_unknown_group_option_fails_at_composition(new_store, tmp_path, override, needle):
+    store = new_store
     res = run_cli(override, f"tracking.uri={store}", cwd=tmp_path)
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"sdrl-bench: error: {override}: no such option of '{needle}' (options: ")
     assert no_running_runs(store) == 0 and not (tmp_path / "outputs").exists() and not (tmp_path / "multirun").exists()
+    assert not (tmp_path / "mlruns").exists()  # refused before the store was made
 
 
 @pytest.mark.parametrize("args,line", [
@@ -41,9 +48,10 @@ def test_unknown_group_option_fails_at_composition(store, tmp_path, override, ne
     (["-m", "library=polynomial,splines"], "library=splines: no such option of 'library' (options: "),
     (["seed=[1"], "seed=[1: cannot parse this override (no viable alternative at input '[1')"),
 ])
-def test_unknown_keys_options_and_bad_overrides_are_one_line(store, tmp_path, args, line):
+def test_unknown_keys_options_and_bad_overrides_are_one_line(new_store, tmp_path, args, line):
     """Checked before Hydra runs: one line naming the key (and the nearest valid one), exit 2,
-    no output folder, no run; a sweep's every value is checked, not only its first."""
+    no output folder, no store, no run; a sweep's every value is checked, not only its first."""
+    store = new_store
     res = run_cli(*args, f"tracking.uri={store}", cwd=tmp_path)
     assert res.returncode == 2
     lines = res.stderr.strip().splitlines()

@@ -52,7 +52,9 @@ def test_a_failing_sweep_job_leaves_no_run_running(store, tmp_path):
 
 
 def test_sindy_nn_multirun_fits_both_on_identical_data(store, tmp_path):
-    res = run_cli("-m", "surrogate=sindy,nn", f"tracking.uri={store}", cwd=tmp_path)
+    # one process runs both jobs (hydra.launcher.n_jobs=1: same launcher, no worker processes to
+    # start); the parallel path is the six-job test's and the faults tests'
+    res = run_cli("-m", "surrogate=sindy,nn", "hydra.launcher.n_jobs=1", f"tracking.uri={store}", cwd=tmp_path)
     assert res.returncode == 0, res.stderr[-2000:]
     runs = tracking.find_runs(store, "sdrl-bench", missing_ok=False)
     children = [r for r in runs if r["tags"].get("sdrl.kind") == "fit"]

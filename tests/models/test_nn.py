@@ -110,7 +110,8 @@ def test_out_of_range_hyperparameters_name_the_key(kw, needle):
         MLPDynamics(**kw)
 
 
-def test_bad_hyperparameter_from_the_command_line_fails_before_any_run(store):
+def test_bad_hyperparameter_from_the_command_line_fails_before_any_run(new_store):
+    store = new_store
     with pytest.raises(ConfigError, match="surrogate.model.width must be a positive integer, got 0"):
         run_fit(compose_cfg("surrogate=nn", "surrogate.model.width=0", f"tracking.uri={store}"))
     with pytest.raises(ConfigError, match="surrogate.model.learning_rate must be positive"):

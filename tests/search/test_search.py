@@ -8,7 +8,6 @@ import itertools
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -370,12 +369,6 @@ def test_submitit_local_executor_runs_two_workers(tmp_path, uri):
     _check_workers(tmp_path, uri, "submitit", 2)
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def _get(url: str, body: dict | None = None) -> dict:
     """GET ``url``, or POST ``body`` as JSON: the MLflow REST API over plain HTTP."""
     data = None if body is None else json.dumps(body).encode()
@@ -384,38 +377,20 @@ def _get(url: str, body: dict | None = None) -> dict:
         return json.loads(r.read())
 
 
-def test_search_against_a_real_mlflow_server(tmp_path):
-    port = _free_port()
-    server = subprocess.Popen(
-        [sys.executable, "-m", "mlflow", "server", "--backend-store-uri", f"sqlite:///{tmp_path}/server.db",
-         "--artifacts-destination", str(tmp_path / "artifacts"), "--host", "127.0.0.1", "--port", str(port),
-         "--workers", "1"],
-        cwd=tmp_path, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    base = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 180
-        while True:
-            assert server.poll() is None and time.monotonic() < deadline
-            try:
-                urllib.request.urlopen(f"{base}/health", timeout=2)
-                break
-            except OSError:
-                time.sleep(0.5)
-        cfg = search_cfg(tmp_path, base, "study.name=served", "search.n_trials=4")
-        result, summary = run_search(cfg, quiet=True)
-        exp = _get(f"{base}/api/2.0/mlflow/experiments/get-by-name?experiment_name={EXPERIMENT}")["experiment"]
-        runs = _get(f"{base}/api/2.0/mlflow/runs/search", {"experiment_ids": [exp["experiment_id"]], "max_results": 100})["runs"]
-        tags = [{t["key"]: t["value"] for t in r["data"].get("tags", [])} for r in runs]
-        kinds = sorted(t.get("sdrl.kind") for t in tags)
-        assert kinds == ["fit", "study"] + ["trial"] * 4
-        parent = next(r for r, t in zip(runs, tags, strict=True) if t.get("sdrl.kind") == "study")
-        metrics = {m["key"]: m["value"] for m in parent["data"]["metrics"]}
-        assert metrics["best_error"] == pytest.approx(summary.best_error, rel=1e-12) and metrics["n_trials"] == 4
-        listed = _get(f"{base}/api/2.0/mlflow/artifacts/list?run_id={result.parent_run_id}&path=figures")["files"]
-        assert {f["path"] for f in listed} >= {"figures/optimization_history.png", "figures/pareto_front.png"}
-    finally:
-        os.killpg(server.pid, signal.SIGTERM)
-        server.wait(timeout=30)
+def test_search_against_a_real_mlflow_server(tmp_path, mlflow_server):
+    base = mlflow_server
+    cfg = search_cfg(tmp_path, base, "study.name=served", "search.n_trials=4")
+    result, summary = run_search(cfg, quiet=True)
+    exp = _get(f"{base}/api/2.0/mlflow/experiments/get-by-name?experiment_name={EXPERIMENT}")["experiment"]
+    runs = _get(f"{base}/api/2.0/mlflow/runs/search", {"experiment_ids": [exp["experiment_id"]], "max_results": 100})["runs"]
+    tags = [{t["key"]: t["value"] for t in r["data"].get("tags", [])} for r in runs]
+    kinds = sorted(t.get("sdrl.kind") for t in tags)
+    assert kinds == ["fit", "study"] + ["trial"] * 4
+    parent = next(r for r, t in zip(runs, tags, strict=True) if t.get("sdrl.kind") == "study")
+    metrics = {m["key"]: m["value"] for m in parent["data"]["metrics"]}
+    assert metrics["best_error"] == pytest.approx(summary.best_error, rel=1e-12) and metrics["n_trials"] == 4
+    listed = _get(f"{base}/api/2.0/mlflow/artifacts/list?run_id={result.parent_run_id}&path=figures")["files"]
+    assert {f["path"] for f in listed} >= {"figures/optimization_history.png", "figures/pareto_front.png"}
 
 
 # ---------------------------------------------------------------------- done-when (long)

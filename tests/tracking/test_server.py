@@ -4,11 +4,7 @@ equations as description, standard tags, lean params) and a sweep parent's summa
 
 from __future__ import annotations
 
-import os
-import socket
 import subprocess
-import sys
-import time
 import urllib.request
 from pathlib import Path
 
@@ -23,47 +19,9 @@ from sdrl_bench import tracking
 from sdrl_bench.cli.main import run_fit
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-@pytest.fixture(scope="module")
-def server(tmp_path_factory):
-    """``mlflow server`` on a free loopback port, stopped (by its own process id) afterwards."""
-    tmp = tmp_path_factory.mktemp("server")
-    port = _free_port()
-    mlflow_bin = Path(sys.executable).with_name("mlflow")
-    log = open(tmp / "server.log", "w")
-    proc = subprocess.Popen(
-        [str(mlflow_bin), "server", "--host", "127.0.0.1", "--port", str(port), "--workers", "1",
-         "--backend-store-uri", f"sqlite:///{tmp / 'mlflow.db'}", "--artifacts-destination", str(tmp / "artifacts")],
-        cwd=tmp, stdout=log, stderr=subprocess.STDOUT, env={**os.environ, "MLFLOW_TRACKING_URI": "", "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"},
-    )
-    url = f"http://127.0.0.1:{port}"
-    deadline = time.monotonic() + 60
-    while True:
-        try:
-            with urllib.request.urlopen(f"{url}/health", timeout=2) as r:
-                if r.status == 200:
-                    break
-        except OSError:
-            pass
-        if proc.poll() is not None or time.monotonic() > deadline:
-            proc.kill()
-            pytest.fail(f"mlflow server did not start: {(tmp / 'server.log').read_text()[-2000:]}")
-        time.sleep(0.5)
-    yield url
-    proc.terminate()
-    try:
-        proc.wait(timeout=15)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-    log.close()
-
-
-def test_a_fit_run_on_a_server_has_datasets_a_loadable_model_equations_tags_and_lean_params(server, monkeypatch, capsys, tmp_path):
+def test_a_fit_run_on_a_server_has_datasets_a_loadable_model_equations_tags_and_lean_params(mlflow_server, monkeypatch, capsys,
+                                                                                             tmp_path):
+    server = mlflow_server
     monkeypatch.delenv("MLFLOW_TRACKING_URI", raising=False)
     parent = tracking.create_parent_run(server, "sdrl-bench", "sweep-test",
                                         {"sdrl.kind": "sweep", "sdrl.overrides": "seed=1,2 library=poly_trig"})
