@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pandas as pd
 import pytest
@@ -15,7 +13,7 @@ from sdrl_bench.cli.main import run_fit
 
 def no_running_runs(uri: str) -> int:
     """The count of runs in the store at ``uri`` (0 where no store was made), none RUNNING."""
-    if not Path(tracking.sqlite_path(uri)).is_file():
+    if not tracking.sqlite_path(uri).is_file():
         return 0
     try:
         runs = search(uri)

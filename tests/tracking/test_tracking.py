@@ -65,14 +65,16 @@ def test_fit_run_lands_in_the_store_with_metrics_params_tags_and_artifacts(store
     assert "cos(3 x)" in eq and eq.count("\n") == 2
 
 
-def test_the_sqlite_store_is_put_in_wal_mode_and_stays_readable(store, tmp_path):
+def test_the_sqlite_store_is_put_in_wal_mode_and_stays_readable(new_store, tmp_path):
     """ensure_experiment switches a new store to write-ahead logging (kept in the file); runs
     written then read back through MLflow, and a second call leaves the mode alone."""
     import sqlite3
 
     from sdrl_bench import tracking
 
+    store = new_store
     db = tracking.sqlite_path(store)
+    assert not db.exists()
     tracking.ensure_experiment(store, "sdrl-bench")
     with sqlite3.connect(db) as con:
         assert con.execute("PRAGMA journal_mode").fetchone()[0] == "wal"
