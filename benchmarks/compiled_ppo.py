@@ -227,7 +227,22 @@ def run_recipe(env: str, name: str, model, spec, steps: int, repeats: int, eval_
     return {"name": name, "steps": n_steps, "flops": flops, "first": first, "later": b_wall, "rollout_size": cfg.rollout_size,
             "roll_s": roll_s,
             "a": {"rate": n_steps / a_wall, "roll": a_roll, "upd": a_upd, "ret": float(np.mean(a_ret))},
-            "b": {"rate": n_steps / b_wall, "roll": roll_s / (roll_s + upd_s), "upd": upd_s, "ret": float(np.mean(b_ret))}}
+            "b": {"rate": n_steps / b_wall, "roll": roll_s / (roll_s + upd_s), "upd": upd_s, "ret": float(np.mean(b_ret))},
+            "pairs": [w / b for (w, _, _), b in zip(sb3, jx, strict=True)]}
+
+
+def paired_ratio(pairs: list[float]) -> str:
+    """(b)/(a) per interleaved pair (the same steps in both: (a)'s wall over (b)'s), their median
+    and a 95% percentile bootstrap CI of it (``scipy.stats.bootstrap``): how far the ratio of the
+    medians in the table moves with the machine's state during one run."""
+    from scipy import stats
+
+    text = f"{' '.join(f'{p:.1f}' for p in pairs)}; median {np.median(pairs):.1f}x"
+    if len(pairs) < 3 or len(set(pairs)) < 2:
+        return text
+    ci = stats.bootstrap((np.asarray(pairs),), np.median, n_resamples=2000, method="percentile",
+                         random_state=np.random.default_rng(0)).confidence_interval
+    return f"{text}, 95% CI [{ci.low:.1f}, {ci.high:.1f}]"
 
 
 def main() -> None:
@@ -292,7 +307,8 @@ def main() -> None:
             ratio = f"{r['b']['rate'] / r['a']['rate']:.1f}x" if arm == "b" else ""
             print(f"{r['name']:<10} {label:<26} {r['steps']:>8,} {x['rate']:>10,.0f} {ratio:>8} {x['roll']:>8.0%} "
                   f"{x['upd']:>9.3f} {gflops:>11.2f} {gflops / peaks['float32']:>10.1%} {x['ret']:>11.1f}")
-    print("\n(b) compile: " + "; ".join(f"{r['name']}: first call {r['first']:.1f} s, later call {r['later']:.2f} s, "
+    print("\n(b)/(a) per interleaved pair: " + "; ".join(f"{r['name']}: {paired_ratio(r['pairs'])}" for r in rows))
+    print("(b) compile: " + "; ".join(f"{r['name']}: first call {r['first']:.1f} s, later call {r['later']:.2f} s, "
                                         f"compile ~ {r['first'] - r['later']:.1f} s" for r in rows))
     print("(b) with its compile (first call): " + "; ".join(
         f"{r['name']}: {r['steps'] / r['first']:,.0f} steps/s, {r['steps'] / r['first'] / r['a']['rate']:.1f}x (a)" for r in rows))
