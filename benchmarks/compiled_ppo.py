@@ -321,7 +321,8 @@ def main() -> None:
         f"{r['name']}: {at_rate(r, peaks['layer']):,.0f} steps/s, {at_rate(r, peaks['layer']) / r['a']['rate']:.1f}x (a)"
         for r in rows))
     print("ceiling of (b) on this machine (the update's matmul FLOPs at the float32 matmul peak, every other op of the "
-          "update free, plus (b)'s rollout): " + "; ".join(
+          "update free, plus (b)'s rollout; an estimate from this run's peak and rollout, each measured with its noise): "
+          + "; ".join(
         f"{r['name']}: {at_rate(r, peaks['float32']):,.0f} steps/s, {at_rate(r, peaks['float32']) / r['a']['rate']:.1f}x "
         f"(a); (b) reaches {r['b']['rate'] / at_rate(r, peaks['float32']):.0%} of it" for r in rows))
     print("rollout: share of training wall time in rollouts ((b): its rollout and update jitted and timed apart); "
