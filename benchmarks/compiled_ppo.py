@@ -32,7 +32,7 @@ a later call with another seed (run only). Beside them: float32 and float64 matm
 GFLOP/s); (a)'s are split by SB3's rollout callbacks. Wall-clock seconds: run it on a quiet
 machine (other load slows both arms, not necessarily alike).
 
-    .venv/bin/python benchmarks/compiled_ppo.py [--env mountain_car] [--steps 131072] [--repeats 3] [--quick]
+    .venv/bin/python benchmarks/compiled_ppo.py [--env mountain_car] [--steps 131072] [--repeats 5] [--quick]
 
 ``--jax-threads 0`` gives XLA its default pool (one thread per core) in place of the harness's
 ``jax_threads``: the pool is made once per process, so compare two runs.
@@ -231,14 +231,22 @@ def run_recipe(env: str, name: str, model, spec, steps: int, repeats: int, eval_
             "pairs": [w / b for (w, _, _), b in zip(sb3, jx, strict=True)]}
 
 
+MIN_CI_PAIRS = 5
+"""The fewest interleaved pairs ``paired_ratio`` gives a CI for (also ``--repeats``' default)."""
+
+
 def paired_ratio(pairs: list[float]) -> str:
     """(b)/(a) per interleaved pair (the same steps in both: (a)'s wall over (b)'s), their median
     and a 95% percentile bootstrap CI of it (``scipy.stats.bootstrap``): how far the ratio of the
-    medians in the table moves with the machine's state during one run."""
+    medians in the table moves with the machine's state during one run. Under ``MIN_CI_PAIRS``
+    pairs no CI is printed: a percentile bootstrap of the median of three or four values is their
+    range (or nearly), not an interval to read."""
     from scipy import stats
 
     text = f"{' '.join(f'{p:.1f}' for p in pairs)}; median {np.median(pairs):.1f}x"
-    if len(pairs) < 3 or len(set(pairs)) < 2:
+    if len(pairs) < MIN_CI_PAIRS:
+        return f"{text} (no CI under {MIN_CI_PAIRS} pairs: --repeats {MIN_CI_PAIRS} or more)"
+    if len(set(pairs)) < 2:
         return text
     ci = stats.bootstrap((np.asarray(pairs),), np.median, n_resamples=2000, method="percentile",
                          random_state=np.random.default_rng(0)).confidence_interval
@@ -248,7 +256,7 @@ def paired_ratio(pairs: list[float]) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--steps", type=int, default=2**17, help="env steps per training run (rounded up to whole rollouts)")
-    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--repeats", type=int, default=MIN_CI_PAIRS, help="interleaved pairs of runs (the pairs' CI needs %(default)s or more)")
     ap.add_argument("--eval-episodes", type=int, default=10)
     ap.add_argument("--env", default="cartpole_swingup", choices=list(ENVS))
     ap.add_argument("--recipes", nargs="+", default=None, help="default: all of the env's (ENVS)")
