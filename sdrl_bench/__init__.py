@@ -28,36 +28,36 @@ _stop = {"signum": None, "pending": False, "held": 0}
 
 def raise_on_stop_signals() -> None:
     """In the main thread: SIGTERM and SIGINT raise ``Terminated`` (at once, or at the end of a
-    ``stop_signals_held`` block)."""
+    ``stop_signals_held`` block).
+
+    A ``Terminated`` raised where Python cannot propagate it (a ``gc.callbacks`` function, a
+    weakref callback, a ``__del__``) is printed and dropped ("Exception ignored in ..."), and the
+    stop would be lost while the run goes on: jax registers a gc callback (pysindy imports jax
+    where it is installed), and mlflow and torch keep weak dictionaries. Such exceptions reach
+    ``sys.unraisablehook``; ours delivers the signal again a moment later, outside the callback."""
     import signal
+    import sys
 
     def handler(signum, frame):
         _stop["signum"] = signum
         if _stop["held"]:
             _stop["pending"] = True
-        elif _in_gc_callback(frame):
-            # An exception raised inside a garbage-collector callback is printed and dropped
-            # ("Exception ignored in ..."), and the stop would be lost: jax registers one
-            # (pysindy imports jax where it is installed). Deliver the signal again a moment later,
-            # outside the callback.
-            _redeliver(signum)
         else:
             raise Terminated(signum)
 
+    previous = sys.unraisablehook
+    if not getattr(previous, "_sdrl_redelivers", False):
+
+        def hook(unraisable):
+            if isinstance(unraisable.exc_value, Terminated):
+                _redeliver(unraisable.exc_value.signum)
+            else:
+                previous(unraisable)
+
+        hook._sdrl_redelivers = True  # type: ignore[attr-defined]
+        sys.unraisablehook = hook
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, handler)
-
-
-def _in_gc_callback(frame) -> bool:
-    """Whether ``frame`` (a signal handler's) runs inside one of ``gc.callbacks``."""
-    import gc
-
-    codes = {getattr(cb, "__code__", None) for cb in gc.callbacks} - {None}
-    while frame is not None and codes:
-        if frame.f_code in codes:
-            return True
-        frame = frame.f_back
-    return False
 
 
 def _redeliver(signum: int, delay: float = 0.05) -> None:
