@@ -3,9 +3,9 @@
 Python prints and drops an exception raised in a ``gc.callbacks`` function, a weakref callback
 or a ``__del__`` ("Exception ignored in ..."), so a ``Terminated`` raised there by the
 stop-signal handler would vanish and the run go on. jax registers a gc callback (pysindy imports
-jax wherever jax is installed); mlflow, torch and the standard library keep weak dictionaries
-(a SIGTERM landing in ``WeakValueDictionary``'s callback once left a training run going past
-the CI test's minute). The hook that receives such exceptions delivers the signal again a moment
+jax wherever jax is installed); torch, SQLAlchemy (under mlflow) and the standard library use
+weakref callbacks (a SIGTERM landing in a ``WeakValueDictionary``'s once left a training run
+going past the CI test's minute). The hook that receives such exceptions delivers the signal again a moment
 later. A real SIGTERM, in a child process, landing inside each kind of callback."""
 
 from __future__ import annotations
