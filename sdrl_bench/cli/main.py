@@ -110,7 +110,7 @@ def _print_summary(result: FitResult, uri: str, run_id: str, experiment_id: str 
 
 def main() -> None:
     """Entry point of ``sdrl-bench``: the command line checked first (``cli.precheck``: one line and
-    exit 2 for a bad override, key, group option or YAML file), then the Hydra app (``app``)."""
+    exit 2 for a bad override, key, group option, YAML file or damaged store), then the Hydra app (``app``)."""
     from sdrl_bench.cli.precheck import run_checked
 
     run_checked(app, "config", "sdrl-bench")

@@ -259,11 +259,11 @@ class SearchStorageCallback(Callback):
 
 
 def main() -> None:
-    """Entry point of ``sdrl-bench-search``: the command line checked first (``cli.precheck``: one line and
-    exit 2 for a bad override, key, group option or YAML file), then the Hydra app (``app``)."""
-    from sdrl_bench.cli.precheck import run_checked
+    """``python -m sdrl_bench.cli.search``: the command line checked first, then the Hydra app
+    (``cli.precheck.search_main``, the ``sdrl-bench-search`` entry point)."""
+    from sdrl_bench.cli.precheck import search_main
 
-    run_checked(app, "search_app", "sdrl-bench-search")
+    search_main()
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="search_app")

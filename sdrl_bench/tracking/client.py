@@ -113,12 +113,20 @@ def store_lock(db: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
+_INTACT: dict[Path, tuple[int, int]] = {}
+
+
 def check_integrity(db: Path) -> None:
     """SQLite's own integrity check on an existing store (milliseconds at these sizes); a file
-    that is not a database, or a damaged one, is a ConfigError naming it."""
+    that is not a database, or a damaged one, is a ConfigError naming it. A file found intact is
+    not read again in this process while its size and modification time stay the same (the
+    command line's check, then the run's)."""
     import sqlite3
 
     if not db.is_file() or db.stat().st_size == 0:
+        return
+    st = db.stat()
+    if _INTACT.get(db) == (st.st_size, st.st_mtime_ns):
         return
     try:
         with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=30.0)) as con:
@@ -128,6 +136,7 @@ def check_integrity(db: Path) -> None:
     if rows != ["ok"]:
         raise ConfigError(f"tracking.uri: {db} is damaged (SQLite integrity check: {rows[0][:160]}); "
                           "move it aside or restore it")
+    _INTACT[db] = (st.st_size, st.st_mtime_ns)
 
 
 def use_wal(db: Path) -> bool:

@@ -1,6 +1,7 @@
-"""What ``sdrl-bench`` loads before it answers: a bad command line is refused (cli.precheck) before
-pysindy, torch or SB3 is imported, and a fit's command never imports torch or SB3 (they serve the
-RL tasks alone). Checked on the modules a real process holds when it ends, not on its time."""
+"""What ``sdrl-bench`` and ``sdrl-bench-search`` load before they answer: a bad command line or a
+damaged store is refused (cli.precheck) before pysindy, torch, SB3 or MLflow is imported, and a
+fit's command never imports torch or SB3 (they serve the RL tasks alone). Checked on the modules a
+real process holds when it ends, not on its time."""
 
 from __future__ import annotations
 
@@ -8,13 +9,18 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 HEAVY = ("pysindy", "torch", "stable_baselines3", "mlflow")
+MAIN, SEARCH = "sdrl_bench.cli.main:main", "sdrl_bench.cli.precheck:search_main"  # the console scripts' targets
 
 SCRIPT = """
 import json, sys
+import importlib
 heavy = json.loads(sys.argv[2])
-sys.argv = ["sdrl-bench", *json.loads(sys.argv[1])]
-from sdrl_bench.cli.main import main
+module, name = sys.argv[3].split(":")
+sys.argv = [sys.argv[4], *json.loads(sys.argv[1])]
+main = getattr(importlib.import_module(module), name)
 try:
     main()
 except SystemExit as exc:
@@ -25,8 +31,8 @@ print("LOADED " + json.dumps({"code": code, "modules": [m for m in heavy if m in
 """
 
 
-def run(args: list[str], cwd) -> dict:
-    proc = subprocess.run([sys.executable, "-c", SCRIPT, json.dumps(args), json.dumps(HEAVY)], cwd=cwd,
+def run(args: list[str], cwd, entry: str = MAIN, prog: str = "sdrl-bench") -> dict:
+    proc = subprocess.run([sys.executable, "-c", SCRIPT, json.dumps(args), json.dumps(HEAVY), entry, prog], cwd=cwd,
                           capture_output=True, text=True, timeout=300)
     line = [x for x in proc.stdout.splitlines() if x.startswith("LOADED ")]
     assert line, proc.stdout[-2000:] + proc.stderr[-2000:]
@@ -40,6 +46,56 @@ def test_a_bad_command_line_is_refused_before_the_heavy_libraries_load(tmp_path)
         "sdrl-bench: error: n_transition: unknown config key; did you mean n_transitions? "
         "(to add a new key: +n_transition=...)"]
     assert not (tmp_path / "mlruns").exists() and not (tmp_path / "outputs").exists()
+
+
+def test_the_search_command_refuses_a_bad_command_line_before_the_heavy_libraries_load(tmp_path):
+    got = run(["n_trials=5"], tmp_path, SEARCH, "sdrl-bench-search")
+    assert got["code"] == 2 and got["modules"] == []
+    assert got["stderr"].strip().splitlines() == [
+        "sdrl-bench-search: error: n_trials: unknown config key; did you mean search.n_trials? "
+        "(to add a new key: +n_trials=...)"]
+    assert not (tmp_path / "mlruns").exists()
+
+
+def test_a_tracking_uri_that_is_not_a_string_is_one_line(tmp_path):
+    got = run(["tracking.uri=5"], tmp_path)
+    assert got["code"] == 2 and got["modules"] == []
+    assert got["stderr"].strip().splitlines() == [
+        "sdrl-bench: error: tracking.uri: a URI is required (sqlite:///<file> or http://<host>:<port>), got 5"]
+
+
+@pytest.mark.parametrize("entry, prog", [(MAIN, "sdrl-bench"), (SEARCH, "sdrl-bench-search")])
+@pytest.mark.parametrize("content", ["not a database", "damaged"])
+def test_a_damaged_store_is_named_before_the_heavy_libraries_load_and_kept(tmp_path, entry, prog, content):
+    """A store that is not SQLite, or one whose b-tree is overwritten: one line naming the file,
+    exit 2, before the job's imports (about 10 s of them for an RL experiment), the file unchanged."""
+    import sqlite3
+
+    db = tmp_path / "mlruns" / "mlflow.db"
+    db.parent.mkdir()
+    if content == "not a database":
+        db.write_bytes(b"these are not the bytes of a database\n" * 400)
+        reasons = ("is not a usable SQLite store (file is not a database)",)
+    else:
+        with sqlite3.connect(db) as con:
+            con.execute("CREATE TABLE t (k INTEGER PRIMARY KEY, v TEXT)")
+            con.executemany("INSERT INTO t VALUES (?, ?)", [(i, "x" * 200) for i in range(2000)])
+        con.close()
+        page = int.from_bytes(db.read_bytes()[16:18], "big")
+        with open(db, "r+b") as fh:  # a b-tree page's header in the middle of the table
+            fh.seek((db.stat().st_size // page // 2) * page)
+            fh.write(b"\xa5" * 512)
+        reasons = ("is not a usable SQLite store (database disk image is malformed)",  # SQLite's words, by where
+                   "is damaged (SQLite integrity check:")
+    before = db.read_bytes()
+    got = run([f"tracking.uri=sqlite:///{db}", "experiment=quick_mountain_car"] if entry == MAIN else
+              [f"tracking.uri=sqlite:///{db}"], tmp_path, entry, prog)
+    assert got["code"] == 2 and got["modules"] == [], got["stderr"][-2000:]
+    lines = got["stderr"].strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(tuple(f"{prog}: error: tracking.uri: {db} {r}" for r in reasons)), lines
+    assert lines[0].endswith("move it aside or restore it")
+    assert db.read_bytes() == before
+    assert sorted(p.name for p in db.parent.iterdir()) == ["mlflow.db"]  # no lock file, no Hydra run folder
 
 
 def test_a_fit_command_does_not_import_torch_or_sb3(tmp_path):
