@@ -32,8 +32,8 @@ def raise_on_stop_signals() -> None:
 
     A ``Terminated`` raised where Python cannot propagate it (a ``gc.callbacks`` function, a
     weakref callback, a ``__del__``) is printed and dropped ("Exception ignored in ..."), and the
-    stop would be lost while the run goes on: jax registers a gc callback (pysindy imports jax
-    where it is installed), and torch, SQLAlchemy (under mlflow) and the standard library use
+    stop would be lost while the run goes on: jax registers a gc callback (the compiled agents
+    load it), and torch, SQLAlchemy (under mlflow) and the standard library use
     weakref callbacks (a SIGTERM once landed in a ``WeakValueDictionary``'s). Such exceptions
     reach ``sys.unraisablehook``; ours delivers the signal again a moment later, outside the
     callback."""

@@ -10,7 +10,26 @@
 - ``nn``, ``mlp``, ``nn_io``: the NN baseline, its ``torch.nn.Module``, saving it as data.
 """
 
+import importlib.util
+import sys
+
 from sdrl_bench.models.base import register_loader
+
+
+def _skip_pysindy_sbr() -> None:
+    """Where numpyro is not installed, mark ``pysindy.optimizers.sbr`` absent before pysindy loads.
+
+    Why: pysindy's optimizers package tries to import its SBR optimizer, whose module imports jax
+    and then numpyro; without numpyro that import fails and pysindy goes on without SBR. With the
+    ``[jax]`` extra (jax, no numpyro) every process paid for loading jax first: 0.7-0.9 s of each
+    ``import pysindy`` here (2.55-2.75 s against 1.80-1.87 s, measured with two jobs running).
+    Marked absent, the import fails at once, with the same outcome: no SBR. With numpyro
+    installed, nothing is changed."""
+    if "pysindy" not in sys.modules and importlib.util.find_spec("numpyro") is None:
+        sys.modules.setdefault("pysindy.optimizers.sbr", None)  # None: "import halted", an ImportError
+
+
+_skip_pysindy_sbr()
 
 # Loaded lazily by kind (the module imports pysindy only when a file of this kind is read).
 register_loader("per_equation", "sdrl_bench.models.per_equation:PerEquationModel")

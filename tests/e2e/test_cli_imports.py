@@ -31,8 +31,8 @@ print("LOADED " + json.dumps({"code": code, "modules": [m for m in heavy if m in
 """
 
 
-def run(args: list[str], cwd, entry: str = MAIN, prog: str = "sdrl-bench") -> dict:
-    proc = subprocess.run([sys.executable, "-c", SCRIPT, json.dumps(args), json.dumps(HEAVY), entry, prog], cwd=cwd,
+def run(args: list[str], cwd, entry: str = MAIN, prog: str = "sdrl-bench", heavy: tuple = HEAVY) -> dict:
+    proc = subprocess.run([sys.executable, "-c", SCRIPT, json.dumps(args), json.dumps(heavy), entry, prog], cwd=cwd,
                           capture_output=True, text=True, timeout=300)
     line = [x for x in proc.stdout.splitlines() if x.startswith("LOADED ")]
     assert line, proc.stdout[-2000:] + proc.stderr[-2000:]
@@ -104,3 +104,19 @@ def test_a_fit_command_does_not_import_torch_or_sb3(tmp_path):
     assert got["code"] == 0, got["stderr"][-2000:]
     assert got["modules"] == ["pysindy", "mlflow"]  # the fit and its run; nothing of the RL stack
     assert (tmp_path / "mlruns" / "mlflow.db").exists()
+
+
+@pytest.mark.jax
+def test_a_fit_command_does_not_load_jax_where_the_jax_extra_is_installed(tmp_path):
+    """pysindy tries its SBR optimizer, whose module imports jax and then numpyro, which the
+    ``[jax]`` extra does not bring: ``sdrl_bench.models`` marks that module absent first, so a fit
+    no longer loads jax for nothing (0.7-0.9 s a process)."""
+    import importlib.util
+
+    pytest.importorskip("jax")
+    if importlib.util.find_spec("numpyro") is not None:
+        pytest.skip("numpyro is installed: pysindy's SBR loads, and jax with it, as it should")
+    got = run(["env=mountain_car", "n_transitions=60", f"tracking.uri=sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"],
+              tmp_path, heavy=("pysindy", "jax", "numpyro"))
+    assert got["code"] == 0, got["stderr"][-2000:]
+    assert got["modules"] == ["pysindy"]
