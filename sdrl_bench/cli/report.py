@@ -14,7 +14,10 @@ from pathlib import Path
 from collections.abc import Sequence
 
 from sdrl_bench import ConfigError, tracking
-from sdrl_bench.report.build import ReportInput, build_report
+
+# The report's builder (report.build: mlflow, pandas, about 4 s of imports) is imported in main,
+# after the arguments and a local store's integrity are checked, so that bad input is answered
+# at once.
 
 
 def _parse_tags(items: Sequence[str]) -> dict[str, str]:
@@ -43,9 +46,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = ap.parse_args(argv)
     command = "sdrl-bench-report " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
     try:
+        tags = _parse_tags(args.tag)
         uri = tracking.resolve_uri(args.uri)
+        local = tracking.sqlite_path(uri)
+        if local is not None:
+            try:
+                tracking.check_integrity(local)
+            except ConfigError as exc:  # its words name the config key; here the option was --uri
+                raise ConfigError(str(exc).replace("tracking.uri:", "--uri:", 1) if args.uri else str(exc)) from None
+        from sdrl_bench.report.build import ReportInput, build_report  # noqa: PLC0415  (see the imports above)
+
         ui = args.ui_url or (uri if uri.startswith(("http://", "https://")) else None)  # a server serves its own UI
-        inp = ReportInput(uri, args.experiment, args.parent_run, _parse_tags(args.tag), ui)
+        inp = ReportInput(uri, args.experiment, args.parent_run, tags, ui)
         res = build_report(inp, args.name, args.out, command.strip(), log_run=not args.no_log,
                            provenance=args.provenance)
     except ConfigError as exc:

@@ -12,7 +12,7 @@ import sys
 import pytest
 
 HEAVY = ("pysindy", "torch", "stable_baselines3", "mlflow")
-MAIN, SEARCH = "sdrl_bench.cli.main:main", "sdrl_bench.cli.precheck:search_main"  # the console scripts' targets
+MAIN, SEARCH, REPORT = "sdrl_bench.cli.main:main", "sdrl_bench.cli.precheck:search_main", "sdrl_bench.cli.report:main"
 
 SCRIPT = """
 import json, sys
@@ -22,11 +22,11 @@ module, name = sys.argv[3].split(":")
 sys.argv = [sys.argv[4], *json.loads(sys.argv[1])]
 main = getattr(importlib.import_module(module), name)
 try:
-    main()
+    ret = main()
 except SystemExit as exc:
     code = exc.code
 else:
-    code = 0
+    code = ret or 0
 print("LOADED " + json.dumps({"code": code, "modules": [m for m in heavy if m in sys.modules]}))
 """
 
@@ -96,6 +96,18 @@ def test_a_damaged_store_is_named_before_the_heavy_libraries_load_and_kept(tmp_p
     assert lines[0].endswith("move it aside or restore it")
     assert db.read_bytes() == before
     assert sorted(p.name for p in db.parent.iterdir()) == ["mlflow.db"]  # no lock file, no Hydra run folder
+
+
+def test_the_report_names_a_damaged_store_before_the_heavy_libraries_load(tmp_path):
+    db = tmp_path / "mlruns" / "mlflow.db"
+    db.parent.mkdir()
+    db.write_bytes(b"these are not the bytes of a database\n" * 400)
+    got = run(["--uri", f"sqlite:///{db}", "--out", str(tmp_path / "reports")], tmp_path, REPORT, "sdrl-bench-report")
+    assert got["code"] == 2 and got["modules"] == []
+    assert got["stderr"].strip().splitlines() == [
+        f"sdrl-bench-report: error: --uri: {db} is not a usable SQLite store (file is not a database); "
+        "move it aside or restore it"]
+    assert not (tmp_path / "reports").exists()
 
 
 def test_a_fit_command_does_not_import_torch_or_sb3(tmp_path):
