@@ -1,7 +1,8 @@
-"""What ``sdrl-bench`` and ``sdrl-bench-search`` load before they answer: a bad command line or a
-damaged store is refused (cli.precheck) before pysindy, torch, SB3 or MLflow is imported, and a
-fit's command never imports torch or SB3 (they serve the RL tasks alone). Checked on the modules a
-real process holds when it ends, not on its time."""
+"""What the commands load before they answer: a bad command line or a damaged store is refused
+(``sdrl-bench`` and ``sdrl-bench-search`` by cli.precheck, ``sdrl-bench-report`` after its
+arguments) before pysindy, torch, SB3 or MLflow is imported, and a fit's command never imports
+torch or SB3 (they serve the RL tasks alone), nor jax. Checked on the modules a real process holds
+when it ends, not on its time."""
 
 from __future__ import annotations
 
