@@ -108,6 +108,7 @@ def check_command_line(argv: Sequence[str], config_name: str) -> None:
     from hydra import compose, initialize_config_module
     from hydra._internal.utils import get_args_parser
     from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
 
     try:
         args, _ = get_args_parser().parse_known_args(list(argv))
@@ -132,7 +133,7 @@ def check_command_line(argv: Sequence[str], config_name: str) -> None:
     uris = []
     try:
         for overrides in _variants(parsed):
-            uris.append(_select(composed(overrides), "tracking.uri"))
+            uris.append(OmegaConf.select(composed(overrides), "tracking.uri", default=None))
     except ConfigError:
         raise
     except Exception as exc:
@@ -142,15 +143,9 @@ def check_command_line(argv: Sequence[str], config_name: str) -> None:
     _check_stores(uris)
 
 
-def _select(cfg, key: str):
-    from omegaconf import OmegaConf
-
-    return OmegaConf.select(cfg, key, default=None)
-
-
 def _check_stores(uris) -> None:
     """``tracking.uri`` must be a string, and a local SQLite store the command would write is
-    checked as the run checks it (``tracking.check_integrity``: read-only, milliseconds), so that
+    checked as the run checks it (``tracking.check_store``: read-only, milliseconds), so that
     a damaged one is named in about a second, not after the job's imports and validation (9-11 s
     for an RL experiment, measured)."""
     from sdrl_bench import tracking
@@ -159,9 +154,7 @@ def _check_stores(uris) -> None:
         if u is not None and not isinstance(u, str):
             raise ConfigError(f"tracking.uri: a URI is required (sqlite:///<file> or http://<host>:<port>), got {u!r}")
     for uri in dict.fromkeys(tracking.resolve_uri(u) for u in uris):
-        local = tracking.sqlite_path(uri)
-        if local is not None:
-            tracking.check_integrity(local)
+        tracking.check_store(uri)
 
 
 def run_checked(app, config_name: str, prog: str) -> None:

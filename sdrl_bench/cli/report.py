@@ -48,12 +48,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         tags = _parse_tags(args.tag)
         uri = tracking.resolve_uri(args.uri)
-        local = tracking.sqlite_path(uri)
-        if local is not None:
-            try:
-                tracking.check_integrity(local)
-            except ConfigError as exc:  # its words name the config key; here the option was --uri
-                raise ConfigError(str(exc).replace("tracking.uri:", "--uri:", 1) if args.uri else str(exc)) from None
+        tracking.check_store(uri, "--uri" if args.uri else "tracking.uri")
         from sdrl_bench.report.build import ReportInput, build_report  # noqa: PLC0415  (see the imports above)
 
         ui = args.ui_url or (uri if uri.startswith(("http://", "https://")) else None)  # a server serves its own UI

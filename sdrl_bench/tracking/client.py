@@ -116,25 +116,32 @@ def store_lock(db: Path) -> Iterator[None]:
 _INTACT: dict[Path, tuple[int, int]] = {}
 
 
-def check_integrity(db: Path) -> None:
+def check_store(uri: str, key: str = "tracking.uri") -> None:
+    """``check_integrity`` on the SQLite file behind ``uri``; nothing for a server's URI."""
+    local = sqlite_path(uri)
+    if local is not None:
+        check_integrity(local, key)
+
+
+def check_integrity(db: Path, key: str = "tracking.uri") -> None:
     """SQLite's own integrity check on an existing store (milliseconds at these sizes); a file
-    that is not a database, or a damaged one, is a ConfigError naming it. A file found intact is
-    not read again in this process while its size and modification time stay the same (the
-    command line's check, then the run's)."""
+    that is not a database, or a damaged one, is a ConfigError naming it (after ``key``, where
+    the user gave it). A file found intact is not read again in this process while its size and
+    modification time stay the same (the command line's check, then the run's)."""
     import sqlite3
 
-    if not db.is_file() or db.stat().st_size == 0:
+    if not db.is_file():
         return
     st = db.stat()
-    if _INTACT.get(db) == (st.st_size, st.st_mtime_ns):
+    if st.st_size == 0 or _INTACT.get(db) == (st.st_size, st.st_mtime_ns):
         return
     try:
         with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=30.0)) as con:
             rows = [r[0] for r in con.execute("PRAGMA integrity_check").fetchall()]
     except sqlite3.Error as exc:
-        raise ConfigError(f"tracking.uri: {db} is not a usable SQLite store ({exc}); move it aside or restore it") from None
+        raise ConfigError(f"{key}: {db} is not a usable SQLite store ({exc}); move it aside or restore it") from None
     if rows != ["ok"]:
-        raise ConfigError(f"tracking.uri: {db} is damaged (SQLite integrity check: {rows[0][:160]}); "
+        raise ConfigError(f"{key}: {db} is damaged (SQLite integrity check: {rows[0][:160]}); "
                           "move it aside or restore it")
     _INTACT[db] = (st.st_size, st.st_mtime_ns)
 
