@@ -194,7 +194,8 @@ def run_search(args, bench: Bench, seeds: list[int]) -> None:
     trial's there."""
     import optuna
 
-    from sdrl_bench.search.storage import open_storage, resolve_storage
+    from sdrl_bench.search.location import resolve_storage
+    from sdrl_bench.search.storage import open_storage
 
     storage = open_storage(resolve_storage(args.storage))
     sampler = optuna.samplers.TPESampler(seed=args.sampler_seed, n_startup_trials=12)

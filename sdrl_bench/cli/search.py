@@ -35,7 +35,8 @@ from sdrl_bench.search.refine import run_refinement
 from sdrl_bench.search.study import BuildJob, StudySettings, run_study
 from sdrl_bench.search.summary import comparison_table, load_summaries, summarize
 from sdrl_bench.search.space import GROUP_PARAMS, PARAM_KEYS, check_model_kind, parse_space
-from sdrl_bench.search.storage import open_storage, resolve_storage
+from sdrl_bench.search.location import resolve_storage
+from sdrl_bench.search.storage import open_storage
 
 GROUPS = ("env", "collector", "library", "optimizer", "surrogate")
 _NOT_CONTEXT = ("search", "study", "tracking", "hydra", "seed", "n_transitions")

@@ -19,34 +19,11 @@ from collections.abc import Callable, Mapping
 import optuna
 
 from sdrl_bench import ConfigError, tracking
+from sdrl_bench.search.location import redact
 from sdrl_bench.search.space import space_differences
 
-DEFAULT_STORAGE = Path("mlruns") / "optuna.db"
 FINGERPRINT_ATTR = "sdrl.fingerprint"
 _NAME = re.compile(r"^[A-Za-z0-9_.\-]+$")
-
-
-def resolve_storage(url: str | None) -> str:
-    """``None`` -> the project's SQLite file; relative SQLite and journal paths made absolute."""
-    if not url:
-        return f"sqlite:///{(Path.cwd() / DEFAULT_STORAGE).resolve()}"
-    if url.startswith("sqlite:///") and not url.startswith("sqlite:////"):
-        return f"sqlite:///{Path(url[len('sqlite:///'):]).resolve()}"
-    if url.startswith("journal:"):
-        return f"journal:{Path(url[len('journal:'):]).resolve()}"
-    return url
-
-
-def redact(url: str) -> str:
-    """The URL with any password hidden (for messages, tags and logs)."""
-    if url.startswith("journal:"):
-        return url
-    try:
-        from sqlalchemy.engine import make_url
-
-        return make_url(url).render_as_string(hide_password=True)
-    except Exception:
-        return re.sub(r"//([^:/@]+):[^@]*@", r"//\1:***@", url)
 
 
 def open_storage(
