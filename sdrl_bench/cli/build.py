@@ -205,6 +205,38 @@ def build_dyna_job(cfg: DictConfig, fit_job: FitJob) -> DynaJob:
     return DynaJob(fit=fit_job, agent=agent, dyna=dyna, seed=int_key(cfg, "seed", minimum=0))
 
 
+TASKS = ("fit", "train", "dyna", "fidelity")
+
+
+def check_task(cfg: DictConfig) -> None:
+    if cfg.task not in TASKS:
+        raise ConfigError(f"task: {cfg.task!r} is not one of {', '.join(repr(t) for t in TASKS)}")
+
+
+def check_job(cfg: DictConfig, overrides: Sequence[str] = ()) -> None:
+    """What a job checks before its run exists (its typed job built, then the job's own
+    ``check``), without collecting, fitting or training; ``overrides``: the command line's that
+    composed ``cfg``. A ``-m`` sweep's driver runs it on each job's config (``cli.precheck``), so
+    that a bad value stops the sweep in one line before its parent run, its output folder or its
+    workers exist; each job checks again when it runs."""
+    from sdrl_bench.pipeline import check  # noqa: PLC0415
+
+    check_task(cfg)
+    fit_job = build_fit_job(cfg)
+    if cfg.task == "fit":
+        check(fit_job)
+        return
+    int_key(cfg, "jax_threads", minimum=0)
+    if cfg.task == "train":
+        build_transfer_job(cfg, fit_job).check()
+    elif cfg.task == "dyna":
+        build_dyna_job(cfg, fit_job).check()
+    else:
+        from sdrl_bench.cli.fidelity_task import build_cluster  # noqa: PLC0415  (it builds on this module)
+
+        build_cluster(cfg, list(overrides))[0].check()
+
+
 def real_arm_key(cfg: DictConfig) -> str:
     """What the real arm depends on: env, agent, budgets of the real arm, seed."""
     parts = {

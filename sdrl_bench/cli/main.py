@@ -113,7 +113,7 @@ def main() -> None:
     exit 2 for a bad override, key, group option, YAML file or damaged store), then the Hydra app (``app``)."""
     from sdrl_bench.cli.precheck import run_checked
 
-    run_checked(app, "config", "sdrl-bench")
+    run_checked(app, "config", "sdrl-bench", check_job="sdrl_bench.cli.build:check_job")
 
 
 @hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="config")
@@ -124,7 +124,7 @@ def app(cfg: DictConfig) -> float:
     # SIGTERM (a cluster scheduler, kill) and SIGINT unwind like an exception: the open MLflow
     # run ends KILLED instead of staying RUNNING. A sweep driver running jobs in-process keeps
     # its own handler (cli.callbacks), which also ends the parent run.
-    from sdrl_bench.cli.build import JOB_TAG, build_fit_job, config_key, exit_after_stop_signal  # noqa: PLC0415
+    from sdrl_bench.cli.build import JOB_TAG, build_fit_job, check_task, config_key, exit_after_stop_signal  # noqa: PLC0415
 
     if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
         raise_on_stop_signals()
@@ -140,8 +140,7 @@ def app(cfg: DictConfig) -> float:
             pack = HydraConfig.get().runtime.choices.get("experiment")
             if pack and pack != "null":
                 tags["sdrl.experiment"] = str(pack)
-        if cfg.task not in ("fit", "train", "dyna", "fidelity"):
-            raise ConfigError(f"task: {cfg.task!r} is not one of 'fit', 'train', 'dyna', 'fidelity'")
+        check_task(cfg)
         fit_job = build_fit_job(cfg)  # validates the config before anything else
         if parent is not None and key and cfg.get("resume", True):
             done = adopt_finished_job(cfg, parent, tags)

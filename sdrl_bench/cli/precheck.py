@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import difflib
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from sdrl_bench import ConfigError
@@ -102,9 +102,13 @@ def _one_line(exc: BaseException, overrides: Sequence[str], compose) -> str:
     return " ".join(text.split())
 
 
-def check_command_line(argv: Sequence[str], config_name: str) -> None:
+def check_command_line(argv: Sequence[str], config_name: str, check_job: Callable | str | None = None) -> None:
     """Raise a one-line ``ConfigError`` for what Hydra would reject in ``argv`` (see the module
-    docstring); return quietly when Hydra only prints help or info."""
+    docstring); return quietly when Hydra only prints help or info. For a ``-m`` sweep,
+    ``check_job`` (a callable or ``"module:name"``, given each job's composed config and
+    overrides) runs too: a job's own check before the sweep's parent run exists."""
+    import importlib
+
     from hydra import compose, initialize_config_module
     from hydra._internal.utils import get_args_parser
     from hydra.core.global_hydra import GlobalHydra
@@ -130,13 +134,15 @@ def check_command_line(argv: Sequence[str], config_name: str) -> None:
         with initialize_config_module(config_module="sdrl_bench.conf", version_base="1.3"):
             return compose(config_name=name, overrides=extra)
 
-    uris, storages = [], []
+    uris, storages, jobs = [], [], []
     try:
         for overrides in _variants(parsed):
             cfg = composed(overrides)
+            _resolve(cfg)
             uris.append(OmegaConf.select(cfg, "tracking.uri", default=None))
             if OmegaConf.select(cfg, "study", default=None) is not None:  # sdrl-bench-search
                 storages.append(OmegaConf.select(cfg, "study.storage", default=None))
+            jobs.append((cfg, overrides))
     except ConfigError:
         raise
     except Exception as exc:
@@ -144,6 +150,28 @@ def check_command_line(argv: Sequence[str], config_name: str) -> None:
     finally:
         GlobalHydra.instance().clear()
     _check_stores(uris, storages)
+    if args.multirun and check_job is not None:
+        if isinstance(check_job, str):
+            module, _, name = check_job.partition(":")
+            check_job = getattr(importlib.import_module(module), name)
+        for cfg, overrides in jobs:
+            check_job(cfg, overrides)
+
+
+def _resolve(cfg) -> None:
+    """Every interpolation of ``cfg`` resolved once: a key that is missing is one line naming the
+    key that refers to it (Hydra would print a traceback when the job reads it). Those of Hydra's
+    own resolvers (``${hydra:...}``) resolve inside the running app only, and are left to it."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import InterpolationResolutionError
+
+    try:
+        OmegaConf.to_container(cfg, resolve=True)
+    except InterpolationResolutionError as exc:
+        text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        if "hydra" in text.lower():
+            return
+        raise ConfigError(f"{getattr(exc, 'full_key', None) or '?'}: {text}") from None
 
 
 def _check_stores(uris, storages=()) -> None:
@@ -166,15 +194,16 @@ def _check_stores(uris, storages=()) -> None:
         tracking.check_store(url, key="study.storage")
 
 
-def run_checked(app, config_name: str, prog: str) -> None:
+def run_checked(app, config_name: str, prog: str, check_job: Callable | str | None = None) -> None:
     """An entry point: the command line checked first (``check_command_line``: one line on
-    stderr and exit 2 for a bad override, key, group option, YAML file or damaged store), then
-    the Hydra ``app``: a callable, or ``"module:name"``, imported only after the check."""
+    stderr and exit 2 for a bad override, key, group option, YAML file or damaged store, and for
+    a sweep a bad job), then the Hydra ``app``: a callable, or ``"module:name"``, imported only
+    after the check."""
     import importlib
     import sys
 
     try:
-        check_command_line(sys.argv[1:], config_name)
+        check_command_line(sys.argv[1:], config_name, check_job)
     except ConfigError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)
         sys.exit(2)

@@ -10,7 +10,7 @@ import tempfile
 
 from omegaconf import DictConfig, OmegaConf
 
-from sdrl_bench import tracking
+from sdrl_bench import ConfigError, tracking
 from sdrl_bench.cli.build import build_transfer_job, int_key, real_arm_key, run_label
 from sdrl_bench.rl.transfer import TransferJob, run_transfer
 from sdrl_bench.tracking.transfer import RunRecorder
@@ -53,7 +53,10 @@ def prepare(cfg: DictConfig, job):
     if compiled:  # before anything creates JAX's backend (the job's check may)
         from sdrl_bench.rl.jax_agent import size_cpu_pool
 
-        size_cpu_pool(jax_threads)
+        try:
+            size_cpu_pool(jax_threads)
+        except ImportError as exc:  # the [jax] extra missing: the agent's check would say the same
+            raise ConfigError(f"agent.algo: {exc}") from None
     checked = job.check()
     if cfg.get("jax_cache_dir") and compiled:
         from sdrl_bench.rl.jax_agent import use_compilation_cache

@@ -45,6 +45,7 @@ def test_unknown_group_option_fails_at_composition(new_store, tmp_path, override
      "rl.surrogate_stepz: unknown config key; did you mean rl.surrogate_steps? (to add a new key: +rl.surrogate_stepz=...)"),
     (["-m", "library=polynomial,splines"], "library=splines: no such option of 'library' (options: "),
     (["seed=[1"], "seed=[1: cannot parse this override (no viable alternative at input '[1')"),
+    (["optimizer.threshold=${env.nope}"], "optimizer.threshold: Interpolation key 'env.nope' not found"),
 ])
 def test_unknown_keys_options_and_bad_overrides_are_one_line(new_store, tmp_path, args, line):
     """Checked before Hydra runs: one line naming the key (and the nearest valid one), exit 2,
@@ -55,6 +56,41 @@ def test_unknown_keys_options_and_bad_overrides_are_one_line(new_store, tmp_path
     lines = res.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"sdrl-bench: error: {line}"), res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == [] and no_running_runs(store) == 0
+
+
+@pytest.mark.parametrize("args,line", [
+    (["seed=0,1", "collector.epsilon=2"], "collector.epsilon must be within [0.0, 1.0], got 2"),
+    (["seed=0,-1"], "seed must be >= 0, got -1"),
+    (["experiment=quick_mountain_car", "agent=dqn", "seed=0,1"],
+     "agent=dqn: DQN needs discrete actions but env 'mountain_car' has continuous (Box) actions"),
+    (["experiment=dyna_mountain_car", "seed=0,1", "rl.dyna.max_rounds=0"],
+     "rl.dyna.max_rounds: a positive integer is required, got 0"),
+])
+def test_a_sweeps_bad_job_is_one_line_before_the_sweep_starts(new_store, tmp_path, args, line):
+    """``-m``: each job's own check (``cli.build.check_job``) runs in the driver first, so a bad
+    value, in any of a sweep's values, is one line and exit 2 with no Hydra folder, no store and
+    no parent run (before, the sweep started, its jobs failed, and a FAILED parent was left)."""
+    res = run_cli("-m", *args, f"tracking.uri={new_store}", cwd=tmp_path)
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"sdrl-bench: error: {line}"), res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_a_compiled_agent_without_the_jax_extra_is_one_line(store, tmp_path):
+    """The compiled agents need the ``[jax]`` extra; where jax cannot be imported (made so here,
+    installed or not) a run says so in one line naming ``agent.algo``, exit 2, before any run."""
+    import subprocess
+    import sys
+
+    script = ("import sys; sys.modules['jax'] = None; sys.argv = ['sdrl-bench', *sys.argv[1:]]; "
+              "from sdrl_bench.cli.main import main; main()")
+    res = subprocess.run([sys.executable, "-c", script, "experiment=quick_mountain_car", "agent=sac_jax",
+                          f"tracking.uri={store}"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == [
+        "sdrl-bench: error: agent.algo: sdrl_bench.rl.jax_ppo needs jax, an optional extra: pip install 'sdrl-bench[jax]'"]
+    assert no_running_runs(store) == 0
 
 
 def test_a_yaml_syntax_error_in_a_users_config_is_one_line_with_file_and_line(store, tmp_path):
