@@ -26,7 +26,7 @@ from sdrl_bench.data import Transitions, collect, heuristic_policy, held_out_tes
 from sdrl_bench.envs.lunar_lander import LunarLanderSpec
 from sdrl_bench.envs.lunar_lander.own_data import search_legs
 from sdrl_bench.envs.lunar_lander.task import LanderRules
-from sdrl_bench.surrogate.env import load_model
+from sdrl_bench.models.base import load_model
 from sdrl_bench.surrogate.fidelity import surrogate_fidelity
 
 FIELDS = ("states", "actions", "rewards", "next_states", "terminated", "truncated", "episode", "step")

@@ -218,7 +218,7 @@ def fidelity_blocks(runs: Sequence[Mapping[str, Any]], folder, link) -> list:
     from sdrl_bench.report.render import Cell, Heading, Image, Para, Table
     from sdrl_bench.rl.fidelity_study import CANDIDATES, NEEDS_POLICY
 
-    out: list = [Heading(2, "6. Which fidelity predicts transfer (not in the paper)")]
+    out: list = [Heading(2, "7. Which fidelity predicts transfer (not in the paper)")]
     df = points(runs)
     if df.empty:
         out.append(Para("Fidelity study: not run (no finished `task=fidelity` surrogates; "

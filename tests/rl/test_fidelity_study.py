@@ -68,7 +68,7 @@ def test_a_cluster_scores_each_surrogate_and_counts_its_real_steps(store, capsys
 
     res = build_report(ReportInput(store), "r", tmp_path, log_run=False)
     text = (res.folder / "report.md").read_text()
-    assert "## 6. Which fidelity predicts transfer" in text
+    assert "## 7. Which fidelity predicts transfer" in text
     assert "mountain_car: 3 surrogates in 1 clusters" in text
     assert "Selecting on a metric: not run" in text
     assert (res.folder / "figures" / "fidelity_mountain_car.png").stat().st_size > 10_000
