@@ -140,6 +140,9 @@ def check_command_line(argv: Sequence[str], config_name: str, check_job: Callabl
             cfg = composed(overrides)
             _resolve(cfg)
             uris.append(OmegaConf.select(cfg, "tracking.uri", default=None))
+            experiment = OmegaConf.select(cfg, "tracking.experiment", default="")
+            if not isinstance(experiment, str) or not experiment.strip():
+                raise ConfigError(f"tracking.experiment: an experiment name is required, got {experiment!r}")
             if OmegaConf.select(cfg, "study", default=None) is not None:  # sdrl-bench-search
                 storages.append(OmegaConf.select(cfg, "study.storage", default=None))
             jobs.append((cfg, overrides))
@@ -175,11 +178,11 @@ def _resolve(cfg) -> None:
 
 
 def _check_stores(uris, storages=()) -> None:
-    """``tracking.uri`` and a search's ``study.storage`` must be strings, and a local SQLite
-    file the command would write (the MLflow store, the Optuna study's) is checked as the run
-    checks it (``tracking.check_store``: read-only, milliseconds), so that a damaged one is
-    named in about a second, not after the job's imports and validation (9-11 s for an RL
-    experiment, 8-12 s for a search, measured)."""
+    """``tracking.uri`` and a search's ``study.storage`` must be strings, and each store is
+    checked (``tracking.check_store``: a local SQLite file read-only, in milliseconds; a
+    tracking server asked once for its health), so that a damaged, misplaced or unreachable one
+    is named in about a second, not after the job's imports and validation (9-11 s for an RL
+    experiment, 8-12 s for a search, measured) or MLflow's minutes of retries."""
     from sdrl_bench import tracking
     from sdrl_bench.search.location import resolve_storage
 
@@ -188,10 +191,13 @@ def _check_stores(uris, storages=()) -> None:
         for u in values:
             if u is not None and not isinstance(u, str):
                 raise ConfigError(f"{key}: a URI is required ({forms}), got {u!r}")
-    for uri in dict.fromkeys(tracking.resolve_uri(u) for u in uris):
-        tracking.check_store(uri)
+    mlflow_uris = list(dict.fromkeys(tracking.resolve_uri(u) for u in uris))
+    for uri in mlflow_uris:
+        tracking.check_store(uri, reach=True)
     for url in dict.fromkeys(resolve_storage(u) for u in storages):
-        tracking.check_store(url, key="study.storage")
+        if url in mlflow_uris:
+            raise ConfigError(f"study.storage: {url} is the MLflow store (tracking.uri); give the study its own file")
+        tracking.check_store(url, key="study.storage", kind="optuna")
 
 
 def run_checked(app, config_name: str, prog: str, check_job: Callable | str | None = None) -> None:

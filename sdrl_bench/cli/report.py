@@ -48,7 +48,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         tags = _parse_tags(args.tag)
         uri = tracking.resolve_uri(args.uri)
-        tracking.check_store(uri, "--uri" if args.uri else "tracking.uri")
+        tracking.check_store(uri, "--uri" if args.uri else "tracking.uri", reach=True)
         from sdrl_bench.report.build import ReportInput, build_report  # noqa: PLC0415  (see the imports above)
 
         ui = args.ui_url or (uri if uri.startswith(("http://", "https://")) else None)  # a server serves its own UI

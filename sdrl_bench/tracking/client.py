@@ -11,6 +11,7 @@ import functools
 import logging
 import os
 import platform
+import re
 import socket
 import subprocess
 import tempfile
@@ -113,37 +114,85 @@ def store_lock(db: Path) -> Iterator[None]:
             fcntl.flock(fh, fcntl.LOCK_UN)
 
 
-_INTACT: dict[Path, tuple[int, int]] = {}
+_INTACT: dict[tuple[Path, str], tuple[int, int]] = {}
+
+_MLFLOW_SCHEMES = re.compile(r"^(sqlite|https?|file|databricks|databricks-uc|uc|postgresql|mysql|mssql)(\+[\w-]+)?$")
+_OTHER_KIND = {  # tables that mark a SQLite file as the other tool's: MLflow's store, an Optuna study's
+    "mlflow": ({"studies", "trials"}, {"experiments", "runs"}, "an Optuna study storage, not an MLflow store"),
+    "optuna": ({"experiments", "runs"}, {"studies"}, "an MLflow tracking store, not an Optuna study storage"),
+}
 
 
-def check_store(uri: str, key: str = "tracking.uri") -> None:
-    """``check_integrity`` on the SQLite file behind ``uri``; nothing for a server's URI."""
+def check_store(uri: str, key: str = "tracking.uri", kind: str = "mlflow", reach: bool = False) -> None:
+    """What can be told of the store at ``uri`` before a job's libraries load, each failure a
+    ConfigError naming ``key`` (where the user gave the URI): a local SQLite file that is a folder,
+    damaged, or the other tool's (``kind``: ``mlflow`` or ``optuna``; each would add its tables to
+    the other's file), an in-memory SQLite URI (its runs would be lost when the process ends), a
+    scheme MLflow has no store for, and with ``reach`` a tracking server that does not answer
+    (MLflow's client would retry it for minutes)."""
+    if uri in ("sqlite://", "sqlite:///:memory:") or uri.startswith("sqlite:///:memory:"):
+        raise ConfigError(f"{key}: {uri} is an in-memory store, lost when the process ends; give a file "
+                          "(sqlite:///<file>)")
     local = sqlite_path(uri)
     if local is not None:
-        check_integrity(local, key)
+        if local.is_dir():
+            raise ConfigError(f"{key}: {local} is a folder, not an SQLite file")
+        check_integrity(local, key, kind)
+        return
+    scheme = uri.split("://", 1)[0] if "://" in uri else ""
+    if kind == "mlflow" and scheme and not _MLFLOW_SCHEMES.match(scheme):
+        raise ConfigError(f"{key}: MLflow has no store for '{scheme}://' (sqlite:///<file>, http://<host>:<port>, "
+                          "or a database URL)")
+    if kind == "mlflow" and reach and scheme in ("http", "https"):
+        _check_reachable(uri, key)
 
 
-def check_integrity(db: Path, key: str = "tracking.uri") -> None:
-    """SQLite's own integrity check on an existing store (milliseconds at these sizes); a file
-    that is not a database, or a damaged one, is a ConfigError naming it (after ``key``, where
-    the user gave it). A file found intact is not read again in this process while its size and
-    modification time stay the same (the command line's check, then the run's)."""
+def _check_reachable(uri: str, key: str, timeout: float = 10.0) -> None:
+    """A tracking server's ``/health`` asked once: any HTTP answer (an error status included: a
+    proxy or a hosted server may answer other paths only) counts as reached; no answer within
+    ``timeout`` seconds, a refused connection or an unknown host is a ConfigError. Hand-written
+    with urllib because MLflow's client retries a dead server with backoff for minutes."""
+    import urllib.error
+    import urllib.request
+
+    try:
+        with urllib.request.urlopen(uri.rstrip("/") + "/health", timeout=timeout):
+            return
+    except urllib.error.HTTPError:
+        return
+    except (urllib.error.URLError, OSError, ValueError) as exc:
+        reason = getattr(exc, "reason", None) or exc
+        raise ConfigError(f"{key}: the tracking server at {uri} does not answer ({reason}); start it, or fix "
+                          "the URI") from None
+
+
+def check_integrity(db: Path, key: str = "tracking.uri", kind: str = "mlflow") -> None:
+    """SQLite's own integrity check on an existing store (milliseconds at these sizes), and its
+    tables read to tell an MLflow store from an Optuna study storage (``kind``, what ``key``
+    should hold); a file that is not a database, a damaged one, or the other tool's, is a
+    ConfigError naming it (after ``key``, where the user gave it). A file found good is not read
+    again in this process while its size and modification time stay the same (the command
+    line's check, then the run's)."""
     import sqlite3
 
     if not db.is_file():
         return
     st = db.stat()
-    if st.st_size == 0 or _INTACT.get(db) == (st.st_size, st.st_mtime_ns):
+    if st.st_size == 0 or _INTACT.get((db, kind)) == (st.st_size, st.st_mtime_ns):
         return
     try:
         with contextlib.closing(sqlite3.connect(f"file:{db}?mode=ro", uri=True, timeout=30.0)) as con:
             rows = [r[0] for r in con.execute("PRAGMA integrity_check").fetchall()]
+            tables = {r[0] for r in con.execute("SELECT name FROM sqlite_master WHERE type = 'table'")}
     except sqlite3.Error as exc:
         raise ConfigError(f"{key}: {db} is not a usable SQLite store ({exc}); move it aside or restore it") from None
     if rows != ["ok"]:
         raise ConfigError(f"{key}: {db} is damaged (SQLite integrity check: {rows[0][:160]}); "
                           "move it aside or restore it")
-    _INTACT[db] = (st.st_size, st.st_mtime_ns)
+    other, own, what = _OTHER_KIND[kind]
+    if other <= tables and not own & tables:
+        raise ConfigError(f"{key}: {db} is {what}; give another file")
+    _INTACT[(db, kind)] = (st.st_size, st.st_mtime_ns)
 
 
 def use_wal(db: Path) -> bool:

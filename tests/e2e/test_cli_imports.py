@@ -126,6 +126,68 @@ def test_a_study_storage_that_is_not_a_string_is_one_line(tmp_path):
         "journal:<file>), got 5"]
 
 
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+@pytest.mark.parametrize("case", ["folder", "no server", "scheme", "in memory", "no experiment", "optuna's file"])
+def test_a_store_that_cannot_serve_is_named_before_the_heavy_libraries_load(tmp_path, case):
+    """A tracking store that is a folder, a server that does not answer (MLflow's client retried
+    it for minutes; a folder took about 2), a scheme MLflow has no store for (a traceback), an
+    in-memory SQLite store (its runs lost at exit), an empty experiment name (a traceback), an
+    Optuna study's file (MLflow would add its tables to it): one line, exit 2, nothing loaded."""
+    if case == "folder":
+        (tmp_path / "store.db").mkdir()
+        args, line = ["tracking.uri=sqlite:///store.db"], f"tracking.uri: {tmp_path / 'store.db'} is a folder, not an SQLite file"
+    elif case == "no server":
+        port = _free_port()
+        args = [f"tracking.uri=http://127.0.0.1:{port}"]
+        line = (f"tracking.uri: the tracking server at http://127.0.0.1:{port} does not answer ([Errno 111] Connection "
+                "refused); start it, or fix the URI")
+    elif case == "scheme":
+        args = ["tracking.uri=foo://bar"]
+        line = "tracking.uri: MLflow has no store for 'foo://' (sqlite:///<file>, http://<host>:<port>, or a database URL)"
+    elif case == "in memory":
+        args = ["tracking.uri=sqlite://"]
+        line = "tracking.uri: sqlite:// is an in-memory store, lost when the process ends; give a file (sqlite:///<file>)"
+    elif case == "no experiment":
+        args, line = ["tracking.experiment="], "tracking.experiment: an experiment name is required, got ''"
+    else:
+        import optuna
+
+        optuna.storages.RDBStorage(f"sqlite:///{tmp_path / 'study.db'}")
+        args = ["tracking.uri=sqlite:///study.db"]
+        line = f"tracking.uri: {tmp_path / 'study.db'} is an Optuna study storage, not an MLflow store; give another file"
+    before = sorted(p.name for p in tmp_path.iterdir())
+    got = run([*args, "experiment=quick_mountain_car"], tmp_path)
+    assert got["code"] == 2 and got["modules"] == [], got["stderr"][-2000:]
+    assert got["stderr"].strip().splitlines() == [f"sdrl-bench: error: {line}"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == before
+
+
+def test_the_search_refuses_the_mlflow_store_as_its_study_storage(tmp_path, made_store_file):
+    """Optuna would add its tables to MLflow's file (and name a version mismatch): one line."""
+    import shutil
+
+    (tmp_path / "mlruns").mkdir()
+    shutil.copyfile(made_store_file, tmp_path / "mlruns" / "other.db")
+    before = (tmp_path / "mlruns" / "other.db").read_bytes()
+    for storage, line in [
+        ("sqlite:///mlruns/mlflow.db", f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'} is the MLflow store (tracking.uri); "
+                                       "give the study its own file"),
+        ("sqlite:///mlruns/other.db", f"{tmp_path / 'mlruns' / 'other.db'} is an MLflow tracking store, not an Optuna "
+                                      "study storage; give another file"),
+    ]:
+        got = run([f"study.storage={storage}"], tmp_path, SEARCH, "sdrl-bench-search", HEAVY + ("optuna",))
+        assert got["code"] == 2 and got["modules"] == [], got["stderr"][-2000:]
+        assert got["stderr"].strip().splitlines() == [f"sdrl-bench-search: error: study.storage: {line}"]
+    assert (tmp_path / "mlruns" / "other.db").read_bytes() == before
+
+
 def test_the_report_names_a_damaged_store_before_the_heavy_libraries_load(tmp_path):
     db = tmp_path / "mlruns" / "mlflow.db"
     db.parent.mkdir()
