@@ -12,6 +12,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from collections.abc import Sequence
 
@@ -92,13 +93,31 @@ def _episode_cut(value: Any) -> int | None:
     return value
 
 
-def int_key(cfg: DictConfig, key: str, minimum: int | None = None) -> int:
+def int_key(cfg: DictConfig, key: str, minimum: int | None = None, maximum: int | None = None) -> int:
     """The integer at ``key`` (``1.5``, ``abc`` and ``true`` are refused, not truncated)."""
     value = OmegaConf.select(cfg, key)
     if isinstance(value, bool) or not isinstance(value, int):
         raise ConfigError(f"{key}: an integer is required, got {value!r}")
     if minimum is not None and value < minimum:
         raise ConfigError(f"{key} must be >= {minimum}, got {value}")
+    if maximum is not None and value > maximum:
+        raise ConfigError(f"{key} must be <= {maximum}, got {value}")
+    return value
+
+
+SEED_MAX = 2**32 - 1
+"""The largest run seed: numpy's legacy seeding and SB3's take 32-bit seeds."""
+
+
+def seed_key(cfg: DictConfig) -> int:
+    return int_key(cfg, "seed", minimum=0, maximum=SEED_MAX)
+
+
+def bool_key(cfg: DictConfig, key: str) -> bool:
+    """The true or false at ``key`` (``abc`` is refused, not read as true)."""
+    value = OmegaConf.select(cfg, key)
+    if not isinstance(value, bool):
+        raise ConfigError(f"{key}: true or false is required, got {value!r}")
     return value
 
 
@@ -137,7 +156,7 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
         LibraryPart(instantiate_key(p.library, f"library.parts[{i}].library"), _inputs(p.get("inputs", "all")))
         for i, p in enumerate(cfg.library.parts)
     )
-    seed = int_key(cfg, "seed", minimum=0)
+    seed = seed_key(cfg)
     n_transitions = int_key(cfg, "n_transitions", minimum=1)
     epsilon = float_key(cfg, "collector.epsilon", 0.0, 1.0)
     opt_cfg = OmegaConf.to_container(cfg.optimizer, resolve=True)
@@ -155,7 +174,7 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
         max_steps_per_episode=_episode_cut(cfg.collector.get("max_steps_per_episode")),
         seed=seed,
         dataset_path=cfg.dataset.path,
-        exclude_bound_transitions=bool(cfg.dataset.exclude_bound_transitions),
+        exclude_bound_transitions=bool_key(cfg, "dataset.exclude_bound_transitions"),
         surrogate=str(cfg.surrogate.kind),
         model_factory=model_factory,
         tuning_real_steps=int_key(cfg, "surrogate.tuning_real_steps", minimum=0) if "tuning_real_steps" in cfg.surrogate else 0,
@@ -174,6 +193,8 @@ def build_transfer_job(cfg: DictConfig, fit_job) -> TransferJob:
 
     agent = instantiate_key(cfg.agent, "agent")
     rl = cfg.rl
+    if isinstance(rl.arms, str) or rl.arms is None:
+        raise ConfigError(f"rl.arms: a list is required (e.g. rl.arms=[surrogate] or rl.arms=[surrogate,real]), got {rl.arms!r}")
     arms = tuple(str(a) for a in rl.arms)
     steps = {k: int_key(cfg, f"rl.{k}") for k in ("surrogate_steps", "real_steps", "eval_every", "eval_episodes",
                                                    "final_episodes")}
@@ -181,7 +202,7 @@ def build_transfer_job(cfg: DictConfig, fit_job) -> TransferJob:
     if not isinstance(stop, bool):
         raise ConfigError(f"rl.stop_when_solved: true or false, got {stop!r}")
     confirm = int_key(cfg, "rl.confirm_episodes", minimum=0) if "confirm_episodes" in rl else 0
-    return TransferJob(fit=fit_job, agent=agent, arms=arms, seed=int_key(cfg, "seed", minimum=0),
+    return TransferJob(fit=fit_job, agent=agent, arms=arms, seed=seed_key(cfg),
                        progress_bar=bool(cfg.progress_bar), stop_when_solved=stop, confirm_episodes=confirm, **steps)
 
 
@@ -202,7 +223,7 @@ def build_dyna_job(cfg: DictConfig, fit_job: FitJob) -> DynaJob:
     dyna = DynaConfig(**values)
     dyna.check()
     agent = instantiate_key(cfg.agent, "agent")
-    return DynaJob(fit=fit_job, agent=agent, dyna=dyna, seed=int_key(cfg, "seed", minimum=0))
+    return DynaJob(fit=fit_job, agent=agent, dyna=dyna, seed=seed_key(cfg))
 
 
 TASKS = ("fit", "train", "dyna", "fidelity")
@@ -211,6 +232,18 @@ TASKS = ("fit", "train", "dyna", "fidelity")
 def check_task(cfg: DictConfig) -> None:
     if cfg.task not in TASKS:
         raise ConfigError(f"task: {cfg.task!r} is not one of {', '.join(repr(t) for t in TASKS)}")
+
+
+def check_run_keys(cfg: DictConfig) -> tuple[int, int]:
+    """The process settings of an RL task (train, dyna, fidelity), whatever its agent:
+    ``(torch_threads, jax_threads)``; ``rl.reuse_real_arm`` a boolean; ``jax_cache_dir`` not a file."""
+    threads = int_key(cfg, "torch_threads", minimum=1), int_key(cfg, "jax_threads", minimum=0)
+    if "reuse_real_arm" in cfg.get("rl", {}):
+        bool_key(cfg, "rl.reuse_real_arm")
+    cache = cfg.get("jax_cache_dir")
+    if cache and Path(cache).exists() and not Path(cache).is_dir():
+        raise ConfigError(f"jax_cache_dir: {cache} is a file, not a folder")
+    return threads
 
 
 def check_job(cfg: DictConfig, overrides: Sequence[str] = ()) -> None:
@@ -226,7 +259,7 @@ def check_job(cfg: DictConfig, overrides: Sequence[str] = ()) -> None:
     if cfg.task == "fit":
         check(fit_job)
         return
-    int_key(cfg, "jax_threads", minimum=0)
+    check_run_keys(cfg)
     if cfg.task == "train":
         build_transfer_job(cfg, fit_job).check()
     elif cfg.task == "dyna":

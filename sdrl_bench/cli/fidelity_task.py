@@ -20,7 +20,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from sdrl_bench import ConfigError, tracking
 from sdrl_bench.cli.callbacks import CONFIG_KEY_TAG
-from sdrl_bench.cli.build import build_fit_job, compose, config_key, instantiate_key, int_key, run_label
+from sdrl_bench.cli.build import build_fit_job, compose, config_key, instantiate_key, int_key, run_label, seed_key
 from sdrl_bench.rl.fidelity_study import ClusterJob, Variant, collect_cluster, score_variant
 
 POINT_TAG = "sdrl.fidelity_point"
@@ -30,7 +30,7 @@ POINT_TAG = "sdrl.fidelity_point"
 def cluster_axes(cfg: DictConfig) -> dict[str, object]:
     """The cluster's data settings, chosen by its seed from ``fidelity.axes`` (a full factorial)."""
     axes = cfg.fidelity.axes
-    seed = int_key(cfg, "seed", minimum=0)
+    seed = seed_key(cfg)
     out, div = {}, 1
     for key in ("n_transitions", "collector", "data_noise"):
         values = list(OmegaConf.to_container(axes[key], resolve=True)) if key in axes else []
@@ -77,7 +77,7 @@ def build_cluster(cfg: DictConfig, given: list[str] | None = None) -> tuple[Clus
         agent_seeds=int_key(cfg, "fidelity.agent_seeds", 1), final_episodes=int_key(cfg, "fidelity.final_episodes", 1),
         onpolicy_episodes=int_key(cfg, "fidelity.onpolicy_episodes", 0), reference=reference, reference_name=ref,
         reference_episodes=int_key(cfg, "fidelity.reference_episodes", 1),
-        data_noise=float(axes["data_noise"]), seed=int_key(cfg, "seed", minimum=0),
+        data_noise=float(axes["data_noise"]), seed=seed_key(cfg),
     )
     return job, axes, cfgs
 

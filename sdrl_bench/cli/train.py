@@ -11,7 +11,7 @@ import tempfile
 from omegaconf import DictConfig, OmegaConf
 
 from sdrl_bench import ConfigError, tracking
-from sdrl_bench.cli.build import build_transfer_job, int_key, real_arm_key, run_label
+from sdrl_bench.cli.build import bool_key, build_transfer_job, check_run_keys, real_arm_key, run_label
 from sdrl_bench.rl.transfer import TransferJob, run_transfer
 from sdrl_bench.tracking.transfer import RunRecorder
 
@@ -36,7 +36,7 @@ def run_train(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict[str
         exp_id = tracking.ensure_experiment(uri, cfg.tracking.experiment)
         _start_banner(run_name, run.run_id, uri, exp_id, job)
         recorder = RunRecorder(run, cfg.tracking.experiment, key, tmp)
-        outcome = run_transfer(job, checked, recorder, reuse_real_arm=bool(cfg.rl.reuse_real_arm))
+        outcome = run_transfer(job, checked, recorder, reuse_real_arm=bool_key(cfg, "rl.reuse_real_arm"))
         tracking.set_description(run, _description(outcome.summary, job, outcome.model_text))
     _print(outcome.summary, uri, run.run_id, job, outcome.model_text, exp_id)
     return outcome.summary
@@ -47,8 +47,8 @@ def prepare(cfg: DictConfig, job):
     store checked writable, before any env step or run (task=train and task=dyna)."""
     import torch
 
-    torch.set_num_threads(int(cfg.torch_threads))
-    jax_threads = int_key(cfg, "jax_threads", minimum=0)  # checked whatever the agent
+    torch_threads, jax_threads = check_run_keys(cfg)  # checked whatever the agent
+    torch.set_num_threads(torch_threads)
     compiled = bool(getattr(getattr(job.agent.algo, "func", None), "USES_JAX", False))  # rl.jax_agent's agents
     if compiled:  # before anything creates JAX's backend (the job's check may)
         from sdrl_bench.rl.jax_agent import size_cpu_pool

@@ -1,0 +1,65 @@
+"""What a job checks before its run exists (``cli.build.check_job``, the same checks a run makes
+and a ``-m`` sweep's driver makes for each job): settings an audit found unchecked, each one line
+naming the key, where before they failed mid-training with a traceback (an SB3 learning rate of
+-1, a batch size "abc", a setting SAC does not have), trained anyway (a compiled PPO's negative
+learning rate), or were read as true ("maybe")."""
+
+from __future__ import annotations
+
+import importlib.util
+
+import pytest
+
+from helpers import compose_cfg
+from sdrl_bench import ConfigError
+from sdrl_bench.cli.build import check_job
+
+QUICK = ("experiment=quick_mountain_car", "rl.arms=[surrogate]")
+
+
+@pytest.mark.parametrize("overrides, line", [
+    (("agent.algo.learning_rate=-1",), "agent.algo.learning_rate: a number > 0 is required, got -1"),
+    (("agent.algo.batch_size=abc",), "agent.algo.batch_size: an integer >= 1 is required, got 'abc'"),
+    (("agent.algo.batch_size=1.5",), "agent.algo.batch_size: an integer >= 1 is required, got 1.5"),
+    (("agent.algo.gamma=1.5",), "agent.algo.gamma: a number > 0 and <= 1 is required, got 1.5"),
+    (("agent.algo.learning_starts=-3",), "agent.algo.learning_starts: an integer >= 0 is required, got -3"),
+    (("agent.algo.gradient_steps=0",), "agent.algo.gradient_steps: an integer >= 1, or -1, is required, got 0"),
+    (("agent.algo.train_freq=[1,month]",),
+     "agent.algo.train_freq: an integer >= 1, or [n, 'step' | 'episode'], is required, got [1, 'month']"),
+    (("agent.algo.ent_coef=-0.1",), "agent.algo.ent_coef: a number >= 0 or 'auto' is required, got -0.1"),
+    (("+agent.algo.foo=1",), "agent.algo.foo: not a setting of SAC (its settings: policy, learning_rate, "),
+    (("agent.n_envs=abc",), "agent.n_envs: a positive integer is required, got 'abc'"),
+    (("torch_threads=0",), "torch_threads must be >= 1, got 0"),
+    (("torch_threads=abc",), "torch_threads: an integer is required, got 'abc'"),
+    (("seed=99999999999999999999",), "seed must be <= 4294967295, got 99999999999999999999"),
+    (("rl.reuse_real_arm=maybe",), "rl.reuse_real_arm: true or false is required, got 'maybe'"),
+    (("dataset.exclude_bound_transitions=abc",), "dataset.exclude_bound_transitions: true or false is required, got 'abc'"),
+    (("rl.arms=surrogate",), "rl.arms: a list is required (e.g. rl.arms=[surrogate] or rl.arms=[surrogate,real]), got "
+                            "'surrogate'"),
+    (("agent=ppo", "env=lunar_lander", "experiment=paper_lunar_lander", "agent.algo.n_epochs=0"),
+     "agent.algo.n_epochs: an integer >= 1 is required, got 0"),
+])
+def test_a_bad_setting_is_one_line_naming_its_key(overrides, line):
+    with pytest.raises(ConfigError) as err:
+        check_job(compose_cfg(*QUICK, *overrides))
+    assert str(err.value).startswith(line) and "\n" not in str(err.value)
+
+
+def test_a_jax_cache_dir_that_is_a_file_is_refused(tmp_path):
+    (tmp_path / "cache").write_text("")
+    with pytest.raises(ConfigError, match=r"^jax_cache_dir: .*cache is a file, not a folder$"):
+        check_job(compose_cfg(*QUICK, f"jax_cache_dir={tmp_path / 'cache'}"))
+
+
+@pytest.mark.skipif(importlib.util.find_spec("jax") is None, reason="the compiled agents' own check needs the [jax] extra")
+@pytest.mark.jax
+def test_the_compiled_ppo_refuses_a_negative_learning_rate():
+    with pytest.raises(ConfigError, match=r"^agent.algo.learning_rate: a number > 0 is required, got -1$"):
+        check_job(compose_cfg("experiment=fast_mountain_car", "agent=ppo_jax", "agent.algo.learning_rate=-1"))
+
+
+@pytest.mark.parametrize("pack", ["quick_mountain_car", "paper_mountain_car", "paper_lunar_lander", "fast_mountain_car",
+                                  "fast_lunar_lander", "dyna_mountain_car", "dyna_lunar_lander", "real_cartpole_swingup_sac"])
+def test_the_shipped_packs_pass_the_checks(pack):
+    """The domains are not stricter than the recipes the harness ships."""
+    check_job(compose_cfg(f"experiment={pack}"))
