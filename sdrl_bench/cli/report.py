@@ -14,6 +14,7 @@ from pathlib import Path
 from collections.abc import Sequence
 
 from sdrl_bench import ConfigError, tracking
+from sdrl_bench.report.folder import report_files
 
 # The report's builder (report.build: mlflow, pandas, about 4 s of imports) is imported in main,
 # after the arguments and a local store's integrity are checked, so that bad input is answered
@@ -37,7 +38,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--experiment", default="sdrl-bench", help="MLflow experiment (default: sdrl-bench)")
     ap.add_argument("--parent-run", help="only this sweep/study run and its descendants")
     ap.add_argument("--tag", action="append", default=[], metavar="K=V", help="only runs with this tag (repeatable)")
-    ap.add_argument("--name", default="report", help="report folder name under --out")
+    ap.add_argument("--name", default="report", help="report folder name under --out: new, empty or an earlier "
+                                                     "report's (rebuilt in place); one holding other files is refused")
     ap.add_argument("--out", default="reports", type=Path, help="output folder (default: reports/)")
     ap.add_argument("--ui-url", help="MLflow UI base URL: numbers link to their runs there (default: the tracking "
                                      "server's own URL when --uri is a server; none for a local store)")
@@ -49,6 +51,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         tags = _parse_tags(args.tag)
         uri = tracking.resolve_uri(args.uri)
         tracking.check_store(uri, "--uri" if args.uri else "tracking.uri", reach=True)
+        report_files(args.out, args.name)  # a folder holding the user's files: refused before the builder loads
         from sdrl_bench.report.build import ReportInput, build_report  # noqa: PLC0415  (see the imports above)
 
         ui = args.ui_url or (uri if uri.startswith(("http://", "https://")) else None)  # a server serves its own UI

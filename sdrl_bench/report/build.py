@@ -11,8 +11,8 @@ line, and nothing written or logged. Inside sweeps each job's config has a key
 
 from __future__ import annotations
 
+import json
 import math
-import shutil
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -24,6 +24,7 @@ import pandas as pd
 from sdrl_bench import ConfigError, tracking
 from sdrl_bench.report import tables as rt
 from sdrl_bench.report.figures import figure_blocks
+from sdrl_bench.report.folder import clear_earlier_build, record_build, report_files
 from sdrl_bench.report.fidelity_study import fidelity_blocks
 from sdrl_bench.report.render import MISSING, NOT_RUN, Block, Cell, Heading, Para, Table, fmt, render_html, render_markdown
 
@@ -481,7 +482,6 @@ def _ui_sentence(inp: ReportInput) -> str:
 def provenance_blocks(path: Path) -> list[Block]:
     """"How this report was made": the rebuild command (``scripts/reproduce.py``), its seeds and
     jobs, and each stage's commands and measured cost, from the ``rebuild.json`` it writes."""
-    import json
 
     try:
         state = json.loads(path.read_text())
@@ -508,17 +508,19 @@ def provenance_blocks(path: Path) -> list[Block]:
 def build_report(inp: ReportInput, name: str, out_dir: Path, command: str = "sdrl-bench-report",
                  log_run: bool = True, provenance: Path | None = None) -> ReportResult:
     """Write ``out_dir/name/report.md`` and ``report.html`` and, when the experiment exists and
-    ``log_run``, log both (with the figures) as artifacts of a "report" run."""
+    ``log_run``, log both (with the figures) as artifacts of a "report" run. A folder that holds
+    files the report did not write is refused before any work (``report_files``); an earlier
+    build's files are replaced, and those this build does not make are removed."""
     start = time.perf_counter()
-    folder = out_dir / name
-    made = provenance_blocks(provenance) if provenance is not None else []  # bad input fails before any work
+    report_files(out_dir, name)  # bad input fails before any work
+    made = provenance_blocks(provenance) if provenance is not None else []
     runs, problems = select_runs(inp)
     if problems:  # nothing to report: say so, write nothing, log nothing
         raise ConfigError(problems[0])
     runs = latest_per_config(runs)
     problems += rt.missing_metrics(runs)
-    folder.mkdir(parents=True, exist_ok=True)
-    shutil.rmtree(folder / "figures", ignore_errors=True)  # a figure of an earlier build never outlives it
+    folder, earlier, manifest = report_files(out_dir, name)  # again: the runs took seconds to load
+    clear_earlier_build(folder, earlier, manifest)
     link = Linker(runs, inp.ui_url)
     blocks = overview_blocks(inp, runs, problems, command) + made + table_blocks(runs, link)
     blocks += figure_blocks(inp.uri, runs, folder, link.url)
@@ -526,6 +528,7 @@ def build_report(inp: ReportInput, name: str, out_dir: Path, command: str = "sdr
     rt.runs_frame(runs).to_csv(folder / "runs.csv", index=False)
     (folder / "report.md").write_text(render_markdown(blocks, folder))
     (folder / "report.html").write_text(render_html(blocks, f"sdrl-bench report {name}"))
+    record_build(folder)
     run_id = None
     if log_run and inp.experiment in tracking.list_experiments(inp.uri):
         run_id = tracking.log_report(inp.uri, inp.experiment, name, folder, {"report.n_runs": len(runs)})
