@@ -130,6 +130,14 @@ def load_csv(spec: EnvSpec, path: str | Path) -> Transitions:
         raise ConfigError(f"dataset.path: {path} has no rows")
     v = df.to_numpy(dtype=float)
     ns, na = len(spec.state_names), spec.raw_action_width
+    for col, allowed in ((0, "a whole number >= 0"), (1, "a whole number >= 0"),
+                         (3 + ns + na, "0 or 1"), (4 + ns + na, "0 or 1")):  # episode, step, terminated, truncated
+        x = v[:, col]
+        wrong = (x != np.floor(x)) | (x < 0) | ((x > 1) if allowed == "0 or 1" else False)
+        if wrong.any():
+            row = int(np.argmax(wrong))
+            raise ConfigError(f"dataset.path: {path} column '{df.columns[col]}' must be {allowed}, got {x[row]:g} "
+                              f"(data row {row + 1})")
     return Transitions(
         states=v[:, 2 : 2 + ns],
         actions=v[:, 2 + ns : 2 + ns + na],

@@ -122,6 +122,8 @@ def check_command_line(argv: Sequence[str], config_name: str, check_job: Callabl
         return
     name = args.config_name or config_name
     parsed = _parse(args.overrides)
+    if args.config_dir and not Path(args.config_dir).is_dir():
+        raise ConfigError(f"--config-dir: {args.config_dir} is not a folder")
     search = [f"file://{Path(args.config_dir).resolve()}"] if args.config_dir else []
 
     def composed(overrides: Sequence[str]):

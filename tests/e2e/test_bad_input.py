@@ -165,6 +165,26 @@ def test_dataset_with_nan_is_rejected_naming_file_and_column(store, tmp_path):
     assert no_running_runs(store) == 0
 
 
+@pytest.mark.parametrize("column, value, line", [
+    ("episode", 0.5, "column 'episode' must be a whole number >= 0, got 0.5 (data row 4)"),
+    ("step", -1, "column 'step' must be a whole number >= 0, got -1 (data row 4)"),
+    ("terminated", 7, "column 'terminated' must be 0 or 1, got 7 (data row 4)"),
+])
+def test_dataset_bookkeeping_columns_are_checked_not_truncated(store, tmp_path, column, value, line):
+    """An episode 0.5 was read as 0 and terminated 7 as true: now one line naming the column."""
+    path = _dataset(tmp_path, lambda df: df.__setitem__(column, df[column].astype(float).where(df.index != 3, value)))
+    with pytest.raises(ConfigError) as err:
+        run_fit(compose_cfg(f"dataset.path={path}", f"tracking.uri={store}"))
+    assert str(err.value) == f"dataset.path: {path} {line}"
+    assert no_running_runs(store) == 0
+
+
+def test_a_config_dir_that_is_not_a_folder_is_one_line(new_store, tmp_path):
+    res = run_cli("--config-dir", str(tmp_path / "nodir"), f"tracking.uri={new_store}", cwd=tmp_path)
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == [f"sdrl-bench: error: --config-dir: {tmp_path / 'nodir'} is not a folder"]
+
+
 def test_dataset_with_missing_column_is_rejected(store, tmp_path):
     path = _dataset(tmp_path, lambda df: df.drop(columns=["a_0"], inplace=True))
     res = run_cli(f"dataset.path={path}", f"tracking.uri={store}", cwd=tmp_path)
