@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import functools
 import json
+import math
 import signal
 import sys
 from pathlib import Path
@@ -29,7 +30,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
 from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, stop_signal_received, tracking
 from sdrl_bench.cli import CONFIG_PATH
-from sdrl_bench.cli.build import build_fit_job, compose, exit_after_stop_signal
+from sdrl_bench.cli.build import bool_key, build_fit_job, compose, exit_after_stop_signal, float_key, int_key, seed_key
 from sdrl_bench.pipeline import FitJob
 from sdrl_bench.search.refine import run_refinement
 from sdrl_bench.search.study import BuildJob, StudySettings, run_study
@@ -43,17 +44,30 @@ _NOT_CONTEXT = ("search", "study", "tracking", "hydra", "seed", "n_transitions")
 
 
 @functools.lru_cache(maxsize=64)
-def load_group(group: str, name: str) -> DictConfig:
+def _group_option(group: str, name: str) -> DictConfig:
+    return compose([f"{group}={name}"])[group]
+
+
+def load_group(group: str, name: str, key: str | None = None) -> DictConfig:
     """One option of a config group, composed by Hydra from the app's search path (the
     package's configs and any ``--config-dir``), unresolved (cached: a DictConfig assigned
-    into another config is copied, so the cached node never changes)."""
+    into another config is copied, so the cached node never changes). An unknown option is a
+    ``ConfigError`` naming ``key``, the config key that chose it (default: the search space's)."""
     from hydra.errors import MissingConfigException
 
     try:
-        return compose([f"{group}={name}"])[group]
+        return _group_option(group, name)
     except MissingConfigException as exc:
         known = sorted(o for o in (exc.options or []))
-        raise ConfigError(f"search.space.{group}: unknown choice '{name}' (the {group} group has {known})") from None
+        raise ConfigError(f"{key or f'search.space.{group}'}: unknown choice '{name}' (the {group} group has {known})") from None
+
+
+def _config_name(cfg: DictConfig, key: str) -> str:
+    """The config-group option named at ``key`` (a string; a list, a mapping or null is refused)."""
+    value = OmegaConf.select(cfg, key)
+    if isinstance(value, bool) or not isinstance(value, (str, int)) or str(value) == "":
+        raise ConfigError(f"{key}: a config name is required, got {value!r}")
+    return str(value)
 
 
 def make_build_job(cfg: DictConfig) -> BuildJob:
@@ -102,8 +116,18 @@ def _override_values(cfg: DictConfig, searched: set[str]) -> dict[str, Any]:
 
 
 def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings:
-    """Typed settings from the composed config; the space and its choices validated."""
+    """Typed settings from the composed config; the space and its choices validated. Every
+    number is checked here, before any data are collected (``1.5``, ``abc`` and ``true`` for an
+    integer are one-line errors naming the key, never truncated)."""
     sc, st = cfg.search, cfg.study
+    seed = seed_key(cfg)
+    fixed = {"seed": seed, "n_transitions": int_key(cfg, "n_transitions", minimum=1),
+              "collector.epsilon": float_key(cfg, "collector.epsilon", 0.0, 1.0)}
+    k_folds = int_key(cfg, "search.k_folds", minimum=2)
+    n_trials = None if sc.get("n_trials") is None else int_key(cfg, "search.n_trials", minimum=0)
+    study_seed, worker = int_key(cfg, "study.seed", minimum=0), int_key(cfg, "study.worker", minimum=0)
+    heartbeat_interval = int_key(cfg, "study.heartbeat_interval", minimum=1)
+    heartbeat_grace = int_key(cfg, "study.heartbeat_grace", minimum=1)
     space = parse_space(OmegaConf.to_container(sc.space, resolve=True))
     kind = str(cfg.surrogate.get("kind", "sindy"))
     check_model_kind(space, kind)
@@ -119,10 +143,8 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
         # an NN's fit reads no library or optimizer (SINDy's groups): its export names neither
         "choices": {g: v for g, v in choices.items() if g not in searched
                     and not (kind != "sindy" and g in GROUP_PARAMS)},
-        "values": {"seed": int(cfg.seed), "n_transitions": int(cfg.n_transitions),
-                   "collector.epsilon": float(cfg.collector.epsilon), **_override_values(cfg, searched_keys)},
+        "values": {**fixed, **_override_values(cfg, searched_keys)},
     }
-    n_trials = sc.get("n_trials")
     if n_trials is None:
         from sdrl_bench.search.space import grid_values
 
@@ -130,18 +152,18 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
         for values in grid_values(space).values():
             n_trials *= len(values)
     objective = str(sc.get("objective", "one_step"))
-    name = st.name or f"{choices.get('env', 'env')}-{sc.name}-s{cfg.seed}" + ("" if objective == "one_step" else f"-{objective}")
+    name = st.name or f"{choices.get('env', 'env')}-{sc.name}-s{seed}" + ("" if objective == "one_step" else f"-{objective}")
     return StudySettings(
         name=str(name), space=space, storage=st.storage, objectives=tuple(sc.objectives), objective=objective,
-        policy=_policy_probe(cfg, objective),
-        sampler=str(sc.sampler), n_trials=int(n_trials), k_folds=int(sc.k_folds), pruner=str(sc.pruner),
-        seed=int(st.seed), worker=int(st.worker), heartbeat_interval=int(st.heartbeat_interval),
-        heartbeat_grace=int(st.heartbeat_grace), tracking_uri=cfg.tracking.uri,
+        policy=_policy_probe(cfg, objective, seed),
+        sampler=str(sc.sampler), n_trials=n_trials, k_folds=k_folds, pruner=str(sc.pruner),
+        seed=study_seed, worker=worker, heartbeat_interval=heartbeat_interval,
+        heartbeat_grace=heartbeat_grace, tracking_uri=cfg.tracking.uri,
         experiment=str(cfg.tracking.experiment), context=context,
     )
 
 
-def _policy_probe(cfg: DictConfig, objective: str):
+def _policy_probe(cfg: DictConfig, objective: str, seed: int):
     """``search.objective=onpolicy_one_step | reference_gap``: the agent (``agent=...``) and the real
     episodes (``search.policy.*``) it scores each trial with; None for a data objective."""
     from sdrl_bench.fidelity import POLICY_METRICS
@@ -152,18 +174,20 @@ def _policy_probe(cfg: DictConfig, objective: str):
     node = cfg.search.get("policy")
     if node is None:
         raise ConfigError(f"search.objective={objective}: needs search.policy (train_steps, episodes, reference)")
-    from sdrl_bench.cli.build import instantiate_key, int_key
+    from sdrl_bench.cli.build import instantiate_key
 
     ref = str(node.get("reference", "random"))
-    reference = None if ref == "random" else instantiate_key(load_group("collector", ref).policy, "search.policy.reference")
+    reference = None if ref == "random" else instantiate_key(
+        load_group("collector", ref, "search.policy.reference").policy, "search.policy.reference")
     return PolicyProbe(objective, instantiate_key(cfg.agent, "agent"), int_key(cfg, "search.policy.train_steps", 1),
-                       int_key(cfg, "search.policy.episodes", 1), reference, int(cfg.seed), ref)
+                       int_key(cfg, "search.policy.episodes", 1), reference, seed, ref)
 
 
 def run_search(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet: bool = False):
     """Run one worker of the configured study, then summarize it (best, test score, export)."""
     choices = choices or runtime_choices(cfg)
     settings = study_settings(cfg, choices)
+    final_score = bool_key(cfg, "study.final_score")
     build = make_build_job(cfg)
 
     def progress(t) -> None:
@@ -175,7 +199,7 @@ def run_search(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet:
             print(f"[{settings.name} w{settings.worker}] trial {t.number}: {value} {t.params}", flush=True)
 
     result = run_study(settings, build, progress)
-    summary = summarize(result, build, bool(cfg.study.final_score), cfg.study.export_dir)
+    summary = summarize(result, build, final_score, cfg.study.export_dir)
     if not quiet:
         _print_summary(summary, result, cfg.study.export_dir)
     return result, summary
@@ -203,17 +227,27 @@ def run_refine(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet:
     """Residual-guided refinement from ``search.base_library`` with ``search.families``."""
     choices = choices or runtime_choices(cfg)
     sc = cfg.search
+    seed = seed_key(cfg)
+    k_folds = int_key(cfg, "search.k_folds", minimum=2)
+    margin = float_key(cfg, "search.margin")
+    if not 0.0 <= margin < 1.0:
+        raise ConfigError(f"search.margin must be in [0, 1), got {margin}")
+    thresholds = _thresholds(sc.get("thresholds"))
+    label = _config_name(cfg, "search.base_library")
+    base_library = load_group("library", label, "search.base_library")
     build = make_build_job(cfg)
-    base_job = build({"library": str(sc.base_library)})
-    family_cfgs = {str(k): OmegaConf.create({"name": str(k), "parts": v}) for k, v in sc.families.items()}
-    families = {k: _parts(cfg, v) for k, v in family_cfgs.items()}
-    optimizers = [(f"threshold={t:g}", build({"threshold": float(t)}).optimizer) for t in sc.thresholds]
-    name = cfg.study.name or f"{choices.get('env', 'env')}-refine-s{cfg.seed}"
-    base_library = load_group("library", str(sc.base_library))
+    base_job = build({"library": label})
+    families_node = sc.get("families")
+    if not isinstance(families_node, DictConfig):
+        raise ConfigError(f"search.families: a mapping of family name -> library parts is required, got {families_node!r}")
+    family_cfgs = {str(k): OmegaConf.create({"name": str(k), "parts": v}) for k, v in families_node.items()}
+    families = {k: _parts(cfg, v, f"search.families.{k}") for k, v in family_cfgs.items()}
+    optimizers = [(f"threshold={t:g}", build({"threshold": t}).optimizer) for t in thresholds]
+    name = cfg.study.name or f"{choices.get('env', 'env')}-refine-s{seed}"
     out, fit = run_refinement(
-        base_job, families, optimizers, margin=float(sc.margin), seed=int(cfg.seed), k_folds=int(sc.k_folds),
+        base_job, families, optimizers, margin=margin, seed=seed, k_folds=k_folds,
         uri=tracking.resolve_uri(cfg.tracking.uri), experiment=str(cfg.tracking.experiment), name=name,
-        library_label=str(sc.base_library),
+        library_label=label,
         export_library=lambda chosen: _library_yaml(base_library, family_cfgs, chosen, name),
     )
     if not quiet:
@@ -237,17 +271,48 @@ def _fit_config(cfg: DictConfig) -> DictConfig:
     return c
 
 
-def _parts(cfg: DictConfig, library_cfg: DictConfig) -> tuple:
+def _thresholds(value: Any) -> list[float]:
+    """``search.thresholds``: a non-empty list of finite numbers >= 0 (the STLSQ thresholds)."""
+    items = list(value) if isinstance(value, ListConfig) else None
+    if not items or any(isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0
+                        for t in items):
+        raise ConfigError(f"search.thresholds: a non-empty list of finite numbers >= 0 is required, got "
+                          f"{OmegaConf.to_container(value) if isinstance(value, ListConfig) else value!r}")
+    return [float(t) for t in items]
+
+
+def _parts(cfg: DictConfig, library_cfg: DictConfig, key: str) -> tuple:
+    """The library parts of a refinement family (an error names ``key``, not ``library``)."""
+    parts = library_cfg.get("parts")
+    if not isinstance(parts, ListConfig) or not parts:
+        raise ConfigError(f"{key}: a non-empty list of library parts is required, got {parts!r}")
     c = _fit_config(cfg)
     with open_dict(c):
         c.library = library_cfg
-    return build_fit_job(c).library_parts
+    try:
+        return build_fit_job(c).library_parts
+    except ConfigError as exc:
+        message = str(exc)
+        if message.startswith("library.parts["):  # the family's own parts: named by the search's key
+            message = key + message[len("library.parts"):]
+        raise ConfigError(message) from None
 
 
 def _library_yaml(base: DictConfig, families: Mapping[str, DictConfig], chosen, name: str) -> str:
     parts = list(OmegaConf.to_container(base.parts)) + [p for f in chosen for p in OmegaConf.to_container(families[f].parts)]
     body = {"name": name, "parts": parts}
     return f"# Library found by residual-guided refinement '{name}' (copy into a library/ folder of your --config-dir).\n" + yaml.safe_dump(body, sort_keys=False)
+
+
+def study_names(cfg: DictConfig) -> list[str]:
+    """``search=compare``'s ``search.studies``: a non-empty list of study names."""
+    value = cfg.search.get("studies")
+    items = list(value) if isinstance(value, ListConfig) else None
+    if not items or any(isinstance(v, bool) or not isinstance(v, (str, int)) or str(v) == "" for v in items):
+        shown = OmegaConf.to_container(value) if isinstance(value, ListConfig) else value
+        raise ConfigError(f"search.studies: a non-empty list of study names is required "
+                          f"(search.studies=[name1,name2]), got {shown!r}")
+    return [str(v) for v in items]
 
 
 class SearchStorageCallback(Callback):
@@ -280,7 +345,7 @@ def app(cfg: DictConfig) -> float | None:
             out, _ = run_refine(cfg)
             return float(out.final.error)
         if mode == "compare":
-            print(comparison_table(load_summaries(cfg.study.storage, list(cfg.search.studies))))
+            print(comparison_table(load_summaries(cfg.study.storage, study_names(cfg))))
             return None
         if mode != "study":
             raise ConfigError(f"search.mode: 'study', 'refine' or 'compare', got {mode!r}")

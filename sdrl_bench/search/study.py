@@ -16,6 +16,7 @@ stale-trial repair) are one unit that a reader follows top to bottom.
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections import Counter
 from dataclasses import dataclass, field
@@ -160,11 +161,36 @@ def check_settings(s: StudySettings) -> None:
         raise ConfigError("study.heartbeat_interval and study.heartbeat_grace must be >= 1 second")
 
 
-def study_data(job: FitJob, k_folds: int, objective: str = "one_step") -> StudyData:
+def check_space(space: SearchSpace, build_job: BuildJob, env: str, key: str = "search.space") -> None:
+    """Every value a study can give a parameter, checked once against the run's env and the
+    values' domains before any data are collected: each categorical choice and each numeric
+    bound (with the other settings the run's own) builds the fit ``sdrl-bench`` would run and
+    passes ``pipeline.check``, else a one-line ``ConfigError`` naming the ``search.space`` key
+    (instead of every trial failing with the same error). The collector, which no searched
+    parameter changes, is the run's own and checked with it (``run_study``), not per value."""
+    for p in space:
+        if p.kind == "categorical":
+            values = [("choices", c) for c in p.choices or ()]
+        else:
+            values = [("low", p.low), ("high", p.high)]
+        for field_name, value in values:
+            try:
+                check(dataclasses.replace(build_job({p.name: value}), policy=None))
+            except TRIAL_ERRORS as exc:
+                reason = " ".join(str(exc).split()) or type(exc).__name__
+                if not isinstance(exc, ConfigError):
+                    reason = f"{type(exc).__name__}: {reason}"
+                raise ConfigError(f"{key}.{p.name}.{field_name}: {value!r} cannot be fitted on env '{env}': "
+                                  f"{reason}") from None
+
+
+def study_data(job: FitJob, k_folds: int, objective: str = "one_step",
+               checked: tuple[Any, Transitions | None] | None = None) -> StudyData:
     """Collect (or load) the study's data once, as ``pipeline.fit_dynamics`` would (the same
     reset seeds: the data of ``sdrl-bench seed=<study seed>``). A k-step objective needs a
-    validation episode of k transitions in every fold (checked here, before any trial)."""
-    _, loaded = check(job)
+    validation episode of k transitions in every fold (checked here, before any trial).
+    ``checked``: what ``check(job)`` returned, when the caller checked the job already."""
+    _, loaded = checked if checked is not None else check(job)
     data = loaded if loaded is not None else collect(
         job.spec, job.policy or random_policy, job.n_transitions, job.epsilon, seeds.reset_seed(job.seed, "collect"),
         max_steps_per_episode=job.max_steps_per_episode,
@@ -284,6 +310,9 @@ def run_study(
     the first trial starts. Each trial is an MLflow child run of the study's parent run.
     """
     check_settings(settings)
+    base = build_job({})
+    checked = check(base)  # the run's own fit first: a space's value is then the only change
+    check_space(settings.space, build_job, base.spec.name)
     storage_url = resolve_storage(settings.storage)
     uri = tracking.resolve_uri(settings.tracking_uri)
 
@@ -296,7 +325,7 @@ def run_study(
     heartbeat = settings.heartbeat_interval if not storage_url.startswith("journal:") else None
     storage = open_storage(storage_url, heartbeat, settings.heartbeat_grace if heartbeat else None, on_stale)
     tracking.ensure_experiment(uri, settings.experiment)
-    sd = study_data(build_job({}), settings.k_folds, settings.objective)
+    sd = study_data(base, settings.k_folds, settings.objective, checked)
     directions = ["minimize"] * len(settings.objectives)
     where = f" in {redact(storage_url)}"
     study = open_study(storage, settings.name, directions, fingerprint(settings, sd),

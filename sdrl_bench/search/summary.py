@@ -21,7 +21,7 @@ from sdrl_bench.pipeline import fit_dynamics
 from sdrl_bench.search.study import BuildJob, WorkerResult, counted, fit_params
 from sdrl_bench.search.plots import history_figure, importance_figure, pareto_figure
 from sdrl_bench.search.space import describe_space, experiment_pack, to_overrides
-from sdrl_bench.search.location import resolve_storage
+from sdrl_bench.search.location import redact, resolve_storage
 from sdrl_bench.search.storage import open_storage
 
 SUMMARY_ATTR = "sdrl.summary"
@@ -204,16 +204,23 @@ def _log_parent(run: tracking.Run, result: WorkerResult, summary: StudySummary) 
 
 
 def load_summaries(storage: str | None, names: list[str]) -> list[dict[str, Any]]:
-    """The recorded summaries of finished studies (``summarize`` output), by name."""
-    st = open_storage(resolve_storage(storage))
+    """The recorded summaries of finished studies (``summarize`` output), by name (a name the
+    storage lacks, or a local storage file that does not exist, is a one-line ``ConfigError``:
+    comparing creates nothing)."""
+    from sdrl_bench import ConfigError
+
+    url = resolve_storage(storage)
+    local = next((url[len(p):] for p in ("sqlite:///", "journal:") if url.startswith(p)), None)
+    if local is not None and not Path(local.split("?")[0]).exists():
+        raise ConfigError(f"study.storage: {redact(url)} does not exist (no study to compare in it)")
+    st = open_storage(url)
     out = []
     for name in names:
         try:
             study = optuna.load_study(study_name=name, storage=st)
         except KeyError:
-            from sdrl_bench import ConfigError
-
-            raise ConfigError(f"compare.studies: no study named '{name}' in the storage") from None
+            known = sorted(optuna.get_all_study_names(storage=st))
+            raise ConfigError(f"search.studies: no study named '{name}' in {redact(url)} (it holds {known})") from None
         out.append(study.user_attrs.get(SUMMARY_ATTR) or {"name": name})
     return out
 

@@ -1,0 +1,91 @@
+"""Bad input to ``sdrl-bench-search``: one line naming the config key the user sets, exit 2,
+before any data are collected, and nothing written (no study, no MLflow run)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import optuna
+import pytest
+
+from helpers import run_cli
+from sdrl_bench import ConfigError
+from sdrl_bench.cli.build import compose
+from sdrl_bench.cli.search import run_refine, runtime_choices, study_settings
+
+LIBRARIES = sorted(p.stem for p in (Path(__file__).resolve().parents[2] / "sdrl_bench" / "conf" / "library").glob("*.yaml"))
+
+
+def _search(tmp: Path, *args: str):
+    """``sdrl-bench-search`` in a real process, its study storage and MLflow store in ``tmp``."""
+    return run_cli(f"study.storage='sqlite:///{tmp}/optuna.db'", f"tracking.uri='sqlite:///{tmp}/mlflow.db'",
+                   "study.final_score=false", *args, cwd=tmp, timeout=120, module="sdrl_bench.cli.search")
+
+
+def _refused(proc, tmp: Path, line: str) -> None:
+    assert (proc.returncode, proc.stderr.strip().splitlines()) == (2, [f"sdrl-bench-search: error: {line}"]), proc.stderr
+    assert proc.stdout == ""  # no trial ran
+    assert not (tmp / "mlflow.db").exists()  # no MLflow run, so none left RUNNING
+
+
+def test_a_non_integer_setting_is_one_line_naming_its_key(tmp_path):
+    proc = _search(tmp_path, "search.k_folds=2.5")  # was truncated to 2 folds ('abc': a traceback, exit 1)
+    _refused(proc, tmp_path, "search.k_folds: an integer is required, got 2.5")
+    assert not (tmp_path / "optuna.db").exists()
+
+
+@pytest.mark.parametrize("key", ["seed", "n_transitions", "search.k_folds", "search.n_trials", "study.seed",
+                                 "study.worker", "study.heartbeat_interval", "study.heartbeat_grace"])
+@pytest.mark.parametrize("value, shown", [("abc", "'abc'"), ("1.5", "1.5"), ("true", "True")])
+def test_every_integer_setting_refuses_a_string_a_fraction_and_a_bool(key, value, shown):
+    cfg = compose([f"{key}={value}"], config_name="search_app", return_hydra_config=True)
+    with pytest.raises(ConfigError) as err:
+        study_settings(cfg, runtime_choices(cfg))
+    assert str(err.value) == f"{key}: an integer is required, got {shown}"
+
+
+@pytest.mark.parametrize("override, line", [
+    ("search.base_library=nosuch", f"search.base_library: unknown choice 'nosuch' (the library group has {LIBRARIES})"),
+    ("search.k_folds=abc", "search.k_folds: an integer is required, got 'abc'"),
+    ("search.margin=1", "search.margin must be in [0, 1), got 1.0"),
+    ("search.thresholds=[abc]", "search.thresholds: a non-empty list of finite numbers >= 0 is required, got ['abc']"),
+    ("search.families.trig=[{library: {_target_: nosuch.Lib}}]",
+     "search.families.trig[0].library: cannot import 'nosuch.Lib': ModuleNotFoundError: No module named 'nosuch'"),
+])
+def test_refinement_settings_name_the_search_key_before_any_data(tmp_path, override, line):
+    cfg = compose(["search=refine", override, f"tracking.uri='sqlite:///{tmp_path}/mlflow.db'"],
+                  config_name="search_app", return_hydra_config=True)
+    with pytest.raises(ConfigError) as err:
+        run_refine(cfg, quiet=True)
+    assert str(err.value) == line
+    assert not (tmp_path / "mlflow.db").exists()
+
+
+def test_an_unknown_base_library_names_search_base_library(tmp_path):
+    proc = _search(tmp_path, "search=refine", "search.base_library=nosuch")
+    _refused(proc, tmp_path, f"search.base_library: unknown choice 'nosuch' (the library group has {LIBRARIES})")
+
+
+@pytest.mark.parametrize("studies, line", [
+    (None, "search.studies: a non-empty list of study names is required (search.studies=[name1,name2]), got []"),
+    ("[nosuch]", "search.studies: no study named 'nosuch' in sqlite:///{tmp}/optuna.db (it holds ['other'])"),
+])
+def test_compare_names_search_studies(tmp_path, studies, line):
+    optuna.create_study(study_name="other", storage=f"sqlite:///{tmp_path}/optuna.db")
+    proc = _search(tmp_path, "search=compare", *([f"search.studies={studies}"] if studies else []))
+    _refused(proc, tmp_path, line.format(tmp=tmp_path))
+    assert optuna.get_all_study_names(f"sqlite:///{tmp_path}/optuna.db") == ["other"]
+
+
+@pytest.mark.parametrize("overrides, line", [
+    (["search.space.library.choices=[polynomial,lunar_lander_flight]"],
+     "search.space.library.choices: 'lunar_lander_flight' cannot be fitted on env 'mountain_car': "
+     "library.equations.vx: not a regressed state; regressed: x, v"),
+    (["search.space.threshold.low=-0.5", "search.space.threshold.log=false"],
+     "search.space.threshold.low: -0.5 cannot be fitted on env 'mountain_car': optimizer: threshold cannot be negative"),
+])
+def test_a_space_value_the_env_or_its_domain_refuses_is_named_before_any_trial(tmp_path, overrides, line):
+    # before: every trial failed with the same Optuna traceback, and the command exited 0
+    proc = _search(tmp_path, "search.n_trials=2", "study.name=space", *overrides)
+    _refused(proc, tmp_path, line)
+    assert not (tmp_path / "optuna.db").exists()
