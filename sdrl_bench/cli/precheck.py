@@ -225,4 +225,4 @@ def search_main() -> None:
     """Entry point of ``sdrl-bench-search``. It lives here, not in ``cli.search``, because that
     module imports pysindy, sklearn and optuna when it loads (about 4 s here), and an entry
     point's module loads before its function runs: here a bad command line is answered first."""
-    run_checked("sdrl_bench.cli.search:app", "search_app", "sdrl-bench-search")
+    run_checked("sdrl_bench.cli.search:app", "search_app", "sdrl-bench-search", check_job="sdrl_bench.cli.search:check_job")

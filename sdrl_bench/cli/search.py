@@ -20,7 +20,7 @@ import signal
 import sys
 from pathlib import Path
 from typing import Any
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 
 import hydra
 import yaml
@@ -33,7 +33,7 @@ from sdrl_bench.cli import CONFIG_PATH
 from sdrl_bench.cli.build import bool_key, build_fit_job, compose, exit_after_stop_signal, float_key, int_key, seed_key
 from sdrl_bench.pipeline import FitJob
 from sdrl_bench.search.refine import run_refinement
-from sdrl_bench.search.study import BuildJob, StudySettings, run_study
+from sdrl_bench.search.study import BuildJob, StudySettings, check_study, run_study
 from sdrl_bench.search.summary import comparison_table, load_summaries, summarize
 from sdrl_bench.search.space import GROUP_PARAMS, PARAM_KEYS, check_model_kind, parse_space
 from sdrl_bench.search.location import resolve_storage
@@ -315,6 +315,26 @@ def study_names(cfg: DictConfig) -> list[str]:
     return [str(v) for v in items]
 
 
+def search_mode(cfg: DictConfig) -> str:
+    mode = str(cfg.search.get("mode", "study"))
+    if mode not in ("study", "refine", "compare"):
+        raise ConfigError(f"search.mode: 'study', 'refine' or 'compare', got {mode!r}")
+    return mode
+
+
+def check_job(cfg: DictConfig, overrides: Sequence[str] = ()) -> None:
+    """What a study's worker checks before its data and stores (``run_search``'s settings, the
+    run's own fit and the search space, as ``run_study`` checks them). A ``-m`` sweep's driver runs
+    it on each worker's config (``cli.precheck``) before ``SearchStorageCallback`` makes the
+    stores, so a bad value stops the sweep in one line with nothing made. Refinements and
+    comparisons check themselves when they run."""
+    if search_mode(cfg) != "study":
+        return
+    settings = study_settings(cfg, {})
+    bool_key(cfg, "study.final_score")
+    check_study(settings, make_build_job(cfg))
+
+
 class SearchStorageCallback(Callback):
     """In a ``-m`` sweep, create the Optuna storage and the MLflow store in the driver, before
     workers start (processes racing to create SQLite tables crash)."""
@@ -340,15 +360,13 @@ def app(cfg: DictConfig) -> float | None:
     if signal.getsignal(signal.SIGTERM) in (signal.SIG_DFL, None):
         raise_on_stop_signals()
     try:
-        mode = str(cfg.search.get("mode", "study"))
+        mode = search_mode(cfg)
         if mode == "refine":
             out, _ = run_refine(cfg)
             return float(out.final.error)
         if mode == "compare":
             print(comparison_table(load_summaries(cfg.study.storage, study_names(cfg))))
             return None
-        if mode != "study":
-            raise ConfigError(f"search.mode: 'study', 'refine' or 'compare', got {mode!r}")
         result, summary = run_search(cfg)
         if HydraConfig.get().mode.name == "MULTIRUN":
             out_dir = Path(HydraConfig.get().runtime.output_dir)

@@ -299,6 +299,16 @@ def fingerprint(s: StudySettings, sd: StudyData) -> dict[str, Any]:
     }
 
 
+def check_study(settings: StudySettings, build_job: BuildJob) -> tuple[FitJob, Any]:
+    """The settings, the run's own fit (``pipeline.check``), then each value of the space against
+    it: (the base job, what its check returned). Nothing collected, no store opened."""
+    check_settings(settings)
+    base = build_job({})
+    checked = check(base)  # the run's own fit first: a space's value is then the only change
+    check_space(settings.space, build_job, base.spec.name)
+    return base, checked
+
+
 def run_study(
     settings: StudySettings,
     build_job: BuildJob,
@@ -309,10 +319,7 @@ def run_study(
     Everything is checked (settings, storage, tracking store, data, stored study setup) before
     the first trial starts. Each trial is an MLflow child run of the study's parent run.
     """
-    check_settings(settings)
-    base = build_job({})
-    checked = check(base)  # the run's own fit first: a space's value is then the only change
-    check_space(settings.space, build_job, base.spec.name)
+    base, checked = check_study(settings, build_job)
     storage_url = resolve_storage(settings.storage)
     uri = tracking.resolve_uri(settings.tracking_uri)
 

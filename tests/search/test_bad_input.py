@@ -34,6 +34,15 @@ def test_a_non_integer_setting_is_one_line_naming_its_key(tmp_path):
     assert not (tmp_path / "optuna.db").exists()
 
 
+def test_a_sweeps_bad_worker_is_one_line_before_the_stores_exist(tmp_path):
+    """``-m``: each worker's check (``cli.search.check_job``) runs in the driver before the sweep's
+    storage callback makes the study storage and the MLflow store (it made both empty, before)."""
+    proc = run_cli("-m", f"study.storage='sqlite:///{tmp_path}/optuna.db'", f"tracking.uri='sqlite:///{tmp_path}/mlflow.db'",
+                   "study.worker=0,abc", cwd=tmp_path, timeout=120, module="sdrl_bench.cli.search")
+    _refused(proc, tmp_path, "study.worker: an integer is required, got 'abc'")
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("key", ["seed", "n_transitions", "search.k_folds", "search.n_trials", "study.seed",
                                  "study.worker", "study.heartbeat_interval", "study.heartbeat_grace"])
 @pytest.mark.parametrize("value, shown", [("abc", "'abc'"), ("1.5", "1.5"), ("true", "True")])
