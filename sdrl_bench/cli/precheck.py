@@ -107,7 +107,6 @@ def check_command_line(argv: Sequence[str], config_name: str, check_job: Callabl
     docstring); return quietly when Hydra only prints help or info. For a ``-m`` sweep,
     ``check_job`` (a callable or ``"module:name"``, given each job's composed config and
     overrides) runs too: a job's own check before the sweep's parent run exists."""
-    import importlib
 
     from hydra import compose, initialize_config_module
     from hydra._internal.utils import get_args_parser
@@ -126,47 +125,80 @@ def check_command_line(argv: Sequence[str], config_name: str, check_job: Callabl
         raise ConfigError(f"--config-dir: {args.config_dir} is not a folder")
     search = [f"file://{Path(args.config_dir).resolve()}"] if args.config_dir else []
 
-    def composed(overrides: Sequence[str]):
+    def with_searchpath(overrides: Sequence[str]) -> list[str]:
         extra = list(overrides)
-        if search:
-            own = next((i for i, o in enumerate(extra) if o.startswith("hydra.searchpath=")), None)
-            if own is None:
-                extra.append(f"hydra.searchpath=[{search[0]}]")
+        if search and not any(o.startswith("hydra.searchpath=") for o in extra):
+            extra.append(f"hydra.searchpath=[{search[0]}]")
+        return extra
+
+    def composed(overrides: Sequence[str]):
         GlobalHydra.instance().clear()
         with initialize_config_module(config_module="sdrl_bench.conf", version_base="1.3"):
-            return compose(config_name=name, overrides=extra)
+            return compose(config_name=name, overrides=with_searchpath(overrides))
 
     uris, storages, jobs = [], [], []
     try:
         for overrides in _variants(parsed):
             cfg = composed(overrides)
-            _resolve(cfg)
-            uris.append(OmegaConf.select(cfg, "tracking.uri", default=None))
-            experiment = OmegaConf.select(cfg, "tracking.experiment", default="")
-            if not isinstance(experiment, str) or not experiment.strip():
-                raise ConfigError(f"tracking.experiment: an experiment name is required, got {experiment!r}")
+            resolved = _resolve(cfg)
+            uris.append(_select(cfg, "tracking.uri", None))
+            _check_experiment(_select(cfg, "tracking.experiment", ""))
             if OmegaConf.select(cfg, "study", default=None) is not None:  # sdrl-bench-search
-                storages.append(OmegaConf.select(cfg, "study.storage", default=None))
-            jobs.append((cfg, overrides))
+                storages.append(_select(cfg, "study.storage", None))
+            if resolved:  # a job whose config reads ${hydra:...} is checked by the job itself
+                jobs.append((cfg, with_searchpath(overrides)))
     except ConfigError:
         raise
     except Exception as exc:
         raise ConfigError(_one_line(exc, _variants(parsed)[0], composed)) from None
     finally:
         GlobalHydra.instance().clear()
-    _check_stores(uris, storages)
+    _check_stores([u for u in uris if u is not _LATER], [u for u in storages if u is not _LATER])
     if args.multirun and check_job is not None:
-        if isinstance(check_job, str):
-            module, _, name = check_job.partition(":")
-            check_job = getattr(importlib.import_module(module), name)
-        for cfg, overrides in jobs:
+        _check_jobs(check_job, jobs)
+
+
+def _check_jobs(check_job: Callable | str, jobs) -> None:
+    """``check_job`` on each (config, overrides): its ConfigError stops the sweep; anything else
+    is what only the running app can tell, and the job's own check reports it."""
+    import importlib
+
+    if isinstance(check_job, str):
+        module, _, name = check_job.partition(":")
+        check_job = getattr(importlib.import_module(module), name)
+    for cfg, overrides in jobs:
+        try:
             check_job(cfg, overrides)
+        except ConfigError:
+            raise
+        except Exception:  # noqa: BLE001, S112
+            continue
 
 
-def _resolve(cfg) -> None:
+def _check_experiment(experiment) -> None:
+    if experiment is not _LATER and (not isinstance(experiment, str) or not experiment.strip()):
+        raise ConfigError(f"tracking.experiment: an experiment name is required, got {experiment!r}")
+
+
+_LATER = object()
+"""A value that resolves inside the running app only (``${hydra:...}``): checked by the job."""
+
+
+def _select(cfg, key: str, default):
+    from omegaconf import OmegaConf
+    from omegaconf.errors import InterpolationResolutionError
+
+    try:
+        return OmegaConf.select(cfg, key, default=default)
+    except InterpolationResolutionError:
+        return _LATER
+
+
+def _resolve(cfg) -> bool:
     """Every interpolation of ``cfg`` resolved once: a key that is missing is one line naming the
     key that refers to it (Hydra would print a traceback when the job reads it). Those of Hydra's
-    own resolvers (``${hydra:...}``) resolve inside the running app only, and are left to it."""
+    own resolvers (``${hydra:...}``) resolve inside the running app only, and are left to it:
+    False when the config has one."""
     from omegaconf import OmegaConf
     from omegaconf.errors import InterpolationResolutionError
 
@@ -175,8 +207,9 @@ def _resolve(cfg) -> None:
     except InterpolationResolutionError as exc:
         text = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         if "hydra" in text.lower():
-            return
+            return False
         raise ConfigError(f"{getattr(exc, 'full_key', None) or '?'}: {text}") from None
+    return True
 
 
 def _check_stores(uris, storages=()) -> None:
@@ -193,9 +226,13 @@ def _check_stores(uris, storages=()) -> None:
         for u in values:
             if u is not None and not isinstance(u, str):
                 raise ConfigError(f"{key}: a URI is required ({forms}), got {u!r}")
-    mlflow_uris = list(dict.fromkeys(tracking.resolve_uri(u) for u in uris))
-    for uri in mlflow_uris:
-        tracking.check_store(uri, reach=True)
+    import os
+
+    given = {tracking.resolve_uri(u): "tracking.uri" if u or not os.environ.get("MLFLOW_TRACKING_URI")
+             else "MLFLOW_TRACKING_URI" for u in uris}
+    mlflow_uris = list(given)
+    for uri, key in given.items():
+        tracking.check_store(uri, key, reach=True)
     for url in dict.fromkeys(resolve_storage(u) for u in storages):
         if url in mlflow_uris:
             raise ConfigError(f"study.storage: {url} is the MLflow store (tracking.uri); give the study its own file")

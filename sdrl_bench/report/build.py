@@ -520,7 +520,7 @@ def build_report(inp: ReportInput, name: str, out_dir: Path, command: str = "sdr
     runs = latest_per_config(runs)
     problems += rt.missing_metrics(runs)
     folder, earlier, manifest = report_files(out_dir, name)  # again: the runs took seconds to load
-    clear_earlier_build(folder, earlier, manifest)
+    users = clear_earlier_build(folder, earlier, manifest)
     link = Linker(runs, inp.ui_url)
     blocks = overview_blocks(inp, runs, problems, command) + made + table_blocks(runs, link)
     blocks += figure_blocks(inp.uri, runs, folder, link.url)
@@ -528,7 +528,7 @@ def build_report(inp: ReportInput, name: str, out_dir: Path, command: str = "sdr
     rt.runs_frame(runs).to_csv(folder / "runs.csv", index=False)
     (folder / "report.md").write_text(render_markdown(blocks, folder))
     (folder / "report.html").write_text(render_html(blocks, f"sdrl-bench report {name}"))
-    record_build(folder)
+    record_build(folder, users)
     run_id = None
     if log_run and inp.experiment in tracking.list_experiments(inp.uri):
         run_id = tracking.log_report(inp.uri, inp.experiment, name, folder, {"report.n_runs": len(runs)})

@@ -19,11 +19,13 @@ from sdrl_bench import ConfigError
 # A report is written into out_dir/name, which may hold an earlier build's files: those are the
 # report's to replace (and a figure the new build no longer makes must not linger), but anything
 # else there is the user's, and is never overwritten or removed. A build records what it wrote
-# in MANIFEST (each file's SHA-256): a file is the report's when its bytes are those recorded.
-# A folder without a manifest (made before there was one, e.g. reports/reproduction) is the
-# report's when its report.md opens with the report's heading and every other file bears a name
-# the report gives its files. While a build runs its manifest says "complete": false, so that a
-# build cut short leaves a folder the next build still recognises by those names.
+# in MANIFEST (each file with its SHA-256, for provenance; a recorded file stays the report's
+# when a git checkout changes it). A folder without a manifest (made before there was one, e.g.
+# reports/reproduction) is the report's when its report.md opens with the report's heading; its
+# files under the report's names are then the report's. While a build runs its manifest says
+# "complete": false, so that a build cut short leaves a folder the next build still recognises by
+# those names. A file of the user's under a name the report writes stops the build; the user's
+# other files are left where they are.
 
 MANIFEST = ".sdrl-bench-report.json"
 REPORT_HEADING = "# sdrl-bench report"  # report.md's first line starts so (overview_blocks' heading)
@@ -81,9 +83,12 @@ def _has_heading(path: Path) -> bool:
 
 def report_files(out_dir: Path, name: str) -> tuple[Path, list[str], dict[str, Any] | None]:
     """The report's folder ``out_dir/name``, the files in it that earlier builds of the report
-    wrote (relative paths), and its manifest. A ConfigError (one line, nothing touched) when
-    ``out_dir`` or the folder is not a folder, or when the folder holds a file the report did not
-    write: the user's files are never overwritten or removed."""
+    wrote (relative paths: those its manifest records, or in a folder without a complete one,
+    those under the report's names beside a report.md with its heading), and its manifest. A
+    ConfigError (one line, nothing touched) when ``out_dir`` or the folder is not a folder, or when
+    a file the report did not write has a name the report writes (report.md, a figure's, ...):
+    the user's files are never overwritten or removed. Other files of the user's are left as
+    they are."""
     folder = out_dir / name
     for p in (folder, *folder.parents):  # the nearest existing one must be a folder (mkdir makes the rest)
         if p.is_dir():
@@ -102,25 +107,23 @@ def report_files(out_dir: Path, name: str) -> tuple[Path, list[str], dict[str, A
         named = manifest is not None or not files or ("report.md" in files and _has_heading(folder / "report.md"))
 
         def ours(rel: str) -> bool:
-            path = folder / rel
-            if path.is_symlink():  # the report writes no links
+            if (folder / rel).is_symlink():  # the report writes no links
                 return False
-            if _SCRATCH.fullmatch(rel) or (rel == MANIFEST and manifest is not None):
-                return True
-            if rel in recorded and _sha256(path) == recorded[rel]:
-                return True
+            if _SCRATCH.fullmatch(rel) or (rel == MANIFEST and manifest is not None) or rel in recorded:
+                return True  # a recorded file may have changed since (a git checkout of a rebuilt report)
             if complete or not named or not _NAMED.fullmatch(rel):
                 return False
-            return rel != "report.md" or _has_heading(path)
+            return rel != "report.md" or _has_heading(folder / rel)
 
-        foreign = [rel for rel in files if not ours(rel)]
+        mine = [rel for rel in files if ours(rel)]
+        in_the_way = [rel for rel in files if not ours(rel) and _NAMED.fullmatch(rel)]  # a name a build writes
     except OSError as exc:
         raise ConfigError(f"--out/--name: cannot read {folder} ({exc.strerror or exc}); choose another folder") from None
-    if foreign:
-        shown = ", ".join(foreign[:3]) + (f" and {len(foreign) - 3} more" if len(foreign) > 3 else "")
-        raise ConfigError(f"--out/--name: {folder} holds files this report did not write ({shown}); "
-                          "choose another folder or move them")
-    return folder, files, manifest
+    if in_the_way:
+        shown = ", ".join(in_the_way[:3]) + (f" and {len(in_the_way) - 3} more" if len(in_the_way) > 3 else "")
+        raise ConfigError(f"--out/--name: {folder} holds files this report did not write under the names it writes "
+                          f"({shown}); choose another folder or move them")
+    return folder, mine, manifest
 
 
 def _write_manifest(folder: Path, files: Mapping[str, str], complete: bool) -> None:
@@ -130,11 +133,11 @@ def _write_manifest(folder: Path, files: Mapping[str, str], complete: bool) -> N
     tmp.replace(folder / MANIFEST)  # whole or not at all
 
 
-def clear_earlier_build(folder: Path, files: Sequence[str], manifest: Mapping[str, Any] | None) -> None:
+def clear_earlier_build(folder: Path, files: Sequence[str], manifest: Mapping[str, Any] | None) -> set[str]:
     """Remove what an earlier build wrote (``files``, from ``report_files``), but the documents this
     build writes over, so that no figure or table of an earlier build outlives it; first mark
     the folder's manifest incomplete (keeping its record), so that a build cut short leaves a
-    folder the next build still recognises."""
+    folder the next build still recognises. Returns the user's files left there."""
     folder.mkdir(parents=True, exist_ok=True)
     _write_manifest(folder, manifest["files"] if manifest else {}, complete=False)
     for rel in files:
@@ -146,10 +149,11 @@ def clear_earlier_build(folder: Path, files: Sequence[str], manifest: Mapping[st
             if parent == folder or any(parent.iterdir()):
                 break
             parent.rmdir()
+    return {rel for rel in _files(folder) if rel not in files and rel != MANIFEST and not _SCRATCH.fullmatch(rel)}
 
 
-def record_build(folder: Path) -> None:
-    """The manifest of a finished build: every file now in ``folder`` (all of it this build's,
-    since ``clear_earlier_build`` removed the rest) with its SHA-256."""
-    written = [rel for rel in _files(folder) if rel != MANIFEST and not _SCRATCH.fullmatch(rel)]
+def record_build(folder: Path, users: set[str]) -> None:
+    """The manifest of a finished build: every file now in ``folder`` but the user's (``users``,
+    from ``clear_earlier_build``), with its SHA-256."""
+    written = [rel for rel in _files(folder) if rel != MANIFEST and rel not in users and not _SCRATCH.fullmatch(rel)]
     _write_manifest(folder, {rel: _sha256(folder / rel) for rel in written}, complete=True)

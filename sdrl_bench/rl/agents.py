@@ -43,18 +43,19 @@ class AgentConfig:
     """Real env steps spent tuning this recipe on the real env (as its pack records them; 0: none
     recorded). Counted in every arm that uses the recipe, real or surrogate (``rl.accounting``)."""
 
-    def check(self, spec: EnvSpec) -> None:
+    def check(self, spec: EnvSpec, key: str = "agent") -> None:
         """Fail at config time when the algorithm cannot act in the env, or its settings are
-        ones it does not have or values out of their domain (each one line naming the key)."""
+        ones it does not have or values out of their domain (each one line naming the key, under
+        ``key``: where the config holds this agent)."""
         if isinstance(self.n_envs, bool) or not isinstance(self.n_envs, int) or self.n_envs <= 0:
-            raise ConfigError(f"agent.n_envs: a positive integer is required, got {self.n_envs!r}")
+            raise ConfigError(f"{key}.n_envs: a positive integer is required, got {self.n_envs!r}")
         if not isinstance(self.normalize_reward, bool):
-            raise ConfigError(f"agent.normalize_reward: true or false, got {self.normalize_reward!r}")
+            raise ConfigError(f"{key}.normalize_reward: true or false, got {self.normalize_reward!r}")
         discrete = spec.n_discrete_actions > 0
         kind = "discrete" if discrete else "continuous (Box)"
         algo = getattr(self.algo, "func", None)
         settings = dict(getattr(self.algo, "keywords", {}))
-        check_settings(settings)
+        check_settings(settings, f"{key}.algo")
         check = getattr(algo, "check_config", None)
         if callable(check):  # an algorithm that validates its own settings (rl.jax_agent.JaxPPO)
             check(settings, self.n_envs, normalize_reward=self.normalize_reward)
@@ -65,7 +66,7 @@ class AgentConfig:
             if not any(p.kind is p.VAR_KEYWORD for p in params.values()):
                 for k in settings:
                     if k not in params:
-                        raise ConfigError(f"agent.algo.{k}: not a setting of {algo.__name__} (its settings: "
+                        raise ConfigError(f"{key}.algo.{k}: not a setting of {algo.__name__} (its settings: "
                                           f"{', '.join(p for p in params if p not in ('self', 'env', 'seed') and not p.startswith('_'))})")
         if (self.action_space == "continuous" and discrete) or (self.action_space == "discrete" and not discrete):
             other = "agent=ppo or agent=dqn" if discrete else "agent=sac, agent=td3 or agent=ppo"
@@ -77,48 +78,49 @@ class AgentConfig:
 
 # The domains of the SB3 settings the harness's recipes use (SB3 checks few of them, and only
 # mid-training: a negative learning rate, a batch size "abc"); the compiled agents take the
-# same names. (kind, low, high, low inclusive): "int" an integer, "num" a finite number.
+# same names. (kind, low, high, low inclusive): "int" an integer, "count" an integer or a whole
+# float (1e4: SB3 compares these with step counts), "num" a finite number.
 _DOMAINS: dict[str, tuple[str, float, float, bool]] = {
     "learning_rate": ("num", 0.0, math.inf, False), "clip_range": ("num", 0.0, math.inf, False),
     "max_grad_norm": ("num", 0.0, math.inf, False), "vf_coef": ("num", 0.0, math.inf, True),
-    "gamma": ("num", 0.0, 1.0, False), "gae_lambda": ("num", 0.0, 1.0, True), "tau": ("num", 0.0, 1.0, False),
+    "gamma": ("num", 0.0, 1.0, True), "gae_lambda": ("num", 0.0, 1.0, True), "tau": ("num", 0.0, 1.0, False),
     "exploration_fraction": ("num", 0.0, 1.0, True), "exploration_initial_eps": ("num", 0.0, 1.0, True),
     "exploration_final_eps": ("num", 0.0, 1.0, True), "target_policy_noise": ("num", 0.0, math.inf, True),
     "target_noise_clip": ("num", 0.0, math.inf, True),
     "batch_size": ("int", 1, math.inf, True), "n_steps": ("int", 1, math.inf, True), "n_epochs": ("int", 1, math.inf, True),
-    "buffer_size": ("int", 1, math.inf, True), "learning_starts": ("int", 0, math.inf, True),
-    "target_update_interval": ("int", 1, math.inf, True), "policy_delay": ("int", 1, math.inf, True),
+    "buffer_size": ("int", 1, math.inf, True), "learning_starts": ("count", 0, math.inf, True),
+    "target_update_interval": ("count", 1, math.inf, True), "policy_delay": ("int", 1, math.inf, True),
 }
 
 
 def check_settings(settings: dict[str, Any], key: str = "agent.algo") -> None:
     """The settings of ``_DOMAINS`` (a schedule, i.e. a callable, passes as it is), ``ent_coef``
-    (a number >= 0, or SAC's ``"auto"``/``"auto_<x>"``), ``gradient_steps`` (>= 1, or -1: as many
-    as steps) and ``train_freq`` (>= 1, or [n, "step" | "episode"]): one ConfigError naming the
-    first bad key."""
+    (a number >= 0, or SAC's ``"auto"``/``"auto_<x>"``), ``gradient_steps`` (>= 0, or -1: as many
+    as steps) and ``train_freq`` (>= 1; SB3's (n, "episode") is a tuple, which a config cannot
+    give: Hydra makes it a list, which SB3 refuses): one ConfigError naming the first bad key."""
     def number(v: Any, integer: bool) -> bool:
         if isinstance(v, bool):
             return False
         return isinstance(v, int) if integer else isinstance(v, (int, float)) and math.isfinite(v)
 
+    def count(v: Any) -> bool:
+        return number(v, True) or (number(v, False) and float(v).is_integer())
+
     for k, v in settings.items():
         if k in _DOMAINS and not callable(v):
             kind, low, high, closed = _DOMAINS[k]
-            what = "an integer" if kind == "int" else "a number"
-            if not number(v, kind == "int") or v < low or v > high or (v == low and not closed):
+            what = "a number" if kind == "num" else "an integer"
+            ok = count(v) if kind == "count" else number(v, kind == "int")
+            if not ok or v < low or v > high or (v == low and not closed):
                 bound = f">= {low:g}" if closed else f"> {low:g}"
                 rng = bound if math.isinf(high) else f"{bound} and <= {high:g}"
                 raise ConfigError(f"{key}.{k}: {what} {rng} is required, got {v!r}")
         elif k == "ent_coef" and not (isinstance(v, str) and v.startswith("auto")) and (not number(v, False) or v < 0):
             raise ConfigError(f"{key}.ent_coef: a number >= 0 or 'auto' is required, got {v!r}")
-        elif k == "gradient_steps" and (not number(v, True) or (v < 1 and v != -1)):
-            raise ConfigError(f"{key}.gradient_steps: an integer >= 1, or -1, is required, got {v!r}")
-        elif k == "train_freq":
-            ok = number(v, True) and v >= 1
-            if isinstance(v, (list, tuple)) and len(v) == 2:
-                ok = number(v[0], True) and v[0] >= 1 and v[1] in ("step", "episode")
-            if not ok:
-                raise ConfigError(f"{key}.train_freq: an integer >= 1, or [n, 'step' | 'episode'], is required, got {v!r}")
+        elif k == "gradient_steps" and (not number(v, True) or (v < 0 and v != -1)):
+            raise ConfigError(f"{key}.gradient_steps: an integer >= 0, or -1, is required, got {v!r}")
+        elif k == "train_freq" and not (isinstance(v, tuple) or (number(v, True) and v >= 1)):
+            raise ConfigError(f"{key}.train_freq: an integer >= 1 is required, got {v!r}")
 
 
 def ou_noise(sigma: float, n_actions: int):

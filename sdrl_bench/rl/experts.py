@@ -45,7 +45,7 @@ class ExpertPolicy:
 
     def validate(self, spec: EnvSpec) -> None:
         """Config-time check (no training): the expert's algorithm can act in the env."""
-        self.agent.check(spec)
+        self.agent.check(spec, "env.expert.agent")
 
     def path(self, spec: EnvSpec) -> Path:
         return Path(self.cache_dir) / f"{spec.name}-{self.agent.name}-s{self.seed}-n{int(self.budget)}.zip"

@@ -140,7 +140,7 @@ def check_store(uri: str, key: str = "tracking.uri", kind: str = "mlflow", reach
         check_integrity(local, key, kind)
         return
     scheme = uri.split("://", 1)[0] if "://" in uri else ""
-    if kind == "mlflow" and scheme and not _MLFLOW_SCHEMES.match(scheme):
+    if kind == "mlflow" and scheme and not _MLFLOW_SCHEMES.match(scheme) and scheme not in _plugin_schemes():
         raise ConfigError(f"{key}: MLflow has no store for '{scheme}://' (sqlite:///<file>, http://<host>:<port>, "
                           "or a database URL)")
     if kind == "mlflow" and reach and scheme in ("http", "https"):
@@ -149,21 +149,45 @@ def check_store(uri: str, key: str = "tracking.uri", kind: str = "mlflow", reach
 
 def _check_reachable(uri: str, key: str, timeout: float = 10.0) -> None:
     """A tracking server's ``/health`` asked once: any HTTP answer (an error status included: a
-    proxy or a hosted server may answer other paths only) counts as reached; no answer within
-    ``timeout`` seconds, a refused connection or an unknown host is a ConfigError. Hand-written
-    with urllib because MLflow's client retries a dead server with backoff for minutes."""
+    proxy or a hosted server may answer other paths only) and any TLS failure (MLflow's own TLS
+    settings, ``MLFLOW_TRACKING_INSECURE_TLS`` and the like, may accept what urllib does not)
+    count as reached; a refused connection, an unknown host or no answer within ``timeout``
+    seconds is a ConfigError (the URI's password hidden). Credentials in the URI are sent as
+    Basic auth, as MLflow sends them. Hand-written with urllib because MLflow's client retries a
+    dead server with backoff for minutes."""
+    import base64
+    import ssl
     import urllib.error
+    import urllib.parse
     import urllib.request
 
+    parts = urllib.parse.urlsplit(uri)
+    host = parts.hostname or ""
+    netloc = f"[{host}]" if ":" in host else host
+    netloc += f":{parts.port}" if parts.port else ""
+    request = urllib.request.Request(urllib.parse.urlunsplit(parts._replace(netloc=netloc)).rstrip("/") + "/health")
+    if parts.username is not None:
+        token = f"{urllib.parse.unquote(parts.username)}:{urllib.parse.unquote(parts.password or '')}"
+        request.add_header("Authorization", "Basic " + base64.b64encode(token.encode()).decode())
+    shown = uri.replace(f":{parts.password}@", ":***@") if parts.password else uri
     try:
-        with urllib.request.urlopen(uri.rstrip("/") + "/health", timeout=timeout):
+        with urllib.request.urlopen(request, timeout=timeout):
             return
     except urllib.error.HTTPError:
         return
     except (urllib.error.URLError, OSError, ValueError) as exc:
         reason = getattr(exc, "reason", None) or exc
-        raise ConfigError(f"{key}: the tracking server at {uri} does not answer ({reason}); start it, or fix "
+        if isinstance(reason, ssl.SSLError) or isinstance(exc, ssl.SSLError):
+            return
+        raise ConfigError(f"{key}: the tracking server at {shown} does not answer ({reason}); start it, or fix "
                           "the URI") from None
+
+
+def _plugin_schemes() -> set[str]:
+    """The URI schemes MLflow's plugins register for tracking stores (entry points, no import)."""
+    from importlib.metadata import entry_points
+
+    return {ep.name for ep in entry_points(group="mlflow.tracking_store")}
 
 
 def check_integrity(db: Path, key: str = "tracking.uri", kind: str = "mlflow") -> None:

@@ -10,7 +10,7 @@ import importlib.util
 
 import pytest
 
-from helpers import compose_cfg
+from helpers import ROOT, compose_cfg
 from sdrl_bench import ConfigError
 from sdrl_bench.cli.build import check_job
 
@@ -21,11 +21,13 @@ QUICK = ("experiment=quick_mountain_car", "rl.arms=[surrogate]")
     (("agent.algo.learning_rate=-1",), "agent.algo.learning_rate: a number > 0 is required, got -1"),
     (("agent.algo.batch_size=abc",), "agent.algo.batch_size: an integer >= 1 is required, got 'abc'"),
     (("agent.algo.batch_size=1.5",), "agent.algo.batch_size: an integer >= 1 is required, got 1.5"),
-    (("agent.algo.gamma=1.5",), "agent.algo.gamma: a number > 0 and <= 1 is required, got 1.5"),
+    (("agent.algo.gamma=1.5",), "agent.algo.gamma: a number >= 0 and <= 1 is required, got 1.5"),
     (("agent.algo.learning_starts=-3",), "agent.algo.learning_starts: an integer >= 0 is required, got -3"),
-    (("agent.algo.gradient_steps=0",), "agent.algo.gradient_steps: an integer >= 1, or -1, is required, got 0"),
-    (("agent.algo.train_freq=[1,month]",),
-     "agent.algo.train_freq: an integer >= 1, or [n, 'step' | 'episode'], is required, got [1, 'month']"),
+    (("agent.algo.gradient_steps=-2",), "agent.algo.gradient_steps: an integer >= 0, or -1, is required, got -2"),
+    (("agent.algo.train_freq=[1,episode]",), "agent.algo.train_freq: an integer >= 1 is required, got [1, 'episode']"),
+    (("agent.algo.learning_starts=1e4",), None),  # SB3 takes a whole float here
+    (("agent.algo.learning_starts=1.5",), "agent.algo.learning_starts: an integer >= 0 is required, got 1.5"),
+    (("agent.algo.gamma=0",), None),
     (("agent.algo.ent_coef=-0.1",), "agent.algo.ent_coef: a number >= 0 or 'auto' is required, got -0.1"),
     (("+agent.algo.foo=1",), "agent.algo.foo: not a setting of SAC (its settings: policy, learning_rate, "),
     (("agent.n_envs=abc",), "agent.n_envs: a positive integer is required, got 'abc'"),
@@ -40,6 +42,9 @@ QUICK = ("experiment=quick_mountain_car", "rl.arms=[surrogate]")
      "agent.algo.n_epochs: an integer >= 1 is required, got 0"),
 ])
 def test_a_bad_setting_is_one_line_naming_its_key(overrides, line):
+    if line is None:  # a value SB3 trains with: accepted
+        check_job(compose_cfg(*QUICK, *overrides))
+        return
     with pytest.raises(ConfigError) as err:
         check_job(compose_cfg(*QUICK, *overrides))
     assert str(err.value).startswith(line) and "\n" not in str(err.value)
@@ -63,3 +68,35 @@ def test_the_compiled_ppo_refuses_a_negative_learning_rate():
 def test_the_shipped_packs_pass_the_checks(pack):
     """The domains are not stricter than the recipes the harness ships."""
     check_job(compose_cfg(f"experiment={pack}"))
+
+
+def test_a_sweep_reading_hydras_own_values_is_left_to_its_jobs(tmp_path, monkeypatch):
+    """``${hydra:...}`` resolves inside the running app only: the command line's check neither
+    refuses it nor checks such a job (a traceback, before), in a -m sweep or a single run."""
+    from sdrl_bench.cli.precheck import check_command_line
+
+    monkeypatch.chdir(tmp_path)
+    uri = f"tracking.uri=sqlite:///{tmp_path / 't.db'}"
+    check_command_line(["-m", "task=fit", "seed=${hydra:job.num}", uri], "config", "sdrl_bench.cli.build:check_job")
+    check_command_line(["tracking.experiment=${hydra:runtime.choices.env}", uri], "config", "sdrl_bench.cli.build:check_job")
+    with pytest.raises(ConfigError, match=r"^collector.epsilon must be within \[0.0, 1.0\], got 2$"):
+        check_command_line(["-m", "seed=0,1", "collector.epsilon=2", uri], "config", "sdrl_bench.cli.build:check_job")
+
+
+def test_a_sweeps_pack_from_the_users_config_dir_is_checked_with_it(tmp_path, monkeypatch):
+    """A fidelity study's clusters compose their surrogates' configs again: with the user's
+    --config-dir on the search path (it was refused: the pack not found)."""
+    import shutil
+
+    from sdrl_bench.cli.precheck import check_command_line
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "myconf" / "experiment").mkdir(parents=True)
+    shutil.copyfile(ROOT / "sdrl_bench" / "conf" / "experiment" / "fidelity_pendulum.yaml",
+                    tmp_path / "myconf" / "experiment" / "my_fid.yaml")
+    uri = f"tracking.uri=sqlite:///{tmp_path / 't.db'}"
+    check_command_line(["--config-dir", "myconf", "-m", "experiment=my_fid", "seed=0,1", uri], "config",
+                       "sdrl_bench.cli.build:check_job")
+    with pytest.raises(ConfigError, match=r"^fidelity.train_steps must be >= 1, got 0$"):
+        check_command_line(["--config-dir", "myconf", "-m", "experiment=my_fid", "seed=0,1", "fidelity.train_steps=0", uri],
+                           "config", "sdrl_bench.cli.build:check_job")

@@ -231,12 +231,12 @@ def test_the_report_refuses_a_folder_of_the_users_before_the_heavy_libraries_loa
 
     (tmp_path / "mlruns").mkdir()
     shutil.copyfile(made_store_file, tmp_path / "mlruns" / "mlflow.db")
-    (tmp_path / "mine" / "figures").mkdir(parents=True)
-    (tmp_path / "mine" / "figures" / "fig1.png").write_bytes(b"x")
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "report.md").write_bytes(b"x")
     got = run(["--out", str(tmp_path), "--name", "mine", "--no-log"], tmp_path, REPORT, "sdrl-bench-report",
               HEAVY + ("pandas",))
     assert got["code"] == 2 and got["modules"] == []
     assert got["stderr"].strip().splitlines() == [
-        f"sdrl-bench-report: error: --out/--name: {tmp_path / 'mine'} holds files this report did not write "
-        "(figures/fig1.png); choose another folder or move them"]
-    assert (tmp_path / "mine" / "figures" / "fig1.png").read_bytes() == b"x"
+        f"sdrl-bench-report: error: --out/--name: {tmp_path / 'mine'} holds files this report did not write under the "
+        "names it writes (report.md); choose another folder or move them"]
+    assert (tmp_path / "mine" / "report.md").read_bytes() == b"x"

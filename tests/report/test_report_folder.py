@@ -66,29 +66,42 @@ def test_the_users_folder_is_refused_and_kept_as_it_was(report_store: str, tmp_p
                    module="sdrl_bench.cli.report")
     assert proc.returncode == 2 and proc.stdout == ""
     assert proc.stderr.strip().splitlines() == [
-        "sdrl-bench-report: error: --out/--name: mythesis holds files this report did not write (figures/fig1.png, "
-        "report.md); choose another folder or move them"]
+        "sdrl-bench-report: error: --out/--name: mythesis holds files this report did not write under the names it "
+        "writes (report.md); choose another folder or move them"]
     assert _snapshot(tmp_path / "mythesis") == before  # nothing overwritten, removed or added (no manifest)
     assert sorted(p.name for p in (tmp_path / "mythesis").iterdir()) == ["figures", "report.md"]
     assert not tracking.find_runs(report_store, EXP, "tags.`sdrl.kind` = 'report'")
 
 
-@pytest.mark.parametrize("case", ["a note beside it", "its report edited", "a figure named like the report's"])
-def test_a_folder_the_report_made_but_holding_the_users_files_is_refused(case: str, report_store: str, tmp_path,
-                                                                        capsys, monkeypatch) -> None:
+def test_a_file_of_the_users_under_a_name_the_report_writes_is_refused(report_store: str, tmp_path, capsys,
+                                                                       monkeypatch) -> None:
     assert main(["--uri", report_store, "--out", str(tmp_path), "--name", "r", "--no-log"]) == 0
     folder = tmp_path / "r"
-    rel = {"a note beside it": "notes.txt", "its report edited": "report.md",
-           "a figure named like the report's": "figures/pred_mine_sindy.png"}[case]
-    text = (folder / "report.md").read_text() + "\nMy own conclusions.\n" if rel == "report.md" else "mine\n"
-    (folder / rel).write_text(text)
+    (folder / "figures" / "pred_mine_sindy.png").write_text("mine\n")  # not in the build's record: the user's
     before = _snapshot(folder)
     calls = _no_runs_loaded(monkeypatch)
     capsys.readouterr()
     assert main(["--uri", report_store, "--out", str(tmp_path), "--name", "r", "--no-log"]) == 2
     assert _one_error_line(capsys) == (f"sdrl-bench-report: error: --out/--name: {folder} holds files this report did "
-                                       f"not write ({rel}); choose another folder or move them")
+                                       "not write under the names it writes (figures/pred_mine_sindy.png); choose "
+                                       "another folder or move them")
     assert calls == [] and _snapshot(folder) == before
+
+
+def test_a_rebuild_keeps_the_users_other_files_and_takes_its_own_changed_by_git(report_store: str, tmp_path) -> None:
+    """A note beside the report is left where it is; report.md and report.html changed since the
+    build (a git checkout of someone's rebuild) are still the report's, rebuilt in place."""
+    args = ["--uri", report_store, "--out", str(tmp_path), "--name", "r", "--no-log"]
+    assert main(args) == 0
+    folder = tmp_path / "r"
+    (folder / "notes.txt").write_text("mine\n")
+    (folder / ".DS_Store").write_bytes(b"\0")
+    for rel in ("report.md", "report.html"):
+        (folder / rel).write_text((folder / rel).read_text() + "\nchanged by a checkout\n")
+    assert main(args) == 0
+    assert (folder / "notes.txt").read_text() == "mine\n" and (folder / ".DS_Store").read_bytes() == b"\0"
+    assert "changed by a checkout" not in (folder / "report.md").read_text() + (folder / "report.html").read_text()
+    assert "notes.txt" not in json.loads((folder / report_folder.MANIFEST).read_text())["files"]
 
 
 def test_a_rebuild_in_place_removes_the_figures_the_new_build_no_longer_makes(report_store: str, tmp_path) -> None:
@@ -107,8 +120,8 @@ def test_a_rebuild_in_place_removes_the_figures_the_new_build_no_longer_makes(re
 
 def test_the_committed_report_made_before_the_manifest_is_rebuilt_in_place(report_store: str, tmp_path, capsys) -> None:
     """reports/reproduction (made by the report before it wrote a manifest) is the report's: a rebuild
-    there replaces it and removes the figures and table the new build does not make; the same
-    folder with a file of the user's in it is refused."""
+    there replaces it and removes the figures and table the new build does not make, and leaves a
+    file of the user's under another name where it is."""
     reference = ROOT / "reports" / "reproduction"
     folder = tmp_path / "reproduction"
     shutil.copytree(reference, folder)
@@ -116,15 +129,10 @@ def test_the_committed_report_made_before_the_manifest_is_rebuilt_in_place(repor
     old_figures = {p.name for p in (folder / "figures").iterdir()}
     assert len(old_figures) > 20 and (folder / "fidelity_correlations.csv").is_file()
 
-    (folder / "figures" / "fig1.png").write_text("x\n")
-    before = _snapshot(folder)
-    assert main(["--uri", report_store, "--out", str(tmp_path), "--name", "reproduction", "--no-log"]) == 2
-    assert "holds files this report did not write (figures/fig1.png)" in _one_error_line(capsys)
-    assert _snapshot(folder) == before
-
-    (folder / "figures" / "fig1.png").unlink()
+    (folder / "figures" / "fig1.png").write_text("x\n")  # the user's, under a name the report never gives
     assert main(["--uri", report_store, "--out", str(tmp_path), "--name", "reproduction", "--no-log"]) == 0
-    assert {p.name for p in (folder / "figures").iterdir()} == {Path(CURVES).name}
+    assert {p.name for p in (folder / "figures").iterdir()} == {Path(CURVES).name, "fig1.png"}
+    assert (folder / "figures" / "fig1.png").read_text() == "x\n"
     assert not (folder / "fidelity_correlations.csv").exists()  # no fidelity runs in this store
     assert "Runs read: fit (FINISHED): 1, transfer (FINISHED): 2." in (folder / "report.md").read_text()
     assert json.loads((folder / report_folder.MANIFEST).read_text())["complete"]

@@ -1,0 +1,60 @@
+"""``tracking.check_store``'s look at a tracking server before a job's libraries load, against a
+real HTTP server on 127.0.0.1: any answer counts as reached, credentials in the URI go as Basic
+auth (as MLflow sends them), and a server that does not answer is one line with the password
+hidden."""
+
+from __future__ import annotations
+
+import http.server
+import socket
+import threading
+
+import pytest
+
+from sdrl_bench import ConfigError, tracking
+
+
+class _Health(http.server.BaseHTTPRequestHandler):
+    seen: list = []
+    status = 200
+
+    def do_GET(self):  # noqa: N802 (http.server's name)
+        _Health.seen.append((self.path, self.headers.get("Authorization")))
+        self.send_response(_Health.status)
+        self.end_headers()
+
+    def log_message(self, *args):
+        pass
+
+
+@pytest.fixture
+def server():
+    srv = http.server.HTTPServer(("127.0.0.1", 0), _Health)
+    thread = threading.Thread(target=srv.serve_forever, daemon=True)
+    thread.start()
+    _Health.seen, _Health.status = [], 200
+    yield srv.server_address[1]
+    srv.shutdown()
+    srv.server_close()
+
+
+@pytest.mark.parametrize("status", [200, 401, 404])
+def test_a_server_that_answers_is_reached_whatever_its_status(server, status):
+    _Health.status = status
+    tracking.check_store(f"http://127.0.0.1:{server}", reach=True)
+    assert _Health.seen == [("/health", None)]
+
+
+def test_credentials_in_the_uri_are_sent_as_basic_auth(server):
+    tracking.check_store(f"http://u:pw@127.0.0.1:{server}/", reach=True)
+    assert _Health.seen == [("/health", "Basic dTpwdw==")]  # base64 of u:pw
+
+
+def test_a_server_that_does_not_answer_is_one_line_without_its_password():
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    with pytest.raises(ConfigError) as err:
+        tracking.check_store(f"http://u:secret@127.0.0.1:{port}", "MLFLOW_TRACKING_URI", reach=True)
+    assert str(err.value) == (f"MLFLOW_TRACKING_URI: the tracking server at http://u:***@127.0.0.1:{port} does not "
+                              "answer ([Errno 111] Connection refused); start it, or fix the URI")
