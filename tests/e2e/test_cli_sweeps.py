@@ -41,13 +41,37 @@ def test_six_job_multirun_lands_six_children_under_one_parent(store, tmp_path):
 
 
 
-def test_a_failing_sweep_job_leaves_no_run_running(store, tmp_path):
+def test_a_sweep_job_refused_by_its_check_stops_the_sweep_before_it_starts(store, tmp_path):
+    """What a job's own check finds (a collector the env has not) stops a -m sweep in its driver:
+    one line, no parent run, no job run (before, the sweep started and its parent ended FAILED)."""
     res = run_cli("-m", "env=mountain_car,pendulum", f"tracking.uri={store}", cwd=tmp_path)
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == ["sdrl-bench: error: collector: env 'pendulum' has no heuristic policy "
+                                               "(env.spec.heuristic_fn); use collector=random"]
+    assert len(search(store)) == 0
+
+
+def test_a_sweep_job_failing_once_its_run_exists_leaves_no_run_running(store, tmp_path):
+    """A failure only the data show (every transition on a state bound, found after the run
+    started): the job's run ends FAILED with its reason, the sweep's parent FAILED, none RUNNING."""
+    import pandas as pd
+
+    from sdrl_bench.data import collect, heuristic_policy, save_csv
+    from sdrl_bench.envs.mountain_car import MountainCarSpec
+
+    spec = MountainCarSpec()
+    path = save_csv(collect(spec, heuristic_policy, 40, 0.2, 0), spec, tmp_path / "d.csv")
+    df = pd.read_csv(path)
+    df["ns_x"] = -1.2
+    df.to_csv(path, index=False)
+    res = run_cli("-m", "seed=0,1", f"dataset.path={path}", "library=trig", f"tracking.uri={store}", cwd=tmp_path)
     assert res.returncode != 0
-    assert "collector: env 'pendulum' has no heuristic policy" in res.stderr
+    assert "every transition lies on a state bound" in res.stderr
     runs = search(store)
     assert "RUNNING" not in set(runs["status"])
     assert runs[runs["tags.sdrl.kind"] == "sweep"].iloc[0]["status"] == "FAILED"
+    jobs = runs[runs["tags.sdrl.kind"] == "fit"]
+    assert len(jobs) >= 1 and set(jobs["status"]) == {"FAILED"}
 
 
 
