@@ -107,7 +107,6 @@ def check_command_line(argv: Sequence[str], config_name: str, check_job: Callabl
     docstring); return quietly when Hydra only prints help or info. For a ``-m`` sweep,
     ``check_job`` (a callable or ``"module:name"``, given each job's composed config and
     overrides) runs too: a job's own check before the sweep's parent run exists."""
-
     from hydra import compose, initialize_config_module
     from hydra._internal.utils import get_args_parser
     from hydra.core.global_hydra import GlobalHydra
@@ -218,6 +217,8 @@ def _check_stores(uris, storages=()) -> None:
     tracking server asked once for its health), so that a damaged, misplaced or unreachable one
     is named in about a second, not after the job's imports and validation (9-11 s for an RL
     experiment, 8-12 s for a search, measured) or MLflow's minutes of retries."""
+    import os
+
     from sdrl_bench import tracking
     from sdrl_bench.search.location import resolve_storage
 
@@ -226,8 +227,6 @@ def _check_stores(uris, storages=()) -> None:
         for u in values:
             if u is not None and not isinstance(u, str):
                 raise ConfigError(f"{key}: a URI is required ({forms}), got {u!r}")
-    import os
-
     given = {tracking.resolve_uri(u): "tracking.uri" if u or not os.environ.get("MLFLOW_TRACKING_URI")
              else "MLFLOW_TRACKING_URI" for u in uris}
     mlflow_uris = list(given)
