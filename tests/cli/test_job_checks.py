@@ -83,9 +83,11 @@ def test_a_sweep_reading_hydras_own_values_is_left_to_its_jobs(tmp_path, monkeyp
         check_command_line(["-m", "seed=0,1", "collector.epsilon=2", uri], "config", "sdrl_bench.cli.build:check_job")
 
 
+@pytest.mark.jax
 def test_a_sweeps_pack_from_the_users_config_dir_is_checked_with_it(tmp_path, monkeypatch):
     """A fidelity study's clusters compose their surrogates' configs again: with the user's
-    --config-dir on the search path (it was refused: the pack not found)."""
+    --config-dir on the search path (it was refused: the pack not found). The pack trains the
+    compiled PPO: without the [jax] extra its check says so (CI runs this in its jax step)."""
     import shutil
 
     from sdrl_bench.cli.precheck import check_command_line
