@@ -83,6 +83,7 @@ def test_a_sweep_reading_hydras_own_values_is_left_to_its_jobs(tmp_path, monkeyp
         check_command_line(["-m", "seed=0,1", "collector.epsilon=2", uri], "config", "sdrl_bench.cli.build:check_job")
 
 
+@pytest.mark.skipif(importlib.util.find_spec("jax") is None, reason="the pack's compiled agent needs the [jax] extra")
 @pytest.mark.jax
 def test_a_sweeps_pack_from_the_users_config_dir_is_checked_with_it(tmp_path, monkeypatch):
     """A fidelity study's clusters compose their surrogates' configs again: with the user's
