@@ -261,7 +261,7 @@ def test_the_cli_runs_both_arms_with_it_and_records_the_compile(store, tmp_path)
     ("+agent.algo.replay_buffer_class=null", "agent.algo sets ['replay_buffer_class']"),
     ("+agent.normalize_reward=true", "agent.normalize_reward: the compiled SAC"),
     ("agent.algo.ent_coef=automatic", "ent_coef: a number, 'auto' or 'auto_<init>'"),
-    ("agent.algo.ent_coef=-0.1", "agent.algo: SACConfig.ent_coef: a fixed coefficient is a number >= 0, got -0.1"),
+    ("agent.algo.ent_coef=-0.1", "agent.algo.ent_coef: a number >= 0 or 'auto' is required, got -0.1"),
 ])
 def test_a_bad_compiled_sac_setting_is_one_line_before_any_run(store, tmp_path, override, message):
     res = run_cli(*SMALL, override, f"tracking.uri={store}", cwd=tmp_path)
