@@ -217,8 +217,6 @@ def _check_stores(uris, storages=()) -> None:
     tracking server asked once for its health), so that a damaged, misplaced or unreachable one
     is named in about a second, not after the job's imports and validation (9-11 s for an RL
     experiment, 8-12 s for a search, measured) or MLflow's minutes of retries."""
-    import os
-
     from sdrl_bench import tracking
     from sdrl_bench.search.location import resolve_storage
 
@@ -227,8 +225,7 @@ def _check_stores(uris, storages=()) -> None:
         for u in values:
             if u is not None and not isinstance(u, str):
                 raise ConfigError(f"{key}: a URI is required ({forms}), got {u!r}")
-    given = {tracking.resolve_uri(u): "tracking.uri" if u or not os.environ.get("MLFLOW_TRACKING_URI")
-             else "MLFLOW_TRACKING_URI" for u in uris}
+    given = {tracking.resolve_uri(u): tracking.uri_key(u) for u in uris}
     mlflow_uris = list(given)
     for uri, key in given.items():
         tracking.check_store(uri, key, reach=True)

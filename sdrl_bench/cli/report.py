@@ -8,7 +8,6 @@
 from __future__ import annotations
 
 import argparse
-import os
 import shlex
 import sys
 from pathlib import Path
@@ -51,8 +50,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         tags = _parse_tags(args.tag)
         uri = tracking.resolve_uri(args.uri)
-        key = "--uri" if args.uri else "MLFLOW_TRACKING_URI" if os.environ.get("MLFLOW_TRACKING_URI") else "tracking.uri"
-        tracking.check_store(uri, key, reach=True)
+        tracking.check_store(uri, tracking.uri_key(args.uri, "--uri"), reach=True)
         report_files(args.out, args.name)  # a folder holding the user's files: refused before the builder loads
         from sdrl_bench.report.build import ReportInput, build_report  # noqa: PLC0415  (see the imports above)
 

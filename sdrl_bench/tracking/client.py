@@ -38,6 +38,14 @@ def resolve_uri(uri: str | None = None) -> str:
     return uri
 
 
+def uri_key(given: str | None, key: str = "tracking.uri") -> str:
+    """What named the store ``resolve_uri(given)`` finds, for messages: ``key`` (where the user gave
+    a URI), else ``MLFLOW_TRACKING_URI`` when that set it, else ``tracking.uri`` (the default)."""
+    if given or not os.environ.get("MLFLOW_TRACKING_URI"):
+        return key if given else "tracking.uri"
+    return "MLFLOW_TRACKING_URI"
+
+
 def display_uri(uri: str) -> str:
     """The URI as a user would type it: a SQLite store under the current folder, relative."""
     local = sqlite_path(uri)
