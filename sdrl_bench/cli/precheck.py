@@ -153,8 +153,30 @@ def check_command_line(argv: Sequence[str], config_name: str, check_job: Callabl
     finally:
         GlobalHydra.instance().clear()
     _check_stores([u for u in uris if u is not _LATER], [u for u in storages if u is not _LATER])
+    if args.multirun:
+        _check_launcher(with_searchpath(_variants(parsed)[0]), name)
     if args.multirun and check_job is not None:
         _check_jobs(check_job, jobs)
+
+
+def _check_launcher(overrides: Sequence[str], name: str) -> None:
+    """The sweep's launcher settings (Hydra's joblib launcher, ``hydra.launcher.*``) that joblib
+    would refuse with a traceback after the sweep's parent run exists: ``n_jobs`` must be a
+    whole number other than 0 (joblib: -1 is every core, -2 all but one)."""
+    from hydra import compose, initialize_config_module
+    from hydra.core.global_hydra import GlobalHydra
+    from omegaconf import OmegaConf
+
+    GlobalHydra.instance().clear()
+    try:
+        with initialize_config_module(config_module="sdrl_bench.conf", version_base="1.3"):
+            cfg = compose(config_name=name, overrides=list(overrides), return_hydra_config=True)
+        n_jobs = OmegaConf.select(cfg, "hydra.launcher.n_jobs", default=None)
+    finally:
+        GlobalHydra.instance().clear()
+    if n_jobs is not None and (isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs == 0):
+        raise ConfigError(f"hydra.launcher.n_jobs: a whole number of parallel jobs other than 0 is required "
+                          f"(1, 2, ...; -1 for every core), got {n_jobs!r}")
 
 
 def _check_jobs(check_job: Callable | str, jobs) -> None:

@@ -65,6 +65,9 @@ def test_unknown_keys_options_and_bad_overrides_are_one_line(new_store, tmp_path
      "agent=dqn: DQN needs discrete actions but env 'mountain_car' has continuous (Box) actions"),
     (["experiment=dyna_mountain_car", "seed=0,1", "rl.dyna.max_rounds=0"],
      "rl.dyna.max_rounds: a positive integer is required, got 0"),
+    (["seed=0,1", "hydra.launcher.n_jobs=0"],  # joblib's traceback after the parent run, before
+     "hydra.launcher.n_jobs: a whole number of parallel jobs other than 0 is required (1, 2, ...; -1 for every core), "
+     "got 0"),
 ])
 def test_a_sweeps_bad_job_is_one_line_before_the_sweep_starts(new_store, tmp_path, args, line):
     """``-m``: each job's own check (``cli.build.check_job``) runs in the driver first, so a bad
