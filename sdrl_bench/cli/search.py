@@ -37,7 +37,7 @@ from sdrl_bench.search.study import BuildJob, StudySettings, check_study, run_st
 from sdrl_bench.search.summary import comparison_table, load_summaries, summarize
 from sdrl_bench.search.space import GROUP_PARAMS, PARAM_KEYS, check_model_kind, parse_space
 from sdrl_bench.search.location import resolve_storage
-from sdrl_bench.search.storage import open_storage
+from sdrl_bench.search.storage import check_study_name, open_storage
 
 GROUPS = ("env", "collector", "library", "optimizer", "surrogate")
 _NOT_CONTEXT = ("search", "study", "tracking", "hydra", "seed", "n_transitions")
@@ -228,6 +228,7 @@ def run_refine(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet:
     choices = choices or runtime_choices(cfg)
     sc = cfg.search
     seed = seed_key(cfg)
+    name = check_study_name(str(cfg.study.name)) if cfg.study.name is not None else f"{choices.get('env', 'env')}-refine-s{seed}"
     k_folds = int_key(cfg, "search.k_folds", minimum=2)
     margin = float_key(cfg, "search.margin")
     if not 0.0 <= margin < 1.0:
@@ -243,7 +244,6 @@ def run_refine(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet:
     family_cfgs = {str(k): OmegaConf.create({"name": str(k), "parts": v}) for k, v in families_node.items()}
     families = {k: _parts(cfg, v, f"search.families.{k}") for k, v in family_cfgs.items()}
     optimizers = [(f"threshold={t:g}", build({"threshold": t}).optimizer) for t in thresholds]
-    name = cfg.study.name or f"{choices.get('env', 'env')}-refine-s{seed}"
     out, fit = run_refinement(
         base_job, families, optimizers, margin=margin, seed=seed, k_folds=k_folds,
         uri=tracking.resolve_uri(cfg.tracking.uri), experiment=str(cfg.tracking.experiment), name=name,

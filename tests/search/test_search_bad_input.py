@@ -60,6 +60,8 @@ def test_every_integer_setting_refuses_a_string_a_fraction_and_a_bool(key, value
     ("search.thresholds=[abc]", "search.thresholds: a non-empty list of finite numbers >= 0 is required, got ['abc']"),
     ("search.families.trig=[{library: {_target_: nosuch.Lib}}]",
      "search.families.trig[0].library: cannot import 'nosuch.Lib': ModuleNotFoundError: No module named 'nosuch'"),
+    ("study.name=[a,b]", "study.name: \"['a', 'b']\" must be letters, digits, '_', '.' or '-'"),  # a YAML traceback
+    ("study.name=a/b", "study.name: 'a/b' must be letters, digits, '_', '.' or '-'"),
 ])
 def test_refinement_settings_name_the_search_key_before_any_data(tmp_path, override, line):
     cfg = compose(["search=refine", override, f"tracking.uri='sqlite:///{tmp_path}/mlflow.db'"],
