@@ -125,10 +125,14 @@ def check_command_line(argv: Sequence[str], config_name: str, check_job: Callabl
     search = [f"file://{Path(args.config_dir).resolve()}"] if args.config_dir else []
 
     def with_searchpath(overrides: Sequence[str]) -> list[str]:
-        extra = list(overrides)
-        if search and not any(o.startswith("hydra.searchpath=") for o in extra):
-            extra.append(f"hydra.searchpath=[{search[0]}]")
-        return extra
+        """``overrides`` with the --config-dir on the search path, beside any ``hydra.searchpath``
+        the command line sets (Hydra searches both)."""
+        if not search:
+            return list(overrides)
+        given = [o for o in overrides if o.startswith("hydra.searchpath=")]
+        paths = [str(p) for o in given for p in (_parse([o])[0].value() or [])]
+        quoted = ",".join("'" + p.replace("\\", "\\\\").replace("'", "\\'") + "'" for p in [*paths, *search])
+        return [o for o in overrides if o not in given] + [f"hydra.searchpath=[{quoted}]"]
 
     def composed(overrides: Sequence[str]):
         GlobalHydra.instance().clear()

@@ -103,3 +103,23 @@ def test_a_sweeps_pack_from_the_users_config_dir_is_checked_with_it(tmp_path, mo
     with pytest.raises(ConfigError, match=r"^fidelity.train_steps must be >= 1, got 0$"):
         check_command_line(["--config-dir", "myconf", "-m", "experiment=my_fid", "seed=0,1", "fidelity.train_steps=0", uri],
                            "config", "sdrl_bench.cli.build:check_job")
+
+
+def test_the_config_dir_stays_on_the_search_path_beside_a_given_searchpath(tmp_path, monkeypatch):
+    """Hydra searches --config-dir and a command line's ``hydra.searchpath`` both; the check
+    composed with the latter alone and refused the user's pack in --config-dir."""
+    import shutil
+
+    from sdrl_bench.cli.precheck import check_command_line
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "my conf" / "experiment").mkdir(parents=True)
+    (tmp_path / "other" / "library").mkdir(parents=True)
+    shutil.copyfile(ROOT / "sdrl_bench" / "conf" / "experiment" / "quick_mountain_car.yaml",
+                    tmp_path / "my conf" / "experiment" / "my_quick.yaml")
+    shutil.copyfile(ROOT / "sdrl_bench" / "conf" / "library" / "poly_trig.yaml", tmp_path / "other" / "library" / "mine.yaml")
+    uri = f"tracking.uri=sqlite:///{tmp_path / 't.db'}"
+    both = ["--config-dir", "my conf", "experiment=my_quick", f"hydra.searchpath=[file://{tmp_path / 'other'}]", uri]
+    check_command_line([*both, "library=mine"], "config")
+    with pytest.raises(ConfigError, match=r"^library=nosuch: no such option of 'library' \(options: .*mine"):
+        check_command_line([*both, "library=nosuch"], "config")
