@@ -119,6 +119,14 @@ def main() -> None:
                     help="cpu: this process's CPU time (robust to other load on the machine; equal to "
                          "wall time for these single-threaded loops on an idle machine); wall: elapsed time")
     args = ap.parse_args()
+    from sdrl_bench.cli.args import at_least
+
+    at_least(ap, args, 1, "--repeats", "--dummy-n", "--vec-n")
+    if not args.seconds > 0:
+        ap.error(f"--seconds: a number > 0 is required, got {args.seconds}")
+    for flag, path in (("--mc-model", args.mc_model), ("--ll-model", args.ll_model)):
+        if path is not None and not path.is_file():
+            ap.error(f"{flag}: {path} is not a file (a saved model)")
     clock = time.process_time if args.clock == "cpu" else time.perf_counter
 
     envs = [

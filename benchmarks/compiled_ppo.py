@@ -268,14 +268,17 @@ def main() -> None:
                     help="the surrogate model (the config group surrogate=...), fitted on the same data")
     ap.add_argument("--quick", action="store_true", help="a smoke run: 2^14 steps, 1 repeat, 2 eval episodes")
     args = ap.parse_args()
+    from sdrl_bench.cli.args import at_least, pin_cores
+
+    at_least(ap, args, 1, "--steps", "--repeats", "--eval-episodes")
+    at_least(ap, args, 0, "--jax-threads")
     if args.quick:
         args.steps, args.repeats, args.eval_episodes = 2**14, 1, 2
     unknown = sorted(set(args.recipes or ()) - set(ENVS[args.env]["recipes"]))
     if unknown:
         ap.error(f"--recipes: {', '.join(map(repr, unknown))} is not one of {args.env}'s recipes "
                  f"({', '.join(map(repr, ENVS[args.env]['recipes']))})")
-    if args.cores:  # before jax starts its thread pool
-        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[: args.cores])
+    pin_cores(ap, args.cores)  # before jax starts its thread pool
 
     import torch
 

@@ -82,10 +82,12 @@ def main() -> None:
     ap.add_argument("--cores", type=int, default=None, help="pin this process to its first N cores (both arms)")
     ap.add_argument("--quick", action="store_true", help="a smoke run: 1,024 steps, 1 repeat, 2 eval episodes")
     args = ap.parse_args()
+    from sdrl_bench.cli.args import at_least, pin_cores
+
+    at_least(ap, args, 1, "--steps", "--repeats", "--eval-episodes")
     if args.quick:
         args.steps, args.repeats, args.eval_episodes = 1024, 1, 2
-    if args.cores:  # before jax starts its thread pool
-        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[: args.cores])
+    pin_cores(ap, args.cores)  # before jax starts its thread pool
 
     import torch
 

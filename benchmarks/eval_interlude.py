@@ -44,8 +44,10 @@ def main() -> None:
     ap.add_argument("--calls", type=int, default=10, help="iterations per interlude and round")
     ap.add_argument("--cores", type=int, default=None, help="pin the process to its first N cores")
     args = ap.parse_args()
-    if args.cores:  # before jax starts its thread pool
-        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[: args.cores])
+    from sdrl_bench.cli.args import at_least, pin_cores
+
+    at_least(ap, args, 1, "--transitions", "--rounds", "--calls")
+    pin_cores(ap, args.cores)  # before jax starts its thread pool
 
     from xla_opt_level import fit_pack  # this folder's: run as benchmarks/eval_interlude.py
 

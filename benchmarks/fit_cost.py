@@ -41,6 +41,9 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("overrides", nargs="*", help="Hydra overrides for both jobs (after --)")
     args = parser.parse_args()
+    from sdrl_bench.cli.args import at_least
+
+    at_least(parser, args, 1, "--repeats")
     torch.set_num_threads(1)
     rows = []
     for env in args.envs:

@@ -81,6 +81,12 @@ def main() -> None:
     ap.add_argument("--base", default="HEAD", help="the git revision to compare against")
     ap.add_argument("--repeats", type=int, default=3)
     args = ap.parse_args()
+    from sdrl_bench.cli.args import at_least
+
+    at_least(ap, args, 1, "--repeats")
+    if subprocess.run(["git", "rev-parse", "--verify", "--quiet", f"{args.base}^{{commit}}"], cwd=ROOT,
+                      capture_output=True).returncode:
+        ap.error(f"--base: {args.base!r} is not a commit of this checkout")
     from sdrl_bench.cli.build import build_fit_job, compose
     from sdrl_bench.pipeline import fit_dynamics
 

@@ -105,15 +105,6 @@ WARM_SEED = 1_000_000
 stopped when solved; the warm-ups are not)."""
 
 
-def parse_seeds(text: str) -> list[int]:
-    """``0-4``, ``0,2`` or both (``0-4,20-24``)."""
-    out: list[int] = []
-    for part in text.split(","):
-        lo, _, hi = part.partition("-")
-        out += list(range(int(lo), int(hi or lo) + 1))
-    return out
-
-
 def cli(workdir: Path, overrides: list[str], multirun: bool = True) -> None:
     """One ``sdrl-bench`` command in ``workdir`` (its experts cache and hydra folders live there)."""
     cmd = [sys.executable, "-m", "sdrl_bench.cli.main", *(["-m"] if multirun else []), *overrides]
@@ -368,11 +359,24 @@ def main() -> None:
     ap.add_argument("--rerun", action="store_true", help="run the arms again (resume=false); the table takes "
                     "each seed's latest run (e.g. after a code change the config does not show)")
     args = ap.parse_args()
-    workdir = Path(args.workdir).resolve()
+    from sdrl_bench.cli.args import at_least, folder, jobs, seed_list, store
+
+    seeds = seed_list(ap, args.seeds)
+    unknown = sorted(set(args.arms) - set(ARMS))
+    if unknown:
+        ap.error(f"--arms: {', '.join(map(repr, unknown))} is not an arm ({''.join(ARMS)})")
+    for k in dict.fromkeys(args.arms):
+        if PACK_KIND.get(k, "fast") not in PACKS[args.env]:
+            ap.error(f"--arms: {args.env} has no {PACK_KIND[k]} pack for arm {k} ({', '.join(PACKS[args.env].values())})")
+    jobs(ap, args.jobs)
+    at_least(ap, args, 1, "--transitions")
+    at_least(ap, args, 0, "--confirm")
+    workdir = folder(ap, args.workdir, "--workdir")
+    if args.uri:
+        store(ap, args.uri)
     workdir.mkdir(parents=True, exist_ok=True)
     uri = args.uri or f"sqlite:///{workdir / 'mlruns' / 'mlflow.db'}"
     (workdir / "mlruns").mkdir(exist_ok=True)
-    seeds = parse_seeds(args.seeds)
     expert = None
     if not args.report_only:
         if any(COLLECTOR.get(k) == "expert" for k in args.arms):

@@ -96,6 +96,9 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--reader", action="store_true", help="a process polling search_runs meanwhile")
     args = ap.parse_args()
+    from sdrl_bench.cli.args import at_least
+
+    at_least(ap, args, 1, "--jobs", "--runs", "--repeats")
     modes = ("delete", "wal")
     walls: dict[str, list[float]] = {m: [] for m in modes}
     reads: dict[str, list[int]] = {m: [] for m in modes}

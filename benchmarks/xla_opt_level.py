@@ -51,11 +51,16 @@ def main() -> None:
     ap.add_argument("--calls", type=int, default=15)
     ap.add_argument("--cores", type=int, default=None, help="pin the process to its first N cores")
     args = ap.parse_args()
-    levels = [int(x) for x in args.levels.split(",")]
+    from sdrl_bench.cli.args import at_least, pin_cores
+
+    at_least(ap, args, 1, "--transitions", "--rounds", "--calls")
+    parts = [x.strip() for x in args.levels.split(",")]
+    if not all(x in ("0", "1", "2", "3") for x in parts):
+        ap.error(f"--levels: comma-separated levels 0 to 3 are required, got {args.levels!r}")
+    levels = list(dict.fromkeys(int(x) for x in parts))
     if 3 not in levels:
         levels = [3, *levels]
-    if args.cores:  # before jax starts its thread pool
-        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[: args.cores])
+    pin_cores(ap, args.cores)  # before jax starts its thread pool
 
     from sdrl_bench.cli.build import instantiate_key
     from sdrl_bench.rl import jax_ppo

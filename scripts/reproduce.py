@@ -65,13 +65,6 @@ SETUP_EXPERIMENT = "rebuild-setup"
 EXPERT_PACK = {"mountain_car": "paper_mountain_car", "lunar_lander": "paper_lunar_lander"}
 
 
-def parse_seeds(text: str) -> list[int]:
-    if "-" in text:
-        lo, hi = text.split("-")
-        return list(range(int(lo), int(hi) + 1))
-    return [int(s) for s in text.split(",")]
-
-
 def stages(seeds: list[int]) -> list[tuple[str, list[list[str]]]]:
     """(stage name, its commands in order); a command is ``sdrl-bench`` arguments, or starts
     with ``parallel:`` (several single runs at once) or ``python:`` (a script in the repo)."""
@@ -237,8 +230,17 @@ def main() -> int:
     ap.add_argument("--only", default=None, help="run only these stages (comma-separated), then the report")
     ap.add_argument("--report-only", action="store_true", help="build the report from the store; run nothing")
     args = ap.parse_args()
-    seeds = parse_seeds(args.seeds)
-    workdir = args.workdir.resolve()
+    from sdrl_bench.cli.args import folder, jobs, seed_list
+
+    seeds = seed_list(ap, args.seeds)
+    jobs(ap, args.jobs)
+    workdir = folder(ap, args.workdir, "--workdir")
+    folder(ap, args.out, "--out")
+    plan = stages(seeds)
+    only = set(args.only.split(",")) if args.only else None
+    if only and only - {n for n, _ in plan}:
+        ap.error(f"--only: unknown stage(s) {', '.join(sorted(only - {n for n, _ in plan}))} "
+                 f"(stages: {', '.join(n for n, _ in plan)})")
     (workdir / "logs").mkdir(parents=True, exist_ok=True)
     uri = f"sqlite:///{workdir / 'mlruns' / 'mlflow.db'}"
     state_path = workdir / "rebuild.json"
@@ -246,11 +248,6 @@ def main() -> int:
     if not args.report_only:  # the record names the command that ran the stages, not a later --report-only
         state["command"] = "python scripts/reproduce.py " + " ".join(shlex.quote(a) for a in sys.argv[1:])
         state.update(seeds=seeds, jobs=args.jobs, machine=f"{os.cpu_count()} cores")
-    plan = stages(seeds)
-    only = set(args.only.split(",")) if args.only else None
-    if only and only - {n for n, _ in plan}:
-        ap.error(f"--only: unknown stage(s) {', '.join(sorted(only - {n for n, _ in plan}))} "
-                 f"(stages: {', '.join(n for n, _ in plan)})")
     for i, (name, commands) in enumerate([] if args.report_only else plan):
         if only and name not in only:
             continue

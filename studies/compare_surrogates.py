@@ -26,6 +26,10 @@ def main() -> None:
     parser.add_argument("--experiment", default="sdrl-bench")
     parser.add_argument("--log", action="store_true", help="log the ratios on each pair's NN run")
     args = parser.parse_args()
+    from sdrl_bench.cli.args import store
+
+    if args.uri:
+        store(parser, args.uri)
     uri = tracking.resolve_uri(args.uri)
     runs = tracking.find_runs(uri, args.experiment, "tags.`sdrl.kind` = 'fit'", missing_ok=False)
     rows = comparison_rows(runs)

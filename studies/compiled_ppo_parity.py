@@ -143,8 +143,12 @@ def main() -> None:
     ap.add_argument("--results", type=Path, default=Path("mlruns/compiled_parity.jsonl"),
                     help="each seed's returns, appended as it ends; a rerun adopts the seeds already there")
     args = ap.parse_args()
-    lo, _, hi = args.seeds.partition("-")
-    seeds = list(range(int(lo), int(hi or lo) + 1))
+    from sdrl_bench.cli.args import at_least, seed_list
+
+    seeds = seed_list(ap, args.seeds)
+    at_least(ap, args, 1, "--steps", "--episodes", "--jobs")
+    if args.results.is_dir():
+        ap.error(f"--results: {args.results} is a folder, not a file")
     key = {"env": args.env, "steps": args.steps, "episodes": args.episodes}
     done = {s: r for s, r in stored(args.results, key).items() if s in seeds}
     todo = [s for s in seeds if s not in done]

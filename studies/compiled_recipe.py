@@ -319,10 +319,12 @@ def main() -> None:
     ap.add_argument("--sampler-seed", type=int, default=None, help="--search: TPE's seed (workers: one each)")
     ap.add_argument("--cache", default="mlruns/jax_cache", help="JAX's persistent compilation cache ('' for none)")
     args = ap.parse_args()
-    if args.cores:  # before jax starts its thread pool
-        os.sched_setaffinity(0, sorted(os.sched_getaffinity(0))[: args.cores])
-    lo, _, hi = args.seeds.partition("-")
-    seeds = list(range(int(lo), int(hi or lo) + 1))
+    from sdrl_bench.cli.args import at_least, pin_cores, seed_list
+
+    seeds = seed_list(ap, args.seeds)
+    at_least(ap, args, 1, "--episodes", "--budget", "--calls", "--trials")
+    at_least(ap, args, 0, "--confirm")
+    pin_cores(ap, args.cores)  # before jax starts its thread pool
     bench = Bench(args.experiment, args.episodes, args.confirm, args.cache or None)
     print(f"{args.experiment}: {bench.fit.model.kind} surrogate from {len(bench.fit.data.states):,} real transitions; "
           f"tuning seeds {seeds[0]}-{seeds[-1]}; stop at a mean of {bench.threshold} over {args.episodes} surrogate "

@@ -37,13 +37,6 @@ from sdrl_bench.tracking.read import find_runs
 ARMS = ("real", "sindy", "nn")
 
 
-def parse_seeds(text: str) -> list[int]:
-    if "-" in text:
-        lo, hi = text.split("-")
-        return list(range(int(lo), int(hi) + 1))
-    return [int(s) for s in text.split(",")]
-
-
 def overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int) -> list[str]:
     common = [f"seed={','.join(map(str, seeds))}", f"tracking.uri={uri}", f"hydra.launcher.n_jobs={jobs}"]
     if arm == "real":
@@ -195,7 +188,14 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=2, help="parallel jobs per sweep")
     ap.add_argument("--report-only", action="store_true", help="print the table from the store; run nothing")
     args = ap.parse_args()
-    seeds = parse_seeds(args.seeds)
+    from sdrl_bench.cli.args import folder, jobs, seed_list
+
+    seeds = seed_list(ap, args.seeds)
+    unknown = [a for a in args.arms.split(",") if a not in ARMS]
+    if unknown:
+        ap.error(f"--arms: {', '.join(map(repr, unknown))} is not an arm ({','.join(ARMS)})")
+    jobs(ap, args.jobs)
+    folder(ap, args.workdir, "--workdir")
     args.workdir.mkdir(parents=True, exist_ok=True)
     uri = f"sqlite:///{(args.workdir / 'mlruns' / 'mlflow.db').resolve()}"
     if not args.report_only:

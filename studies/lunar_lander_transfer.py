@@ -37,6 +37,10 @@ def main() -> None:
     ap.add_argument("--uri", action="append", help="a store (repeatable; default sqlite:///mlruns/mlflow.db)")
     ap.add_argument("--experiment", default="sdrl-bench")
     args = ap.parse_args()
+    from sdrl_bench.cli.args import store
+
+    for uri in args.uri or []:
+        store(ap, uri)
     runs = [r for uri in (args.uri or ["sqlite:///mlruns/mlflow.db"]) for r in find_runs(uri, args.experiment)
             if r["tags"].get("env") == "lunar_lander" and r["status"] == "FINISHED"]
     per_seed: dict[int, dict[str, float]] = {}

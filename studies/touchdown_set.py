@@ -48,6 +48,11 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=touchdowns.EPISODES)
     ap.add_argument("--no-expert", action="store_true")
     args = ap.parse_args()
+    from sdrl_bench.cli.args import at_least
+
+    at_least(ap, args, 1, "--episodes")
+    if args.out.is_dir():
+        ap.error(f"--out: {args.out} is a folder, not a file")
     if args.out.is_file():
         d = touchdowns.TouchdownSet.load(args.out)
     else:

@@ -86,6 +86,9 @@ def main() -> None:
     parser.add_argument("--trials", type=int, default=30)
     parser.add_argument("--seed", type=int, default=0, help="TPE sampler seed")
     args = parser.parse_args()
+    from sdrl_bench.cli.args import at_least
+
+    at_least(parser, args, 1, "--trials")
     torch.set_num_threads(1)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     t0 = time.perf_counter()

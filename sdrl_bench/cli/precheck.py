@@ -171,6 +171,8 @@ def _check_launcher(overrides: Sequence[str], name: str) -> None:
     from hydra.core.global_hydra import GlobalHydra
     from omegaconf import OmegaConf
 
+    from sdrl_bench.cli.args import n_jobs_problem
+
     GlobalHydra.instance().clear()
     try:
         with initialize_config_module(config_module="sdrl_bench.conf", version_base="1.3"):
@@ -178,9 +180,9 @@ def _check_launcher(overrides: Sequence[str], name: str) -> None:
         n_jobs = OmegaConf.select(cfg, "hydra.launcher.n_jobs", default=None)
     finally:
         GlobalHydra.instance().clear()
-    if n_jobs is not None and (isinstance(n_jobs, bool) or not isinstance(n_jobs, int) or n_jobs == 0):
-        raise ConfigError(f"hydra.launcher.n_jobs: a whole number of parallel jobs other than 0 is required "
-                          f"(1, 2, ...; -1 for every core), got {n_jobs!r}")
+    problem = None if n_jobs is None else n_jobs_problem(n_jobs)
+    if problem:
+        raise ConfigError(f"hydra.launcher.n_jobs: {problem}")
 
 
 def _check_jobs(check_job: Callable | str, jobs) -> None:

@@ -1,0 +1,81 @@
+"""Checks of the repository scripts' command lines (``benchmarks/``, ``studies/``,
+``scripts/reproduce.py``), each an argparse parser's: a bad value is one line naming its flag
+(``ap.error``: exit 2) before any fit, training or store write starts. argparse's ``type=``
+checks one value; these check what argparse cannot (a value against the machine, a seed list's
+ranges, a store). No hydra here: the scripts call ``sdrl-bench`` as a command or compose through
+``cli.build``."""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+
+def at_least(ap: argparse.ArgumentParser, args: argparse.Namespace, minimum: int | float, *flags: str) -> None:
+    """``ap.error`` for the first of ``flags`` (as typed: ``"--repeats"``) whose value is under
+    ``minimum``; a flag left at None (not given, no default) passes. For ``nargs`` flags, each value."""
+    for flag in flags:
+        value = getattr(args, flag.lstrip("-").replace("-", "_"))
+        for v in value if isinstance(value, list) else [value]:
+            if v is not None and v < minimum:
+                kind = "an integer" if isinstance(minimum, int) else "a number"
+                ap.error(f"{flag}: {kind} >= {minimum} is required, got {v}")
+
+
+def n_jobs_problem(value: object) -> str | None:
+    """What is wrong with a sweep's parallel jobs (``hydra.launcher.n_jobs``, joblib's ``n_jobs``:
+    a whole number other than 0; -1 is every core, -2 all but one), None when nothing is."""
+    if isinstance(value, bool) or not isinstance(value, int) or value == 0:
+        return f"a whole number of parallel jobs other than 0 is required (1, 2, ...; -1 for every core), got {value!r}"
+    return None
+
+
+def jobs(ap: argparse.ArgumentParser, value: int, flag: str = "--jobs") -> None:
+    """A script's ``--jobs``, handed to a sweep as ``hydra.launcher.n_jobs`` (``n_jobs_problem``)."""
+    problem = n_jobs_problem(value)
+    if problem:
+        ap.error(f"{flag}: {problem}")
+
+
+def pin_cores(ap: argparse.ArgumentParser, cores: int | None, flag: str = "--cores") -> None:
+    """Pin this process to its first ``cores`` allowed cores (None: leave it); more than it may
+    use, or under 1, is refused (a per-core benchmark would silently run on fewer, or none)."""
+    if cores is None:
+        return
+    have = sorted(os.sched_getaffinity(0))
+    if not 1 <= cores <= len(have):
+        ap.error(f"{flag}: an integer from 1 to {len(have)} (the cores this process may use) is required, got {cores}")
+    os.sched_setaffinity(0, have[:cores])
+
+
+def seed_list(ap: argparse.ArgumentParser, text: str, flag: str = "--seeds") -> list[int]:
+    """``0-4``, ``0,2`` or both (``0-4,20-24``): the seeds, in order; anything else (an empty
+    part, a range that runs backwards, a non-number) is ``ap.error`` naming ``flag``."""
+    out: list[int] = []
+    for part in text.split(","):
+        lo, dash, hi = part.strip().partition("-")
+        if not (lo.isdigit() and (hi.isdigit() or not dash)) or int(hi or lo) < int(lo):
+            ap.error(f"{flag}: seeds as 0-4, 0,2 or 0-4,20-24 are required, got {text!r}")
+        out += range(int(lo), int(hi or lo) + 1)
+    return out
+
+
+def folder(ap: argparse.ArgumentParser, path: str | Path, flag: str) -> Path:
+    """``path`` resolved, refused when it exists and is not a folder (the script would create
+    it, or files in it)."""
+    p = Path(path).expanduser().resolve()
+    if p.exists() and not p.is_dir():
+        ap.error(f"{flag}: {path} is a file, not a folder")
+    return p
+
+
+def store(ap: argparse.ArgumentParser, uri: str, flag: str = "--uri") -> None:
+    """The tracking store at ``uri`` checked as ``sdrl-bench`` checks ``tracking.uri``
+    (``tracking.check_store``: a folder, a damaged or an Optuna file, an unknown scheme)."""
+    from sdrl_bench import ConfigError, tracking
+
+    try:
+        tracking.check_store(tracking.resolve_uri(uri), key=flag)
+    except ConfigError as exc:
+        ap.error(str(exc))
