@@ -25,25 +25,40 @@ import numpy as np
 from sdrl_bench import tracking
 
 
+def _as_mlflow_leaves_it(uri: str) -> None:
+    """Keep the harness's client off the store's journal mode in this process: ``mlflow_client``
+    switches a store to WAL the first time a process opens it, and skips stores it has opened
+    already (a private set, reached into here so that the benchmark's rollback-journal side stays
+    as MLflow alone leaves a store)."""
+    from sdrl_bench.tracking import client
+
+    client._READY.add(uri)
+
+
 def _store(folder: Path, mode: str) -> str:
     """A fresh store: as sdrl-bench makes it (WAL), or as MLflow alone does (rollback journal)."""
+    from mlflow.tracking import MlflowClient
+
     uri = f"sqlite:///{folder / 'mlflow.db'}"
     if mode == "wal":
         tracking.ensure_experiment(uri, "bench")
     else:
-        tracking._client(uri).create_experiment("bench")
+        MlflowClient(tracking_uri=uri).create_experiment("bench")
     with sqlite3.connect(folder / "mlflow.db") as con:
         got = con.execute("PRAGMA journal_mode").fetchone()[0]
     assert got == mode, f"journal mode {got}, wanted {mode}"
     return uri
 
 
-def _writer(uri: str, runs: int, start, out) -> None:
-    exp = tracking._client(uri).get_experiment_by_name("bench").experiment_id
+def _writer(uri: str, mode: str, runs: int, start, out) -> None:
+    if mode != "wal":
+        _as_mlflow_leaves_it(uri)
+    client = tracking.mlflow_client(uri)
+    exp = client.get_experiment_by_name("bench").experiment_id
     start.wait()
     t0 = time.perf_counter()
     for i in range(runs):
-        info = tracking._client(uri).create_run(exp, run_name=f"r{i}")
+        info = client.create_run(exp, run_name=f"r{i}")
         run = tracking.Run(uri, info.info.run_id)
         run.log_params({f"group.key{j}": j for j in range(40)})
         run.log_metrics({f"mse/state{j}": 1.0 / (j + 1) for j in range(60)})
@@ -70,7 +85,7 @@ def once(mode: str, jobs: int, runs: int, reader: bool) -> tuple[float, int]:
     with tempfile.TemporaryDirectory() as tmp:
         uri = _store(Path(tmp), mode)
         start, stop, out, reads = ctx.Event(), ctx.Event(), ctx.Queue(), ctx.Queue()
-        procs = [ctx.Process(target=_writer, args=(uri, runs, start, out)) for _ in range(jobs)]
+        procs = [ctx.Process(target=_writer, args=(uri, mode, runs, start, out)) for _ in range(jobs)]
         readers = [ctx.Process(target=_reader, args=(uri, stop, reads))] if reader else []
         for p in procs + readers:
             p.start()
@@ -86,6 +101,9 @@ def once(mode: str, jobs: int, runs: int, reader: bool) -> tuple[float, int]:
         n_reads = reads.get() if reader else 0
         if any(p.exitcode for p in procs):
             raise RuntimeError(f"a writer failed in {mode} mode")
+        with sqlite3.connect(Path(tmp) / "mlflow.db") as con:
+            got = con.execute("PRAGMA journal_mode").fetchone()[0]
+        assert got == mode, f"journal mode {got} after the writes, wanted {mode}"
         return wall, n_reads
 
 
