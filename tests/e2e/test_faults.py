@@ -139,12 +139,13 @@ def test_sigkill_mid_sweep_then_rerun_leaves_one_finished_run_per_job(tmp_path):
     assert rerun.stderr.count("adopted, not rerun") == len(finished_before)
     new_parent = [r for r in _kinds(runs, "sweep") if r["status"] == "FINISHED"]
     assert len(new_parent) == 1 and {r["tags"][tracking.PARENT_TAG] for r in fits} == {new_parent[0]["run_id"]}
-    # resume=false forces the jobs to run again (a new run each; in one process: n_jobs=1)
-    one_process = [a for a in args if not a.startswith("hydra.launcher.n_jobs=")] + ["hydra.launcher.n_jobs=1"]
+    # resume=false forces finished jobs to run again (a new run each; two of them, in one process: n_jobs=1)
+    one_process = [a for a in args if not a.startswith(("hydra.launcher.n_jobs=", "seed="))] + ["seed=0,1",
+                                                                                                  "hydra.launcher.n_jobs=1"]
     forced = subprocess.run([sys.executable, "-m", "sdrl_bench.cli.main", *one_process, "resume=false"], cwd=tmp_path,
                             env=_env(), capture_output=True, text=True, timeout=600)
     assert forced.returncode == 0 and "adopted" not in forced.stderr
-    assert len(_kinds(_runs(uri), "fit", "FINISHED")) == 8
+    assert len(_kinds(_runs(uri), "fit", "FINISHED")) == 6
 
 
 def test_sigterm_to_a_sweep_driver_stops_workers_and_ends_runs_killed(tmp_path):

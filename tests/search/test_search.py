@@ -272,7 +272,7 @@ def _env() -> dict:
 
 def test_sigkill_mid_study_then_rerun_loses_and_duplicates_nothing(tmp_path, uri):
     storage = f"sqlite:///{tmp_path}/optuna.db"
-    total = 48  # enough that the kill lands mid-study even when trials run fast
+    total = 20  # the kill comes at 4 complete trials (polled every 0.2 s): it lands mid-study even when trials run fast
     args = _cli(tmp_path, uri, "study.name=killed", f"search.n_trials={total}", "study.heartbeat_grace=1")
     proc = subprocess.Popen(args, cwd=tmp_path, env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
