@@ -32,6 +32,9 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=5)
     ap.add_argument("--overrides", nargs="*", default=[])
     args = ap.parse_args()
+    from sdrl_bench.cli.args import at_least
+
+    at_least(ap, args, 1, "--seeds")
     exact, ring = 0, []
     for seed in range(args.seeds):
         res = fit_dynamics(build_fit_job(compose(["env=pendulum", "collector=random", f"seed={seed}", *args.overrides])))

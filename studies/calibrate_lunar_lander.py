@@ -50,6 +50,8 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--model", type=Path, default=None, help="a saved LunarLander model (default: fit one)")
     args = ap.parse_args()
+    if args.model is not None and not args.model.is_file():
+        ap.error(f"--model: {args.model} is not a file (a saved LunarLander model)")
     spec, defaults = LunarLanderSpec(), LanderRules()
     d = calibration_data(spec)
     pad = np.abs(d.next_states[:, 0]) <= 0.2

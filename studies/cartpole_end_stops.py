@@ -23,6 +23,7 @@ of the agent, 175 of 3,000 steps beyond, max |x| 1.90): xdot 2.4e-2 / 2.3e-4, th
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 
 import numpy as np
 
@@ -51,6 +52,11 @@ def main() -> None:
     ap.add_argument("--policy", default=None, help="an SB3 PPO zip: on-policy steps of it too")
     ap.add_argument("--episodes", type=int, default=3, help="on-policy episodes")
     args = ap.parse_args()
+    from sdrl_bench.cli.args import at_least
+
+    at_least(ap, args, 1, "--episodes")
+    if args.policy is not None and not Path(args.policy).is_file():
+        ap.error(f"--policy: {args.policy} is not a file (an SB3 PPO zip)")
     res = fit_dynamics(build_fit_job(compose(["env=cartpole_swingup", "collector=random", f"seed={args.seed}"])))
     spec, model, data = res.job.spec, res.model, res.data
     xs = np.abs(data.states[:, 0])

@@ -12,7 +12,6 @@ equations. Run where the paper pack's expert is cached (``mlruns/experts/``):
 from __future__ import annotations
 
 import argparse
-from pathlib import Path
 import json
 
 from sdrl_bench.cli.build import build_fit_job, compose
@@ -26,11 +25,10 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--out", default=None, help="write the table as JSON here")
     args = ap.parse_args()
-    from sdrl_bench.cli.args import seed_list
+    from sdrl_bench.cli.args import out_file, seed_list
 
     seeds = seed_list(ap, args.seeds)
-    if args.out and (Path(args.out).is_dir() or not Path(args.out).resolve().parent.is_dir()):
-        ap.error(f"--out: {args.out} is a folder, or in a folder that does not exist")
+    out_file(ap, args.out)
     rows = {}
     print(f"{'seed':>4} {'rows':>5} {'terms':>5} " + " ".join(f"{s:>7}" for s in STATES) + "   max")
     for seed in seeds:

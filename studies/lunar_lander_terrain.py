@@ -119,6 +119,10 @@ def main() -> None:
     ap.add_argument("--where", action="append", default=[], metavar="KEY=VALUE",
                     help="keep runs whose param or tag KEY equals VALUE, case aside (repeatable)")
     args = ap.parse_args()
+    from sdrl_bench.cli.args import at_least, store
+
+    at_least(ap, args, 1, "--episodes")
+    store(ap, args.uri)
     bad = [w for w in args.where if "=" not in w]
     if bad:
         ap.error(f"--where takes KEY=VALUE, got {bad[0]!r}")

@@ -56,6 +56,9 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=20 * len(CONFIGS))
     ap.add_argument("--seed", type=int, default=60_000)
     args = ap.parse_args()
+    from sdrl_bench.cli.args import at_least
+
+    at_least(ap, args, 1, "--episodes")
     env = gym.make("LunarLander-v3").unwrapped
     rows, steps, t0 = [], 0, time.perf_counter()
     for i in range(args.episodes):

@@ -31,6 +31,10 @@ def main() -> None:
     ap.add_argument("--k", type=int, default=2, help="redraws per row")
     ap.add_argument("--out", default=None)
     args = ap.parse_args()
+    from sdrl_bench.cli.args import at_least, out_file
+
+    at_least(ap, args, 1, "--rows", "--k")
+    out_file(ap, args.out)
     spec = LunarLanderSpec()
     recipe = spec.test_set_recipe()
     name, test = held_out_test_set(spec, recipe)

@@ -41,7 +41,11 @@ def main() -> None:
     ap.add_argument("--stick", type=float, default=0.07, help="rules.stick in every refit (default: the calibrated prior)")
     ap.add_argument("--uri", default="sqlite:///runs/own_ablation/mlflow.db")
     args = ap.parse_args()
-    for seed in args.seeds.split(","):
+    from sdrl_bench.cli.args import seed_list, store
+
+    seeds = seed_list(ap, args.seeds)
+    store(ap, args.uri)
+    for seed in seeds:
         cmd = [sys.executable, "-c", RUNNER, str(args.stick), "experiment=dyna_lunar_lander_own", f"seed={seed}",
                f"tracking.uri={args.uri}", "tracking.experiment=own-data-ablation", "progress_bar=false"]
         subprocess.run(cmd, check=True)

@@ -28,8 +28,11 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2,3,4")
     ap.add_argument("--overrides", nargs="*", default=[])
     args = ap.parse_args()
+    from sdrl_bench.cli.args import seed_list
+
+    seeds = seed_list(ap, args.seeds)
     print("seed  rows  p50    p90    p99")
-    for seed in (int(s) for s in args.seeds.split(",")):
+    for seed in seeds:
         fit = fit_dynamics(build_fit_job(compose(["env=lunar_lander", f"seed={seed}", *args.overrides])))
         core = ModelEnv(fit.model, fit.job.spec, noise=False)
         test = fit.test

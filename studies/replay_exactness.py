@@ -69,6 +69,9 @@ def main() -> None:
     ap.add_argument("--episodes", type=int, default=10, help="real episodes per kind and fit")
     ap.add_argument("--overrides", nargs="*", default=[], help="config overrides of the fit")
     args = ap.parse_args()
+    from sdrl_bench.cli.args import at_least
+
+    at_least(ap, args, 1, "--seeds", "--episodes")
     kinds = ("uniform32", "uniform64", "greedy")
     episodes = {(k, e): real_episode(50_000 + e, k) for k in kinds for e in range(args.episodes)}
     print(f"{args.seeds} fits x {len(episodes)} real episodes ({args.episodes} each of {', '.join(kinds)}); "

@@ -53,7 +53,10 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=100)
     ap.add_argument("--workdir", type=Path, default=Path("runs/select"))
     args = ap.parse_args()
-    work = args.workdir.resolve()
+    from sdrl_bench.cli.args import at_least, folder
+
+    at_least(ap, args, 1, "--trials", "--agents")
+    work = folder(ap, args.workdir, "--workdir")
     work.mkdir(parents=True, exist_ok=True)
     uri = f"sqlite:///{work}/mlruns/mlflow.db"
     n, collector = DATA[args.env]

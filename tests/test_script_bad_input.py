@@ -51,6 +51,13 @@ CASES = [
     ("studies/dyna_real_steps.py", ["--workdir", "{tmp}/w", "--arms", "real,pe"], "--arms: 'pe' is not an arm (real,sindy,nn)"),
     ("studies/compare_surrogates.py", ["--uri", "sqlite:///{tmp}"], "--uri: {tmp} is a folder, not an SQLite file"),
     ("studies/touchdown_set.py", ["--episodes", "0", "--out", "{tmp}/t.npz"], "--episodes: an integer >= 1 is required, got 0"),
+    ("studies/replay_exactness.py", ["--episodes", "0"], "--episodes: an integer >= 1 is required, got 0"),
+    ("studies/own_data_ablation.py", ["--seeds", "1,,2"], f"--seeds: {SEEDS}, got '1,,2'"),
+    ("studies/own_data_ablation.py", ["--uri", "sqlite:///{tmp}"], "--uri: {tmp} is a folder, not an SQLite file"),
+    ("studies/noise_floor.py", ["--out", "{tmp}/no/floor.json"], "--out: {tmp}/no/floor.json is a folder, or in a folder "
+     "that does not exist"),
+    ("studies/calibrate_lunar_lander.py", ["--model", "{tmp}/no.pkl"],
+     "--model: {tmp}/no.pkl is not a file (a saved LunarLander model)"),
 ]
 
 

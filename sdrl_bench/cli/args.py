@@ -70,6 +70,17 @@ def folder(ap: argparse.ArgumentParser, path: str | Path, flag: str) -> Path:
     return p
 
 
+def out_file(ap: argparse.ArgumentParser, path: str | Path | None, flag: str = "--out") -> Path | None:
+    """``path`` (a file the script writes at its end) resolved, refused when it is a folder or its
+    folder does not exist (found before the work, not after it); None passes."""
+    if path is None or str(path) == "":
+        return None
+    p = Path(path).expanduser().resolve()
+    if p.is_dir() or not p.parent.is_dir():
+        ap.error(f"{flag}: {path} is a folder, or in a folder that does not exist")
+    return p
+
+
 def store(ap: argparse.ArgumentParser, uri: str, flag: str = "--uri") -> None:
     """The tracking store at ``uri`` checked as ``sdrl-bench`` checks ``tracking.uri``
     (``tracking.check_store``: a folder, a damaged or an Optuna file, an unknown scheme)."""
