@@ -68,6 +68,7 @@ from pathlib import Path
 import numpy as np
 from tabulate import tabulate
 
+from sdrl_bench.cli.args import run_child, script_main
 from sdrl_bench.tracking.read import find_runs
 
 PACKS = {"mountain_car": {"zoo": "paper_mountain_car", "fast": "fast_mountain_car", "compiled": "compiled_mountain_car"},
@@ -110,7 +111,7 @@ def cli(workdir: Path, overrides: list[str], multirun: bool = True) -> None:
     cmd = [sys.executable, "-m", "sdrl_bench.cli.main", *(["-m"] if multirun else []), *overrides]
     print("+ " + " ".join(["sdrl-bench", *(["-m"] if multirun else []), *overrides]), flush=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    subprocess.run(cmd, cwd=workdir, env=env, check=True, stdout=subprocess.DEVNULL)
+    run_child(cmd, cwd=workdir, env=env, stdout=subprocess.DEVNULL)  # stopped with this script
 
 
 def arm_overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int, rerun: bool = False,
@@ -392,4 +393,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script_main(main, "time_to_solve.py")

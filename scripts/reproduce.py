@@ -160,6 +160,8 @@ def typed_path(path: Path) -> str:
 
 def run_command(cmd: list[str], workdir: Path, uri: str, jobs: int, log) -> list[str]:
     """Run one stage command in ``workdir`` (output to ``log``); returns what ran, as typed."""
+    from sdrl_bench.cli.args import wait_children
+
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "PYTHONUNBUFFERED": "1"}
     sdrl = [sys.executable, "-m", "sdrl_bench.cli.main"]
     if cmd[0] == "python:":
@@ -180,7 +182,7 @@ def run_command(cmd: list[str], workdir: Path, uri: str, jobs: int, log) -> list
         log.write(f"\n+ {typed}\n")
         log.flush()
         running.append(subprocess.Popen(p, cwd=workdir, env=env, stdout=log, stderr=subprocess.STDOUT))
-    codes = [p.wait() for p in running]
+    codes = wait_children(running)  # a stop of this script stops them (their runs end KILLED)
     if any(codes):
         raise SystemExit(f"reproduce: a command failed (exit {max(codes)}); its output is in {log.name}. "
                          "Fix it and run this command again: finished work is kept and skipped.")
@@ -273,4 +275,6 @@ def main() -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from sdrl_bench.cli.args import script_main
+
+    script_main(main, "reproduce.py")

@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 from tabulate import tabulate
 
+from sdrl_bench.cli.args import run_child, script_main
 from sdrl_bench.report.tables import bootstrap_ci
 from sdrl_bench.tracking.read import find_runs
 
@@ -47,8 +48,8 @@ def overrides(env: str, arm: str, seeds: list[int], uri: str, jobs: int) -> list
 def run_arm(workdir: Path, args: list[str]) -> None:
     print("+ sdrl-bench -m " + " ".join(args), flush=True)
     env = {**os.environ, "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
-    subprocess.run([sys.executable, "-m", "sdrl_bench.cli.main", "-m", *args], cwd=workdir, env=env, check=True,
-                   stdout=subprocess.DEVNULL)
+    run_child([sys.executable, "-m", "sdrl_bench.cli.main", "-m", *args], cwd=workdir, env=env,
+              stdout=subprocess.DEVNULL)  # stopped with this script
 
 
 def gather(uri: str, env: str, seeds: list[int]) -> dict[str, dict[int, dict[str, float]]]:
@@ -210,4 +211,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    script_main(main, "dyna_real_steps.py")

@@ -17,7 +17,6 @@ confirmation, audit 197.4), seed 8 not solved in either (audit 176.9 / 182.1).
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 
 RUNNER = """
@@ -41,15 +40,17 @@ def main() -> None:
     ap.add_argument("--stick", type=float, default=0.07, help="rules.stick in every refit (default: the calibrated prior)")
     ap.add_argument("--uri", default="sqlite:///runs/own_ablation/mlflow.db")
     args = ap.parse_args()
-    from sdrl_bench.cli.args import seed_list, store
+    from sdrl_bench.cli.args import run_child, seed_list, store
 
     seeds = seed_list(ap, args.seeds)
     store(ap, args.uri)
     for seed in seeds:
         cmd = [sys.executable, "-c", RUNNER, str(args.stick), "experiment=dyna_lunar_lander_own", f"seed={seed}",
                f"tracking.uri={args.uri}", "tracking.experiment=own-data-ablation", "progress_bar=false"]
-        subprocess.run(cmd, check=True)
+        run_child(cmd)  # stopped with this script
 
 
 if __name__ == "__main__":
-    main()
+    from sdrl_bench.cli.args import script_main
+
+    script_main(main, "own_data_ablation.py")

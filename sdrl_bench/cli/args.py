@@ -1,15 +1,26 @@
-"""Checks of the repository scripts' command lines (``benchmarks/``, ``studies/``,
-``scripts/reproduce.py``), each an argparse parser's: a bad value is one line naming its flag
+"""The repository scripts' command lines (``benchmarks/``, ``studies/``, ``scripts/reproduce.py``).
+
+Checks, each on an argparse parser's values: a bad value is one line naming its flag
 (``ap.error``: exit 2) before any fit, training or store write starts. argparse's ``type=``
 checks one value; these check what argparse cannot (a value against the machine, a seed list's
-ranges, a store). No hydra here: the scripts call ``sdrl-bench`` as a command or compose through
-``cli.build``."""
+ranges, a store).
+
+Children: a script that runs ``sdrl-bench`` commands (``run_child``, ``wait_children``) passes a
+stop on to them, so that stopping the script stops the runs it started (``script_main``).
+
+No hydra here: the scripts call ``sdrl-bench`` as a command or compose through ``cli.build``."""
 
 from __future__ import annotations
 
 import argparse
 import os
+import signal
+import subprocess
+import sys
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
+from typing import Any
 
 
 def at_least(ap: argparse.ArgumentParser, args: argparse.Namespace, minimum: int | float, *flags: str) -> None:
@@ -90,3 +101,66 @@ def store(ap: argparse.ArgumentParser, uri: str, flag: str = "--uri") -> None:
         tracking.check_store(tracking.resolve_uri(uri), key=flag)
     except ConfigError as exc:
         ap.error(str(exc))
+
+
+def script_main(main: Callable[[], Any], prog: str) -> None:
+    """Run a script's ``main`` with SIGTERM and SIGINT raised as ``sdrl_bench.Terminated`` (as
+    ``sdrl-bench`` takes them), so that its ``finally`` blocks run and ``wait_children`` stops
+    its children; a stop ends in one line and exit 128 + the signal (SIGTERM's default killed the
+    script alone and left its ``sdrl-bench`` children running)."""
+    from sdrl_bench import Terminated, raise_on_stop_signals
+
+    raise_on_stop_signals()
+    try:
+        code = main()
+    except Terminated as exc:
+        print(f"{prog}: stopped by {signal.Signals(exc.signum).name}; its commands were stopped", file=sys.stderr)
+        sys.exit(128 + exc.signum)
+    sys.exit(code if isinstance(code, int) else 0)
+
+
+STOP_GRACE_S = 60.0
+"""How long a stopped child may take to end its runs (``sdrl-bench`` ends them KILLED; a sweep
+driver stops its workers within about 5 s) before it is killed."""
+
+
+def wait_children(procs: Sequence[subprocess.Popen], grace: float = STOP_GRACE_S) -> list[int]:
+    """The children's exit codes, once all have ended. When this process is stopped meanwhile
+    (``Terminated``, Ctrl-C) or fails, each child still running gets SIGTERM and SIGKILL after
+    ``grace`` seconds, and then the exception goes on. A Ctrl-C at a terminal reaches the children
+    too (one process group): they get 10 s to end by themselves first, so their cleanup is not
+    interrupted by a second signal."""
+    from sdrl_bench import Terminated
+
+    try:
+        return [p.wait() for p in procs]
+    except BaseException as exc:
+        if not (isinstance(exc, Terminated) and exc.signum == signal.SIGTERM):  # SIGINT: likely the tty's
+            _wait_until(procs, 10.0 if isinstance(exc, KeyboardInterrupt) else 0.0)
+        for p in procs:
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        _wait_until(procs, grace)
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        raise
+
+
+def _wait_until(procs: Sequence[subprocess.Popen], seconds: float) -> None:
+    deadline = time.monotonic() + seconds
+    for p in procs:
+        try:
+            p.wait(timeout=max(0.0, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            pass
+
+
+def run_child(cmd: Sequence[str], check: bool = True, **popen: Any) -> int:
+    """``subprocess.run(cmd, check=check, **popen)``'s exit code, the child stopped with this
+    process (``wait_children``; ``subprocess.run`` SIGKILLs it, leaving its runs RUNNING)."""
+    code = wait_children([subprocess.Popen(list(cmd), **popen)])[0]
+    if check and code:
+        raise subprocess.CalledProcessError(code, list(cmd))
+    return code
