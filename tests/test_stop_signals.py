@@ -63,3 +63,28 @@ def test_a_sigterm_inside_a_callback_python_cannot_raise_from_still_stops_the_pr
     out = subprocess.run([sys.executable, "-c", CHILD, where], capture_output=True, text=True, timeout=60)
     assert out.stdout.strip() == "terminated 15 inside the callback: 1", (out.stdout, out.stderr)
     assert "Exception ignored" not in out.stderr
+
+
+def test_the_last_word_of_a_stop_says_whether_a_run_was_made(tmp_path, capsys):
+    """A command stopped before its run existed (while it loaded or fitted) said "the run ended
+    KILLED" of a run that never was; it now says so, and names the run when one was made (this
+    process's own, ended KILLED if the signal caught it RUNNING)."""
+    import signal
+
+    from omegaconf import OmegaConf
+
+    from sdrl_bench import tracking
+    from sdrl_bench.cli.build import exit_after_stop_signal
+
+    uri = f"sqlite:///{tmp_path / 'mlflow.db'}"
+    cfg = OmegaConf.create({"tracking": {"uri": uri, "experiment": "stops"}})
+    with pytest.raises(SystemExit) as exc:
+        exit_after_stop_signal(cfg, signal.SIGTERM, "sdrl-bench", "the run ended KILLED")
+    assert exc.value.code == 128 + signal.SIGTERM
+    assert capsys.readouterr().err == "sdrl-bench: stopped by SIGTERM; before its run was made (nothing to resume)\n"
+    exp = tracking.ensure_experiment(uri, "stops")
+    run = tracking.mlflow_client(uri).create_run(exp, tags=tracking.process_tags())  # caught mid-creation: RUNNING
+    with pytest.raises(SystemExit):
+        exit_after_stop_signal(cfg, signal.SIGINT, "sdrl-bench", "the run ended KILLED")
+    assert capsys.readouterr().err == "sdrl-bench: stopped by SIGINT; the run ended KILLED\n"
+    assert tracking.mlflow_client(uri).get_run(run.info.run_id).info.status == "KILLED"

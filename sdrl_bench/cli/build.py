@@ -308,17 +308,22 @@ def config_key(cfg: DictConfig) -> str:
     return hashlib.sha256(json.dumps(body, sort_keys=True, default=str).encode()).hexdigest()[:16]
 
 
-def exit_after_stop_signal(cfg: DictConfig, signum: int, prog: str, what: str) -> None:
+def exit_after_stop_signal(cfg: DictConfig, signum: int, prog: str, what: str,
+                          before_runs: str = "before its run was made (nothing to resume)") -> None:
     """The last word of a command stopped by SIGTERM/SIGINT (``Terminated``, or whatever a
     library's cleanup raised instead after the signal): end the runs this process owns that the
-    signal caught mid-creation, say so in one line, exit 128 + signal."""
+    signal caught mid-creation, say so in one line (``what``; ``before_runs`` when this process
+    made no run in the store: stopped while it loaded or fitted), exit 128 + signal."""
     import contextlib
     import signal
     import sys
 
     from sdrl_bench import tracking
 
+    made = True
     with contextlib.suppress(Exception):
-        tracking.end_runs_of_this_process(tracking.resolve_uri(cfg.tracking.uri), cfg.tracking.experiment)
-    print(f"{prog}: stopped by {signal.Signals(signum).name}; {what}", file=sys.stderr)
+        uri = tracking.resolve_uri(cfg.tracking.uri)
+        tracking.end_runs_of_this_process(uri, cfg.tracking.experiment)
+        made = bool(tracking.runs_of_this_process(uri, cfg.tracking.experiment))
+    print(f"{prog}: stopped by {signal.Signals(signum).name}; {what if made else before_runs}", file=sys.stderr)
     sys.exit(128 + signum)

@@ -102,15 +102,20 @@ def end_stale_runs(uri: str, experiment: str, filter_string: str, status: str = 
     return [r["run_id"] for r in stale]
 
 
-def end_runs_of_this_process(uri: str, experiment: str, status: str = "KILLED") -> list[str]:
-    """End every RUNNING run this process owns (``sdrl.pid``/``sdrl.host``): the last word of a
-    process stopped by a signal, for a run whose creation the signal interrupted."""
+def runs_of_this_process(uri: str, experiment: str, status: str | None = None) -> list[dict[str, Any]]:
+    """The runs of ``experiment`` this process owns (``sdrl.pid``/``sdrl.host``), of ``status``
+    (None: any), as ``find_runs`` gives them."""
     import os
     import socket
 
-    filt = (f"tags.`sdrl.pid` = '{os.getpid()}' and tags.`sdrl.host` = '{socket.gethostname()}' "
-            "and attributes.status = 'RUNNING'")
-    mine = find_runs(uri, experiment, filt)
+    filt = f"tags.`sdrl.pid` = '{os.getpid()}' and tags.`sdrl.host` = '{socket.gethostname()}'"
+    return find_runs(uri, experiment, filt + (f" and attributes.status = '{status}'" if status else ""))
+
+
+def end_runs_of_this_process(uri: str, experiment: str, status: str = "KILLED") -> list[str]:
+    """End every RUNNING run this process owns: the last word of a process stopped by a signal,
+    for a run whose creation the signal interrupted."""
+    mine = runs_of_this_process(uri, experiment, "RUNNING")
     client = mlflow_client(uri)
     for r in mine:
         client.set_terminated(r["run_id"], status)
