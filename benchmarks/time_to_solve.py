@@ -69,6 +69,7 @@ import numpy as np
 from tabulate import tabulate
 
 from sdrl_bench.cli.args import run_child, script_main
+from sdrl_bench.tracking import resolve_uri
 from sdrl_bench.tracking.read import find_runs
 
 PACKS = {"mountain_car": {"zoo": "paper_mountain_car", "fast": "fast_mountain_car", "compiled": "compiled_mountain_car"},
@@ -376,7 +377,9 @@ def main() -> None:
     if args.uri:
         store(ap, args.uri)
     workdir.mkdir(parents=True, exist_ok=True)
-    uri = args.uri or f"sqlite:///{workdir / 'mlruns' / 'mlflow.db'}"
+    # a relative sqlite:/// path is the user's, from where they ran this: made absolute, so that
+    # the commands (run inside --workdir) and this script's table read and write the same store
+    uri = resolve_uri(args.uri) if args.uri else f"sqlite:///{workdir / 'mlruns' / 'mlflow.db'}"
     (workdir / "mlruns").mkdir(exist_ok=True)
     expert = None
     if not args.report_only:
