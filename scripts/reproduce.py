@@ -232,12 +232,17 @@ def main() -> int:
     ap.add_argument("--only", default=None, help="run only these stages (comma-separated), then the report")
     ap.add_argument("--report-only", action="store_true", help="build the report from the store; run nothing")
     args = ap.parse_args()
+    from sdrl_bench import ConfigError
     from sdrl_bench.cli.args import folder, jobs, seed_list
+    from sdrl_bench.report.folder import report_files
 
     seeds = seed_list(ap, args.seeds)
     jobs(ap, args.jobs)
     workdir = folder(ap, args.workdir, "--workdir")
-    folder(ap, args.out, "--out")
+    try:  # the report's folder, as sdrl-bench-report checks it, before the stages rather than after them
+        report_files(args.out.resolve(), args.name)
+    except ConfigError as exc:
+        ap.error(str(exc))
     plan = stages(seeds)
     only = set(args.only.split(",")) if args.only else None
     if only and only - {n for n, _ in plan}:
