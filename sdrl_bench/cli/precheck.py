@@ -178,6 +178,8 @@ def _check_launcher(overrides: Sequence[str], name: str) -> None:
         with initialize_config_module(config_module="sdrl_bench.conf", version_base="1.3"):
             cfg = compose(config_name=name, overrides=list(overrides), return_hydra_config=True)
         n_jobs = OmegaConf.select(cfg, "hydra.launcher.n_jobs", default=None)
+    except Exception:  # noqa: BLE001  (another launcher's config, a value only the app resolves: Hydra's to report)
+        return
     finally:
         GlobalHydra.instance().clear()
     problem = None if n_jobs is None else n_jobs_problem(n_jobs)
