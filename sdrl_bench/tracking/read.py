@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from sdrl_bench import ConfigError
-from sdrl_bench.tracking.client import PARENT_TAG, display_uri, mlflow_client
+from sdrl_bench.tracking.client import PARENT_TAG, display_uri, mlflow_client, process_tags
 
 
 def find_runs(uri: str, experiment: str, filter_string: str = "", *, missing_ok: bool = True,
@@ -105,10 +105,7 @@ def end_stale_runs(uri: str, experiment: str, filter_string: str, status: str = 
 def runs_of_this_process(uri: str, experiment: str, status: str | None = None) -> list[dict[str, Any]]:
     """The runs of ``experiment`` this process owns (``sdrl.pid``/``sdrl.host``), of ``status``
     (None: any), as ``find_runs`` gives them."""
-    import os
-    import socket
-
-    filt = f"tags.`sdrl.pid` = '{os.getpid()}' and tags.`sdrl.host` = '{socket.gethostname()}'"
+    filt = " and ".join(f"tags.`{k}` = '{v}'" for k, v in process_tags().items())
     return find_runs(uri, experiment, filt + (f" and attributes.status = '{status}'" if status else ""))
 
 
