@@ -42,6 +42,7 @@ def raise_on_stop_signals() -> None:
 
     def handler(signum, frame):
         _stop["signum"] = signum
+        run_stop_hooks()
         if _stop["held"]:
             _stop["pending"] = True
         else:
@@ -70,6 +71,25 @@ def _redeliver(signum: int, delay: float = 0.05) -> None:
     timer = threading.Timer(delay, os.kill, (os.getpid(), signum))
     timer.daemon = True
     timer.start()
+
+
+_stop_hooks: list = []
+
+
+def on_stop_signal(hook) -> None:
+    """Call ``hook()`` when a stop signal arrives, before anything unwinds (``raise_on_stop_signals``'
+    handler, the sweep driver's): a layer above this one prepares the cleanup a stop runs (the
+    tracking client shortens its waits on a server, ``tracking.client``). A hook is cheap and does
+    not raise; one registered twice runs once."""
+    if hook not in _stop_hooks:
+        _stop_hooks.append(hook)
+
+
+def run_stop_hooks() -> None:
+    """Run the ``on_stop_signal`` hooks (a stop signal's handler calls it first)."""
+    for hook in _stop_hooks:
+        with contextlib.suppress(Exception):
+            hook()
 
 
 def stop_signal_received() -> int | None:

@@ -3,18 +3,13 @@
 from __future__ import annotations
 
 import contextlib
-import os
 import shutil
-import signal
-import socket
 import sqlite3
-import subprocess
-import sys
-import time
-import urllib.request
 from pathlib import Path
 
 import pytest
+
+from helpers import start_mlflow_server, stop_mlflow_server
 
 
 @pytest.fixture(scope="session")
@@ -53,44 +48,11 @@ def new_store(tmp_path, monkeypatch) -> str:
     return f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture(scope="session")
 def mlflow_server(tmp_path_factory):
-    """A real ``mlflow server`` on a free loopback port (SQLite backend and artifacts in a temp
-    dir), started once per test process (it takes 15-25 s here) for the tests that need one, and
-    stopped with its process group afterwards. Each test writes to an experiment of its own."""
-    tmp = tmp_path_factory.mktemp("server")
-    port = _free_port()
-    with open(tmp / "server.log", "w") as log:
-        proc = subprocess.Popen(
-            [sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(port), "--workers", "1",
-             "--backend-store-uri", f"sqlite:///{tmp / 'mlflow.db'}", "--artifacts-destination", str(tmp / "artifacts")],
-            cwd=tmp, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
-            env={**os.environ, "MLFLOW_TRACKING_URI": "", "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"},
-        )
-        url = f"http://127.0.0.1:{port}"
-        deadline = time.monotonic() + 180
-        while True:
-            try:
-                with urllib.request.urlopen(f"{url}/health", timeout=2) as r:
-                    if r.status == 200:
-                        break
-            except OSError:
-                pass
-            if proc.poll() is not None or time.monotonic() > deadline:
-                with contextlib.suppress(ProcessLookupError):  # a server that exited left no group
-                    os.killpg(proc.pid, signal.SIGKILL)
-                pytest.fail(f"mlflow server did not start: {(tmp / 'server.log').read_text()[-2000:]}")
-            time.sleep(0.5)
-        yield url
-        os.killpg(proc.pid, signal.SIGTERM)
-        try:
-            proc.wait(timeout=15)
-        except subprocess.TimeoutExpired:
-            os.killpg(proc.pid, signal.SIGKILL)
-            proc.wait()
+    """A real ``mlflow server`` (``start_mlflow_server``), started once per test process for the
+    tests that need one, and stopped with its process group afterwards. Each test writes to an
+    experiment of its own."""
+    proc, url = start_mlflow_server(tmp_path_factory.mktemp("server"))
+    yield url
+    stop_mlflow_server(proc)

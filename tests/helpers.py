@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import contextlib
 import importlib.util
 import os
+import signal
+import socket
 import subprocess
 import sys
+import time
+import urllib.request
 from pathlib import Path
+
+import pytest
 
 from sdrl_bench.cli.build import compose
 
@@ -75,3 +82,46 @@ def held_sde_noise(model, ob, mean, copies: int | None = None) -> None:
     assert not np.array_equal(first, model.predict(ob, deterministic=False)[0])
     assert state == model._host_rng.bit_generator.state  # training's streams untouched (a split replaces the key)
     assert getattr(model, "_key", None) is key
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_mlflow_server(tmp: Path) -> tuple[subprocess.Popen, str]:
+    """A real ``mlflow server`` on a free loopback port (SQLite backend and artifacts in ``tmp``),
+    in a process group of its own; returns it once ``/health`` answers (15-25 s here) and its URL."""
+    port = free_port()
+    with open(tmp / "server.log", "w") as log:
+        proc = subprocess.Popen(
+            [sys.executable, "-m", "mlflow", "server", "--host", "127.0.0.1", "--port", str(port), "--workers", "1",
+             "--backend-store-uri", f"sqlite:///{tmp / 'mlflow.db'}", "--artifacts-destination", str(tmp / "artifacts")],
+            cwd=tmp, stdout=log, stderr=subprocess.STDOUT, start_new_session=True,
+            env={**os.environ, "MLFLOW_TRACKING_URI": "", "MLFLOW_SERVER_ENABLE_JOB_EXECUTION": "false"},
+        )
+    url = f"http://127.0.0.1:{port}"
+    deadline = time.monotonic() + 180
+    while True:
+        try:
+            with urllib.request.urlopen(f"{url}/health", timeout=2) as r:
+                if r.status == 200:
+                    return proc, url
+        except OSError:
+            pass
+        if proc.poll() is not None or time.monotonic() > deadline:
+            stop_mlflow_server(proc, signal.SIGKILL)
+            pytest.fail(f"mlflow server did not start: {(tmp / 'server.log').read_text()[-2000:]}")
+        time.sleep(0.5)
+
+
+def stop_mlflow_server(proc: subprocess.Popen, sig: int = signal.SIGTERM) -> None:
+    """Stop a ``start_mlflow_server`` process group with ``sig`` (SIGKILL after 15 s)."""
+    with contextlib.suppress(ProcessLookupError):  # a server that exited left no group
+        os.killpg(proc.pid, sig)
+    try:
+        proc.wait(timeout=15)
+    except subprocess.TimeoutExpired:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()

@@ -314,16 +314,23 @@ def exit_after_stop_signal(cfg: DictConfig, signum: int, prog: str, what: str,
     library's cleanup raised instead after the signal): end the runs this process owns that the
     signal caught mid-creation, say so in one line (``what``; ``before_runs`` when this process
     made no run in the store: stopped while it loaded or fitted), exit 128 + signal."""
-    import contextlib
     import signal
     import sys
 
-    from sdrl_bench import tracking
+    from sdrl_bench import run_stop_hooks, tracking
+    from sdrl_bench.search.location import redact
 
-    made = True
-    with contextlib.suppress(Exception):
+    run_stop_hooks()  # a tracking server that does not answer costs seconds, not minutes
+    made, said = True, what
+    try:
         uri = tracking.resolve_uri(cfg.tracking.uri)
-        tracking.end_runs_of_this_process(uri, cfg.tracking.experiment)
-        made = bool(tracking.runs_of_this_process(uri, cfg.tracking.experiment))
-    print(f"{prog}: stopped by {signal.Signals(signum).name}; {what if made else before_runs}", file=sys.stderr)
+    except Exception:
+        uri = None
+    try:
+        if uri is not None:
+            tracking.end_runs_of_this_process(uri, cfg.tracking.experiment)
+            made = bool(tracking.runs_of_this_process(uri, cfg.tracking.experiment))
+    except Exception:  # the store went away mid-run: its runs could not be ended, and the line says so
+        said = f"the tracking store at {redact(uri)} did not answer, so this command's runs may still show RUNNING"
+    print(f"{prog}: stopped by {signal.Signals(signum).name}; {said if made else before_runs}", file=sys.stderr)
     sys.exit(128 + signum)

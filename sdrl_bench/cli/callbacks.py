@@ -31,7 +31,8 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from sdrl_bench import tracking
+from sdrl_bench import run_stop_hooks, tracking
+from sdrl_bench.search.location import redact
 
 PARENT_FILE = "mlflow_parent_run_id"
 KEY_FILE = "mlflow_sweep_key"
@@ -109,18 +110,27 @@ class MlflowSweepCallback(Callback):
         """Stop the workers, end what they left RUNNING and the parent KILLED, exit."""
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, signal.SIG_IGN)  # one cleanup, however many signals arrive
+        run_stop_hooks()  # a tracking server that does not answer costs seconds from here on
         n_workers = stop_children(WORKER_GRACE_SECONDS)
-        n_runs = 0
+        n_runs, unanswered = 0, None
         if self._parent is not None:
             uri, run_id, experiment = self._parent
             filt = f"tags.`{tracking.PARENT_TAG}` = '{run_id}' and attributes.status = 'RUNNING'"
-            for r in tracking.find_runs(uri, experiment, filt):
-                tracking.end_run(uri, r["run_id"], "KILLED")
-                n_runs += 1
-            self._finish("KILLED")
+            try:
+                for r in tracking.find_runs(uri, experiment, filt):
+                    tracking.end_run(uri, r["run_id"], "KILLED")
+                    n_runs += 1
+                self._finish("KILLED")
+            except Exception:  # the store is gone: say so, and exit all the same
+                unanswered = redact(uri)
         name = signal.Signals(signum).name
-        print(f"sdrl-bench: stopped by {name}: {n_workers} worker process(es) stopped, {n_runs} run(s) "
-              "and the sweep's parent run ended KILLED; rerun the same command to resume", file=sys.stderr, flush=True)
+        if unanswered:
+            ended = (f"the tracking store at {unanswered} did not answer, so the sweep's runs may still show RUNNING "
+                     f"({n_runs} ended KILLED)")
+        else:
+            ended = f"{n_runs} run(s) and the sweep's parent run ended KILLED"
+        print(f"sdrl-bench: stopped by {name}: {n_workers} worker process(es) stopped, {ended}; "
+              "rerun the same command to resume", file=sys.stderr, flush=True)
         sys.stdout.flush()
         os._exit(128 + signum)  # joblib would otherwise wait for (or restart) its workers
 

@@ -4,6 +4,7 @@ equations as description, standard tags, lean params) and a sweep parent's summa
 
 from __future__ import annotations
 
+import contextlib
 import subprocess
 import urllib.request
 from pathlib import Path
@@ -14,7 +15,7 @@ import pandas as pd
 import pytest
 from mlflow.tracking import MlflowClient
 
-from helpers import ROOT, compose_cfg
+from helpers import ROOT, compose_cfg, start_mlflow_server, stop_mlflow_server
 from sdrl_bench import tracking
 from sdrl_bench.cli.main import run_fit
 
@@ -95,3 +96,43 @@ def test_a_fit_run_on_a_server_has_datasets_a_loadable_model_equations_tags_and_
     assert summary["n_children"] == 2 and prun.data.metrics["n_finished"] == 2
     assert prun.data.tags["best_run_id"] == rid and "fit-mountain_car" in prun.data.tags["mlflow.note.content"]
     assert prun.data.tags["mlflow.source.git.commit"] == head
+
+
+def test_a_command_stopped_after_its_server_died_exits_in_one_line_not_after_minutes_of_retries(tmp_path):
+    """The server dies mid-run (SIGKILL), then the command is stopped (SIGTERM): from the stop on,
+    MLflow's retries on the server are capped (``tracking.client.STOP_SERVER_WAITS``), so the
+    command gives up on the store within seconds, says in one line that its runs may still show
+    RUNNING, and exits 143. Before the cap it retried each last request with MLflow's backoff and
+    was still retrying over 10 minutes after the SIGTERM (``communicate``'s limit below fails it)."""
+    import os
+    import signal
+    import sys
+    import time
+
+    server, url = start_mlflow_server(tmp_path)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)}
+    env.pop("MLFLOW_TRACKING_URI", None)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sdrl_bench.cli.main", "task=train", f"tracking.uri={url}", "rl.arms=[surrogate]",
+         "rl.surrogate_steps=1000000", "rl.eval_every=500000", "agent.algo.batch_size=32", "agent.algo.train_freq=16",
+         "agent.algo.policy_kwargs.net_arch=[16]", "progress_bar=false"],
+        cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    try:
+        client, deadline, logged = MlflowClient(url), time.monotonic() + 180, False
+        while not logged and time.monotonic() < deadline and proc.poll() is None:
+            time.sleep(1)
+            with contextlib.suppress(Exception):
+                runs = client.search_runs([client.get_experiment_by_name("sdrl-bench").experiment_id])
+                logged = bool(runs) and bool(runs[0].outputs.model_outputs)  # the fit is logged; it trains now
+        assert logged and proc.poll() is None, proc.communicate(timeout=30)[1][-2000:]
+        stop_mlflow_server(server, signal.SIGKILL)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        for p in (proc, server):
+            if p.poll() is None:
+                os.killpg(p.pid, signal.SIGKILL)
+                p.wait()
+    assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
+    assert err.strip().splitlines()[-1] == (f"sdrl-bench: stopped by SIGTERM; the tracking store at {url} did not answer, "
+                                            "so this command's runs may still show RUNNING")
