@@ -396,19 +396,24 @@ def _objective(s: StudySettings, build_job: BuildJob, sd: StudyData, uri: str, p
                 "seed": dict(s.context.get("values", {})).get("seed", "")}
 
         def report(step: int, value: float) -> bool:
-            trial.report(value, step)
-            return trial.should_prune()
+            with stop_signals_held():  # Optuna's storage
+                trial.report(value, step)
+                return trial.should_prune()
 
-        with tracking.tracked_run(uri, s.experiment, f"{s.name}-trial-{trial.number}", "trial", tags, parent,
-                                  source="sdrl-bench-search") as run:
-            trial.set_user_attr("mlflow_run_id", run.run_id)
+        # Stop signals pass in the trial's run (its work and its MLflow calls: a request to a server
+        # that died mid-trial would otherwise retry for minutes before a held stop is raised) and
+        # are held only while the objective tells Optuna's storage.
+        with stop_signals_held(False), tracking.tracked_run(uri, s.experiment, f"{s.name}-trial-{trial.number}",
+                                                            "trial", tags, parent, source="sdrl-bench-search") as run:
+            with stop_signals_held():
+                trial.set_user_attr("mlflow_run_id", run.run_id)
             run.log_params(fit_params(s.context, params))
             try:
-                with stop_signals_held(False):
-                    out = evaluate_params(params, build_job, sd, report if prune else None, s.policy, trial.number)
+                out = evaluate_params(params, build_job, sd, report if prune else None, s.policy, trial.number)
             except TRIAL_ERRORS as exc:
                 msg = f"{type(exc).__name__}: {str(exc).strip()}".splitlines()[0][:500]
-                trial.set_user_attr("error", msg)
+                with stop_signals_held():
+                    trial.set_user_attr("error", msg)
                 run.set_tags({"optuna.state": "FAIL", "error": msg})
                 raise
             run.log_metrics({"error": out.error, "n_fits": out.n_fits, **{f"real_steps/{k}": v for k, v in out.real_steps.items()},

@@ -98,33 +98,46 @@ def test_a_fit_run_on_a_server_has_datasets_a_loadable_model_equations_tags_and_
     assert prun.data.tags["mlflow.source.git.commit"] == head
 
 
-def test_a_command_stopped_after_its_server_died_exits_in_one_line_not_after_minutes_of_retries(tmp_path):
+STOPPED_COMMANDS = {
+    # the README's train task, its fit logged, mid-training
+    "sdrl-bench": (["sdrl_bench.cli.main", "task=train", "rl.arms=[surrogate]", "rl.surrogate_steps=1000000",
+                    "rl.eval_every=500000", "agent.algo.batch_size=32", "agent.algo.train_freq=16",
+                    "agent.algo.policy_kwargs.net_arch=[16]", "progress_bar=false"], "sdrl-bench", "transfer"),
+    # a search mid-study (its trials log between fits; that logging once held the stop)
+    "sdrl-bench-search": (["sdrl_bench.cli.search", "study.name=t", "search.n_trials=400"], "sdrl-bench-search", "trial"),
+}
+
+
+@pytest.mark.parametrize("command", list(STOPPED_COMMANDS))
+def test_a_command_stopped_after_its_server_died_exits_in_one_line_not_after_minutes_of_retries(command, tmp_path):
     """The server dies mid-run (SIGKILL), then the command is stopped (SIGTERM): from the stop on,
     MLflow's retries on the server are capped (``tracking.client.STOP_SERVER_WAITS``), so the
     command gives up on the store within seconds, says in one line that its runs may still show
-    RUNNING, and exits 143. Before the cap it retried each last request with MLflow's backoff and
-    was still retrying over 10 minutes after the SIGTERM (``communicate``'s limit below fails it)."""
+    RUNNING, and exits 143. Before the cap the train task retried each last request with MLflow's
+    backoff and was still retrying over 10 minutes after the SIGTERM; the search waited out a
+    trial's logging request (about 4 minutes) while it held the stop (``communicate``'s limit
+    below fails either)."""
     import os
     import signal
     import sys
     import time
 
+    argv, prog, ready = STOPPED_COMMANDS[command]
     server, url = start_mlflow_server(tmp_path)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(p for p in (str(ROOT), os.environ.get("PYTHONPATH")) if p)}
     env.pop("MLFLOW_TRACKING_URI", None)
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "sdrl_bench.cli.main", "task=train", f"tracking.uri={url}", "rl.arms=[surrogate]",
-         "rl.surrogate_steps=1000000", "rl.eval_every=500000", "agent.algo.batch_size=32", "agent.algo.train_freq=16",
-         "agent.algo.policy_kwargs.net_arch=[16]", "progress_bar=false"],
-        cwd=tmp_path, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    extra = [f"study.storage=sqlite:///{tmp_path / 'optuna.db'}"] if command == "sdrl-bench-search" else []
+    proc = subprocess.Popen([sys.executable, "-m", *argv, *extra, f"tracking.uri={url}"], cwd=tmp_path, env=env,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
     try:
-        client, deadline, logged = MlflowClient(url), time.monotonic() + 180, False
-        while not logged and time.monotonic() < deadline and proc.poll() is None:
+        client, deadline, started = MlflowClient(url), time.monotonic() + 180, False
+        while not started and time.monotonic() < deadline and proc.poll() is None:
             time.sleep(1)
             with contextlib.suppress(Exception):
-                runs = client.search_runs([client.get_experiment_by_name("sdrl-bench").experiment_id])
-                logged = bool(runs) and bool(runs[0].outputs.model_outputs)  # the fit is logged; it trains now
-        assert logged and proc.poll() is None, proc.communicate(timeout=30)[1][-2000:]
+                ids = [e.experiment_id for e in client.search_experiments()]
+                runs = client.search_runs(ids, f"tags.`sdrl.kind` = '{ready}'")
+                started = bool(runs) and (ready != "transfer" or bool(runs[0].outputs.model_outputs))
+        assert started and proc.poll() is None, proc.communicate(timeout=30)[1][-2000:]
         stop_mlflow_server(server, signal.SIGKILL)
         proc.send_signal(signal.SIGTERM)
         _, err = proc.communicate(timeout=120)
@@ -134,5 +147,5 @@ def test_a_command_stopped_after_its_server_died_exits_in_one_line_not_after_min
                 os.killpg(p.pid, signal.SIGKILL)
                 p.wait()
     assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
-    assert err.strip().splitlines()[-1] == (f"sdrl-bench: stopped by SIGTERM; the tracking store at {url} did not answer, "
+    assert err.strip().splitlines()[-1] == (f"{prog}: stopped by SIGTERM; the tracking store at {url} did not answer, "
                                             "so this command's runs may still show RUNNING")
