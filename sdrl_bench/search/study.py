@@ -16,6 +16,7 @@ stale-trial repair) are one unit that a reader follows top to bottom.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import warnings
 from collections import Counter
@@ -403,25 +404,33 @@ def _objective(s: StudySettings, build_job: BuildJob, sd: StudyData, uri: str, p
         # Stop signals pass in the trial's run (its work and its MLflow calls: a request to a server
         # that died mid-trial would otherwise retry for minutes before a held stop is raised) and
         # are held only while the objective tells Optuna's storage.
-        with stop_signals_held(False), tracking.tracked_run(uri, s.experiment, f"{s.name}-trial-{trial.number}",
-                                                            "trial", tags, parent, source="sdrl-bench-search") as run:
-            with stop_signals_held():
-                trial.set_user_attr("mlflow_run_id", run.run_id)
-            run.log_params(fit_params(s.context, params))
-            try:
-                out = evaluate_params(params, build_job, sd, report if prune else None, s.policy, trial.number)
-            except TRIAL_ERRORS as exc:
-                msg = f"{type(exc).__name__}: {str(exc).strip()}".splitlines()[0][:500]
+        run_id = None
+        try:
+            with stop_signals_held(False), tracking.tracked_run(uri, s.experiment, f"{s.name}-trial-{trial.number}", "trial",
+                                                                tags, parent, source="sdrl-bench-search") as run:
+                run_id = run.run_id
                 with stop_signals_held():
-                    trial.set_user_attr("error", msg)
-                run.set_tags({"optuna.state": "FAIL", "error": msg})
-                raise
-            run.log_metrics({"error": out.error, "n_fits": out.n_fits, **{f"real_steps/{k}": v for k, v in out.real_steps.items()},
-                             **{f"fold_error/{i}": e for i, e in enumerate(out.fold_errors)},
-                             **({"n_terms": out.n_terms} if out.n_terms is not None else {})})
-            run.set_tags({"optuna.state": "PRUNED" if out.pruned else "COMPLETE"})
-            if out.equations:
-                run.log_text(out.equations, "model/equations.txt")
+                    trial.set_user_attr("mlflow_run_id", run.run_id)
+                run.log_params(fit_params(s.context, params))
+                try:
+                    out = evaluate_params(params, build_job, sd, report if prune else None, s.policy, trial.number)
+                except TRIAL_ERRORS as exc:
+                    msg = f"{type(exc).__name__}: {str(exc).strip()}".splitlines()[0][:500]
+                    with stop_signals_held():
+                        trial.set_user_attr("error", msg)
+                    run.set_tags({"optuna.state": "FAIL", "error": msg})
+                    raise
+                run.log_metrics({"error": out.error, "n_fits": out.n_fits, **{f"real_steps/{k}": v for k, v in out.real_steps.items()},
+                                 **{f"fold_error/{i}": e for i, e in enumerate(out.fold_errors)},
+                                 **({"n_terms": out.n_terms} if out.n_terms is not None else {})})
+                run.set_tags({"optuna.state": "PRUNED" if out.pruned else "COMPLETE"})
+                if out.equations:
+                    run.log_text(out.equations, "model/equations.txt")
+        except KeyboardInterrupt:  # a stop: the trial fails, so its run ends KILLED, also one that landed FINISHED
+            if run_id is not None:  # as the stop came (the run's last request under way)
+                with contextlib.suppress(Exception):
+                    tracking.end_run(uri, run_id, "KILLED", also_ended=True)
+            raise
         trial.set_user_attr("fold_errors", out.fold_errors)
         trial.set_user_attr("n_fits", out.n_fits)
         if out.pruned:
