@@ -58,3 +58,25 @@ def test_a_server_that_does_not_answer_is_one_line_without_its_password():
         tracking.check_store(f"http://u:secret@127.0.0.1:{port}", "MLFLOW_TRACKING_URI", reach=True)
     assert str(err.value) == (f"MLFLOW_TRACKING_URI: the tracking server at http://u:***@127.0.0.1:{port} does not "
                               "answer ([Errno 111] Connection refused); start it, or fix the URI")
+
+
+def test_a_stop_caps_mlflows_waits_on_a_server_and_keeps_a_users_lower_setting(monkeypatch):
+    """What a stop signal's hooks do to MLflow's HTTP settings (``tracking.client.STOP_SERVER_WAITS``,
+    read by MLflow on every request): the defaults capped, a user's lower value kept, a value
+    MLflow could not read replaced; as MLflow itself reads them afterwards."""
+    from mlflow.environment_variables import (MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR, MLFLOW_HTTP_REQUEST_MAX_RETRIES,
+                                              MLFLOW_HTTP_REQUEST_TIMEOUT)
+
+    import sdrl_bench
+
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_MAX_RETRIES", "0")  # the user's, lower than the cap
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_TIMEOUT", "600")
+    monkeypatch.setenv("MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR", "x")
+    assert MLFLOW_HTTP_REQUEST_TIMEOUT.get() == 600
+    sdrl_bench.run_stop_hooks()  # what the stop signal's handler runs first
+    assert MLFLOW_HTTP_REQUEST_MAX_RETRIES.get() == 0
+    assert MLFLOW_HTTP_REQUEST_TIMEOUT.get() == 5
+    assert MLFLOW_HTTP_REQUEST_BACKOFF_FACTOR.get() == 1
+    monkeypatch.delenv("MLFLOW_HTTP_REQUEST_MAX_RETRIES")  # MLflow's default (7) is capped too
+    sdrl_bench.run_stop_hooks()
+    assert MLFLOW_HTTP_REQUEST_MAX_RETRIES.get() == 1
