@@ -317,19 +317,15 @@ def exit_after_stop_signal(cfg: DictConfig, signum: int, prog: str, what: str,
     import signal
     import sys
 
-    from sdrl_bench import run_stop_hooks, tracking
+    from sdrl_bench import tracking
     from sdrl_bench.search.location import redact
 
-    run_stop_hooks()  # a tracking server that does not answer costs seconds, not minutes
-    made, said = True, what
+    # the stop's handler has capped MLflow's waits on a server (``sdrl_bench.on_stop_signal``)
+    made, said, uri = True, what, str(cfg.tracking.uri)
     try:
         uri = tracking.resolve_uri(cfg.tracking.uri)
-    except Exception:
-        uri = None
-    try:
-        if uri is not None:
-            tracking.end_runs_of_this_process(uri, cfg.tracking.experiment)
-            made = bool(tracking.runs_of_this_process(uri, cfg.tracking.experiment))
+        tracking.end_runs_of_this_process(uri, cfg.tracking.experiment)
+        made = bool(tracking.runs_of_this_process(uri, cfg.tracking.experiment))
     except Exception:  # the store went away mid-run: its runs could not be ended, and the line says so
         said = f"the tracking store at {redact(uri)} did not answer, so this command's runs may still show RUNNING"
     print(f"{prog}: stopped by {signal.Signals(signum).name}; {said if made else before_runs}", file=sys.stderr)
