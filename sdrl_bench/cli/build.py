@@ -327,6 +327,7 @@ def exit_after_stop_signal(cfg: DictConfig, signum: int, prog: str, what: str,
         tracking.end_runs_of_this_process(uri, cfg.tracking.experiment)
         made = bool(tracking.runs_of_this_process(uri, cfg.tracking.experiment))
     except Exception:  # the store went away mid-run: its runs could not be ended, and the line says so
-        said = f"the tracking store at {redact(uri)} did not answer, so this command's runs may still show RUNNING"
+        said = (f"the tracking store at {redact(uri)} did not answer, so this command's runs may still show RUNNING "
+                "(the next command on this experiment ends them)")
     print(f"{prog}: stopped by {signal.Signals(signum).name}; {said if made else before_runs}", file=sys.stderr)
     sys.exit(128 + signum)

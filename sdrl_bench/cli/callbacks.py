@@ -126,7 +126,7 @@ class MlflowSweepCallback(Callback):
         name = signal.Signals(signum).name
         if unanswered:
             ended = (f"the tracking store at {unanswered} did not answer, so the sweep's runs may still show RUNNING "
-                     f"({n_runs} ended KILLED)")
+                     f"({n_runs} ended KILLED; the next command on this experiment ends the rest)")
         else:
             ended = f"{n_runs} run(s) and the sweep's parent run ended KILLED"
         print(f"sdrl-bench: stopped by {name}: {n_workers} worker process(es) stopped, {ended}; "

@@ -364,9 +364,29 @@ class Run:
 
 
 def process_tags() -> dict[str, str]:
-    """Which process owns a run (``sdrl.host``, ``sdrl.pid``): a later process can tell a run
-    whose owner died (still RUNNING) from one still at work (``read.end_stale_runs``)."""
-    return {"sdrl.host": socket.gethostname(), "sdrl.pid": str(os.getpid())}
+    """Which process owns a run, so that a later process can tell a run whose owner died (still
+    RUNNING) from one still at work (``read.owner_alive``): ``sdrl.host`` and ``sdrl.pid``, plus
+    the process's start time (``sdrl.pid_start``: a pid the system has reused is not the owner)
+    and its pid namespace (``sdrl.pid_ns``: containers that share a host name do not share pids)."""
+    tags = {"sdrl.host": socket.gethostname(), "sdrl.pid": str(os.getpid())}
+    identity = process_identity()
+    if identity is not None:
+        tags["sdrl.pid_start"], tags["sdrl.pid_ns"] = identity
+    return tags
+
+
+def process_identity(pid: int | None = None) -> tuple[str, str] | None:
+    """(start time in seconds since the epoch, pid namespace) of a process of this machine (this
+    one by default), as ``process_tags`` records them; None where the system does not say (no
+    ``/proc``) or the process is gone."""
+    import psutil  # noqa: PLC0415  (a few ms, paid by the processes that make runs)
+
+    try:
+        start = psutil.Process(pid).create_time()
+        namespace = os.readlink("/proc/self/ns/pid")
+    except (OSError, psutil.Error):
+        return None
+    return f"{start:.2f}", namespace
 
 
 VECTOR_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_bf16", "avx512_fp16", "avx_vnni", "amx_tile")

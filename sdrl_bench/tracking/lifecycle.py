@@ -5,15 +5,20 @@ every run of the harness is made the same way: the store's experiment, the run w
 MLflow's standard tags (user, source, commit: the UI's columns) and the job's own tags, its
 resolved config as lean params and ``config.yaml``, a description, system metrics while the body
 runs, and its end: FINISHED, FAILED if the body raises, KILLED on a stop signal (``start_run``).
+A top-level run first ends the runs of its experiment that dead processes of this host left
+RUNNING (``read.end_dead_processes_runs``): a single command killed with SIGKILL, or stopped
+while its tracking server was down, has nobody else to end its runs.
 """
 
 from __future__ import annotations
 
 import contextlib
+import sys
 from collections.abc import Iterator, Mapping
 from typing import Any
 
 from sdrl_bench.tracking.client import Run, start_run
+from sdrl_bench.tracking.read import end_dead_processes_runs
 from sdrl_bench.tracking.meta import log_config, set_description, standard_tags, system_metrics
 
 
@@ -27,6 +32,11 @@ def tracked_run(uri: str, experiment: str, run_name: str, kind: str, tags: Mappi
     the resolved config as a plain dict (logged with ``log_config``); ``system``: sample system
     metrics while the body runs (long jobs: training, Dyna)."""
     name = source or f"sdrl-bench task={task or kind}"
+    if parent is None:
+        ended = end_dead_processes_runs(uri, experiment)
+        if ended:
+            print(f"sdrl-bench: ended {len(ended)} run(s) of experiment {experiment!r} KILLED that processes of this "
+                  "host left RUNNING when they died (tag sdrl.ended_by)", file=sys.stderr)
     all_tags = {"sdrl.kind": kind, **standard_tags(name), **(tags or {})}
     with start_run(uri, experiment, run_name, all_tags, parent) as run:
         run.log_metrics(machine_load("start"))

@@ -7,7 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from sdrl_bench import ConfigError
-from sdrl_bench.tracking.client import PARENT_TAG, display_uri, mlflow_client, process_tags
+from sdrl_bench.tracking.client import PARENT_TAG, display_uri, mlflow_client, process_identity, process_tags, sqlite_path
 
 
 def find_runs(uri: str, experiment: str, filter_string: str = "", *, missing_ok: bool = True,
@@ -70,11 +70,13 @@ def download_artifact(uri: str, run_id: str, path: str, dst: str | Path) -> Path
 
 
 def owner_alive(tags: dict[str, str]) -> bool | None:
-    """Whether the process that owns a run (``sdrl.host``/``sdrl.pid`` tags) is alive: None
-    when that cannot be told here (no tags, or another host). A zombie is dead: a sweep's worker
-    killed with its driver stays one until init reaps it, which can come after a rerun looks
-    (seen here: the workers of a sweep killed with SIGKILL were zombies a moment later, and a
-    rerun that asked then left their runs RUNNING)."""
+    """Whether the process that owns a run (``client.process_tags``) is alive: None when that
+    cannot be told here (no tags, another host, or another pid namespace of this host name, as
+    in a container). A zombie is dead: a sweep's worker killed with its driver stays one until
+    init reaps it, which can come after a rerun looks (seen here: the workers of a sweep killed
+    with SIGKILL were zombies a moment later, and a rerun that asked then left their runs
+    RUNNING). A live process whose start time is not the run's (``sdrl.pid_start``, where the
+    run has it) holds a reused pid: the owner is dead."""
     import socket
 
     import psutil
@@ -82,12 +84,21 @@ def owner_alive(tags: dict[str, str]) -> bool | None:
     host, pid = tags.get("sdrl.host"), tags.get("sdrl.pid")
     if host != socket.gethostname() or not (pid or "").isdigit():
         return None
+    here = process_identity()
+    if tags.get("sdrl.pid_ns") and (here is None or tags["sdrl.pid_ns"] != here[1]):
+        return None
     try:
-        return psutil.Process(int(pid)).status() != psutil.STATUS_ZOMBIE
+        proc = psutil.Process(int(pid))
+        if proc.status() == psutil.STATUS_ZOMBIE:
+            return False
+        started = tags.get("sdrl.pid_start")
+        return not started or abs(proc.create_time() - float(started)) < 1.0
     except psutil.NoSuchProcess:
         return False
     except psutil.AccessDenied:
         return True
+    except ValueError:  # a start time that is not a number: not ours to judge
+        return None
 
 
 def end_stale_runs(uri: str, experiment: str, filter_string: str, status: str = "KILLED") -> list[str]:
@@ -100,6 +111,15 @@ def end_stale_runs(uri: str, experiment: str, filter_string: str, status: str = 
         client.set_tag(r["run_id"], "sdrl.ended_by", "a later process: its owner had died")
         client.set_terminated(r["run_id"], status)
     return [r["run_id"] for r in stale]
+
+
+def end_dead_processes_runs(uri: str, experiment: str, status: str = "KILLED") -> list[str]:
+    """End every RUNNING run of ``experiment`` whose owning process on this host is dead: what a
+    ``kill -9``, an out-of-memory kill or a tracking server that died under a stopped command left
+    behind. Runs of live processes, of other hosts or of other pid namespaces are left alone."""
+    if (local := sqlite_path(uri)) is not None and not local.is_file():
+        return []  # a new store: nothing to end, and no store to make before the run does
+    return end_stale_runs(uri, experiment, "attributes.status = 'RUNNING'", status)
 
 
 def runs_of_this_process(uri: str, experiment: str, status: str | None = None) -> list[dict[str, Any]]:

@@ -294,3 +294,29 @@ def test_sigterm_mid_dyna_ends_the_parent_and_the_open_round_killed(tmp_path):
     assert not [r for r in runs if r["status"] == "RUNNING"]
     assert [r["status"] for r in _kinds(runs, "dyna")] == ["KILLED"]
     assert [(r["tags"]["dyna.round"], r["status"]) for r in _kinds(runs, "dyna_round")] == [("0", "FINISHED")]
+
+
+# ------------------------------------------------------------------ a single command killed
+def test_a_single_command_killed_with_sigkill_has_its_runs_ended_by_the_next_command(tmp_path):
+    """``kill -9`` of a single ``sdrl-bench`` command leaves its runs RUNNING, and no sweep or
+    search rerun will end them: the next command on the same experiment does (KILLED, tagged
+    ``sdrl.ended_by``), and leaves a live process's run alone."""
+    uri = f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
+    proc = _start(["experiment=quick_mountain_car", "rl.surrogate_steps=10000000", "rl.arms=[surrogate]",
+                   f"tracking.uri={uri}", "progress_bar=false"], tmp_path)
+    _wait_for(lambda: bool(_kinds(_runs(uri), "transfer", "RUNNING")), 240, "the train command's run")
+    time.sleep(2)  # inside its training
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.communicate(timeout=30)
+    left = [r["run_id"] for r in _runs(uri) if r["status"] == "RUNNING"]
+    assert left and {r["tags"]["sdrl.kind"] for r in _runs(uri)} >= {"transfer"}
+    alive = tracking.create_parent_run(uri, EXP, "a live process's run", {"sdrl.kind": "probe"})  # this test's own
+    rerun = run_cli("seed=1", f"tracking.uri={uri}", cwd=tmp_path)
+    assert rerun.returncode == 0, rerun.stderr[-2000:]
+    assert (f"sdrl-bench: ended {len(left)} run(s) of experiment 'sdrl-bench' KILLED that processes of this host "
+            "left RUNNING when they died (tag sdrl.ended_by)") in rerun.stderr
+    status = {r["run_id"]: (r["status"], r["tags"].get("sdrl.ended_by")) for r in _runs(uri)}
+    assert {status[i] for i in left} == {("KILLED", "a later process: its owner had died")}
+    assert status[alive] == ("RUNNING", None)
+    assert [r["status"] for r in _kinds(_runs(uri), "fit") if r["tags"].get("seed") == "1"] == ["FINISHED"]
+    tracking.end_run(uri, alive, "FINISHED")

@@ -148,4 +148,4 @@ def test_a_command_stopped_after_its_server_died_exits_in_one_line_not_after_min
                 p.wait()
     assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
     assert err.strip().splitlines()[-1] == (f"{prog}: stopped by SIGTERM; the tracking store at {url} did not answer, "
-                                            "so this command's runs may still show RUNNING")
+                                            "so this command's runs may still show RUNNING (the next command on this experiment ends them)")

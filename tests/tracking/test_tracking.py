@@ -201,7 +201,12 @@ def test_a_run_whose_owner_is_a_zombie_is_stale_and_one_whose_owner_lives_is_not
     import psutil
 
     from sdrl_bench import tracking
+    from sdrl_bench.tracking.client import process_identity
     from sdrl_bench.tracking.read import owner_alive
+
+    def owner(pid: int) -> dict[str, str]:  # the tags process ``pid`` would give its own runs
+        start, namespace = process_identity(pid)
+        return {"sdrl.host": socket.gethostname(), "sdrl.pid": str(pid), "sdrl.pid_start": start, "sdrl.pid_ns": namespace}
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
@@ -213,7 +218,14 @@ def test_a_run_whose_owner_is_a_zombie_is_stale_and_one_whose_owner_lives_is_not
         here = socket.gethostname()
         assert owner_alive({"sdrl.host": here, "sdrl.pid": str(dead.pid)}) is False
         assert owner_alive({"sdrl.host": here, "sdrl.pid": str(live.pid)}) is True
-        ids = {name: tracking.create_parent_run(store, "stale", name, {"sdrl.pid": str(p.pid), "sdrl.test": "owners"})
+        assert owner_alive(owner(live.pid)) is True
+        # the live pid, but started at another time: the system reused the pid of a dead owner
+        reused = {**owner(live.pid), "sdrl.pid_start": f"{float(owner(live.pid)['sdrl.pid_start']) - 60:.2f}"}
+        assert owner_alive(reused) is False
+        # another pid namespace under the same host name (a container): not for this process to judge
+        assert owner_alive({**owner(dead.pid), "sdrl.pid_ns": "pid:[1]"}) is None
+        assert owner_alive({**owner(live.pid), "sdrl.host": here + "-elsewhere"}) is None
+        ids = {name: tracking.create_parent_run(store, "stale", name, {**owner(p.pid), "sdrl.test": "owners"})
                for name, p in (("dead", dead), ("live", live))}
         assert tracking.end_stale_runs(store, "stale", "tags.`sdrl.test` = 'owners'") == [ids["dead"]]
         status = {r["run_id"]: r["status"] for r in tracking.find_runs(store, "stale")}
