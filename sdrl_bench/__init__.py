@@ -10,6 +10,34 @@ class ConfigError(ValueError):
     """Bad user input (a config key, a file): reported as one line, before expensive work."""
 
 
+def redact(url: str) -> str:
+    """``url`` with its password hidden (``user:***@host``), for messages, tags, params, logged
+    configs and reports: a tracking server's or a database's credentials are the user's to keep.
+    Anything without a password (a path, ``sqlite:///...``, ``journal:...``) comes back as it is.
+    Hand-written on ``urllib.parse``: the URLs are MLflow's, Optuna's and SQLAlchemy's, and no
+    one of their parsers takes all of them."""
+    import urllib.parse
+
+    try:
+        parts = urllib.parse.urlsplit(url)
+        if parts.password is None:
+            return url
+    except ValueError:  # not a URL (an unbalanced bracket, a bad port): nothing to hide in it
+        return url
+    userinfo, _, host = parts.netloc.rpartition("@")
+    return urllib.parse.urlunsplit(parts._replace(netloc=f"{userinfo.partition(':')[0]}:***@{host}"))
+
+
+def redact_arg(arg: str) -> str:
+    """A command-line argument, a URL or an override (``key=URL``, ``--flag=URL``), with any
+    password in it hidden (``redact``)."""
+    whole = redact(arg)
+    if whole != arg:
+        return whole
+    key, eq, value = arg.partition("=")
+    return f"{key}{eq}{redact(value)}" if eq else arg
+
+
 class Terminated(KeyboardInterrupt):
     """A stop signal (SIGTERM, SIGINT) raised as an exception in the main thread, so that open
     runs unwind and end KILLED (and Optuna fails the running trial, as it does on Ctrl-C)."""

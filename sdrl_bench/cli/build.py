@@ -318,7 +318,7 @@ def exit_after_stop_signal(cfg: DictConfig, signum: int, prog: str, what: str,
     import sys
 
     from sdrl_bench import tracking
-    from sdrl_bench.search.location import redact
+    from sdrl_bench import redact
 
     # the stop's handler has capped MLflow's waits on a server (``sdrl_bench.on_stop_signal``)
     made, said, uri = True, what, str(cfg.tracking.uri)

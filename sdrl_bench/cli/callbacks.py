@@ -32,7 +32,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from sdrl_bench import run_stop_hooks, tracking
-from sdrl_bench.search.location import redact
+from sdrl_bench import redact, redact_arg
 
 PARENT_FILE = "mlflow_parent_run_id"
 KEY_FILE = "mlflow_sweep_key"
@@ -66,7 +66,7 @@ class MlflowSweepCallback(Callback):
         run_id = tracking.create_parent_run(
             uri, experiment, f"sweep-{sweep_dir.name}",
             {"sdrl.kind": "sweep", "sdrl.sweep_dir": str(sweep_dir.resolve()),
-             "sdrl.overrides": " ".join(overrides), SWEEP_KEY_TAG: key,
+             "sdrl.overrides": " ".join(redact_arg(o) for o in overrides), SWEEP_KEY_TAG: key,
              **tracking.standard_tags("sdrl-bench -m")},
         )
         sweep_dir.mkdir(parents=True, exist_ok=True)
@@ -172,7 +172,7 @@ def job_label(sweep_dir: str | Path, job_overrides: list[str], groups: Sequence[
     keys = json.loads(path.read_text()) if path.is_file() else []
     values = dict(o.lstrip("+~").split("=", 1) for o in job_overrides if "=" in o)
     parts = [values[k] if k in groups else f"{k.rsplit('.', 1)[-1]}={values[k]}" for k in keys if k in values]
-    return " ".join(parts) or " ".join(job_overrides)
+    return " ".join(parts) or " ".join(redact_arg(o) for o in job_overrides)
 
 
 def sweep_context(sweep_dir: str | Path) -> tuple[str | None, str | None]:

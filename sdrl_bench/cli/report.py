@@ -13,7 +13,7 @@ import sys
 from pathlib import Path
 from collections.abc import Sequence
 
-from sdrl_bench import ConfigError, tracking
+from sdrl_bench import ConfigError, redact_arg, tracking
 from sdrl_bench.report.folder import report_files
 
 # The report's builder (report.build: mlflow, pandas, about 4 s of imports) is imported in main,
@@ -46,7 +46,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--no-log", action="store_true", help="do not log the report as an MLflow run")
     ap.add_argument("--provenance", type=Path, help="rebuild record (scripts/reproduce.py's rebuild.json): how it was made")
     args = ap.parse_args(argv)
-    command = "sdrl-bench-report " + " ".join(shlex.quote(a) for a in (argv if argv is not None else sys.argv[1:]))
+    command = "sdrl-bench-report " + " ".join(shlex.quote(redact_arg(a)) for a in (argv if argv is not None else sys.argv[1:]))
     try:
         tags = _parse_tags(args.tag)
         uri = tracking.resolve_uri(args.uri)
@@ -54,7 +54,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         report_files(args.out, args.name)  # a folder holding the user's files: refused before the builder loads
         from sdrl_bench.report.build import ReportInput, build_report  # noqa: PLC0415  (see the imports above)
 
-        ui = args.ui_url or (uri if uri.startswith(("http://", "https://")) else None)  # a server serves its own UI
+        # a server serves its own UI; the links are written into the report, so no credentials in them
+        ui = tracking.without_credentials(args.ui_url) if args.ui_url else tracking.ui_base(uri)
         inp = ReportInput(uri, args.experiment, args.parent_run, tags, ui)
         res = build_report(inp, args.name, args.out, command.strip(), log_run=not args.no_log,
                            provenance=args.provenance)

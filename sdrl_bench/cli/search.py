@@ -28,7 +28,7 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, ListConfig, OmegaConf, open_dict
 
-from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, stop_signal_received, tracking
+from sdrl_bench import ConfigError, Terminated, raise_on_stop_signals, redact, stop_signal_received, tracking
 from sdrl_bench.cli import CONFIG_PATH
 from sdrl_bench.cli.build import bool_key, build_fit_job, compose, exit_after_stop_signal, float_key, int_key, seed_key
 from sdrl_bench.pipeline import FitJob
@@ -206,7 +206,7 @@ def run_search(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet:
 
 
 def _print_summary(summary, result, export_dir: str | None) -> None:
-    print(f"study '{summary.name}' in {result.storage}: {summary.n_trials} trials "
+    print(f"study '{summary.name}' in {redact(result.storage)}: {summary.n_trials} trials "
           f"({summary.n_complete} complete, {summary.n_pruned} pruned, {summary.n_failed} failed), "
           f"{summary.fits_total} fits; this worker ran {len(result.trials)}")
     if summary.best_number is None:

@@ -4,7 +4,6 @@ search's libraries load."""
 
 from __future__ import annotations
 
-import re
 from pathlib import Path
 
 DEFAULT_STORAGE = Path("mlruns") / "optuna.db"
@@ -19,15 +18,3 @@ def resolve_storage(url: str | None) -> str:
     if url.startswith("journal:"):
         return f"journal:{Path(url[len('journal:'):]).resolve()}"
     return url
-
-
-def redact(url: str) -> str:
-    """The URL with any password hidden (for messages, tags and logs)."""
-    if url.startswith("journal:"):
-        return url
-    try:
-        from sqlalchemy.engine import make_url
-
-        return make_url(url).render_as_string(hide_password=True)
-    except Exception:
-        return re.sub(r"//([^:/@]+):[^@]*@", r"//\1:***@", url)

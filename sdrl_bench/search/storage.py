@@ -19,7 +19,7 @@ from collections.abc import Callable, Mapping
 import optuna
 
 from sdrl_bench import ConfigError, tracking
-from sdrl_bench.search.location import redact
+from sdrl_bench import redact
 from sdrl_bench.search.space import space_differences
 
 FINGERPRINT_ATTR = "sdrl.fingerprint"

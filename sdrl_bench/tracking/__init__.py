@@ -61,6 +61,7 @@ from sdrl_bench.tracking.meta import (
     standard_tags,
     system_metrics,
     ui_base,
+    without_credentials,
     used_params,
 )
 from sdrl_bench.tracking.sb3 import sb3_logger
@@ -74,5 +75,5 @@ __all__ = [
     "log_fit", "log_report", "machine_label", "mlflow_client", "resolve_uri", "reuse_real_arm", "run_exists", "sb3_logger", "sqlite_path",
     "start_run", "tracked_run", "uncertainty_table", "use_wal",
     "browse_hint", "compare_url", "describe_experiment", "log_config", "run_url", "runs_url", "set_description",
-    "standard_tags", "summarize_sweep", "system_metrics", "ui_base", "used_params",
+    "standard_tags", "summarize_sweep", "system_metrics", "ui_base", "used_params", "without_credentials",
 ]

@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 from collections.abc import Iterator, Mapping
 
-from sdrl_bench import ConfigError, on_stop_signal, stop_signal_received
+from sdrl_bench import ConfigError, on_stop_signal, redact, stop_signal_received
 
 DEFAULT_DB = Path("mlruns") / "mlflow.db"
 PARENT_TAG = "mlflow.parentRunId"
@@ -47,10 +47,11 @@ def uri_key(given: str | None, key: str = "tracking.uri") -> str:
 
 
 def display_uri(uri: str) -> str:
-    """The URI as a user would type it: a SQLite store under the current folder, relative."""
+    """The URI as a user would type it (a SQLite store under the current folder, relative), its
+    password hidden (``redact``): what messages and reports show."""
     local = sqlite_path(uri)
     if local is None:
-        return uri
+        return redact(uri)
     try:
         return f"sqlite:///{local.relative_to(Path.cwd())}"
     except ValueError:
@@ -110,10 +111,16 @@ def mlflow_client(uri: str):
     (``store_lock``): its integrity is checked (a damaged file is named in one line, before any
     work), and a new store's tables are created, or an old one's migrated, by one process at a
     time (processes racing to create the tables crash and can leave the store unusable).
+
+    On a server, MLflow prints two lines with the run's and the experiment's addresses each time
+    a run ends, credentials in the URI included; the commands print the address of the run that
+    matters, without them (``meta.browse_hint``), so MLflow's lines are off unless the user has
+    set ``MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT`` to another value.
     """
     from mlflow.tracking import MlflowClient
 
     logging.getLogger("mlflow").setLevel(logging.WARNING)  # its INFO chatter (table creation, monitors)
+    os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
     local = sqlite_path(uri)
     if local is None or uri in _READY:
         return MlflowClient(tracking_uri=uri)
@@ -199,7 +206,7 @@ def _check_reachable(uri: str, key: str, timeout: float = 10.0) -> None:
     if parts.username is not None:
         token = f"{urllib.parse.unquote(parts.username)}:{urllib.parse.unquote(parts.password or '')}"
         request.add_header("Authorization", "Basic " + base64.b64encode(token.encode()).decode())
-    shown = uri.replace(f":{parts.password}@", ":***@") if parts.password else uri
+    shown = redact(uri)
     try:
         with urllib.request.urlopen(request, timeout=timeout):
             return

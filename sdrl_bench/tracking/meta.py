@@ -11,8 +11,9 @@ import sys
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
-from urllib.parse import quote
+from urllib.parse import quote, urlsplit, urlunsplit
 
+from sdrl_bench import redact
 from sdrl_bench.tracking.client import Run, flatten, git_commit, mlflow_client
 
 NOTE_TAG = "mlflow.note.content"  # the run's (or the experiment's) Description in the UI
@@ -76,9 +77,10 @@ def used_params(config: Mapping[str, Any], uri: str, task: str = "fit") -> dict[
     """The parameters a run used, from the resolved config (a plain dict): seed and data,
     collector, model (SINDy: library and optimizer; else the surrogate's hyperparameters), and
     for ``task="train"`` the agent and the RL budgets (``task="dyna"``: the agent and ``rl.dyna``). Values that are None are left out;
-    ``tracking.uri`` is the store the run went to. The whole config goes in as ``config.yaml``."""
+    ``tracking.uri`` is the store the run went to (its password hidden). The whole config goes in as
+    ``config.yaml``."""
     arms = config.get("rl", {}).get("arms", []) if task == "train" else ["surrogate"]
-    p: dict[str, str] = {"seed": str(config.get("seed")), "tracking.uri": uri}
+    p: dict[str, str] = {"seed": str(config.get("seed")), "tracking.uri": redact(uri)}
     if "surrogate" in arms:
         p["n_transitions"] = str(config.get("n_transitions"))
         p.update(_group(config, "dataset"))
@@ -111,11 +113,21 @@ def used_params(config: Mapping[str, Any], uri: str, task: str = "fit") -> dict[
 
 
 def log_config(run: Run, config: Mapping[str, Any], uri: str, task: str = "fit") -> None:
-    """Lean params (``used_params``) and the full resolved config as ``config.yaml``."""
+    """Lean params (``used_params``) and the full resolved config as ``config.yaml``, every URL's
+    password in it hidden (``redact``: ``tracking.uri``, ``study.storage``)."""
     import yaml
 
     run.log_params(used_params(config, uri, task))
-    run.log_text(yaml.safe_dump(json.loads(json.dumps(dict(config), default=str)), sort_keys=False), "config.yaml")
+    plain = json.loads(json.dumps(dict(config), default=str))
+    run.log_text(yaml.safe_dump(_redacted(plain), sort_keys=False), "config.yaml")
+
+
+def _redacted(node: Any) -> Any:
+    if isinstance(node, dict):
+        return {k: _redacted(v) for k, v in node.items()}
+    if isinstance(node, list):
+        return [_redacted(v) for v in node]
+    return redact(node) if isinstance(node, str) else node
 
 
 # ---------------------------------------------------------------------- descriptions
@@ -157,8 +169,20 @@ def system_metrics(run: Run, interval: float = 5.0) -> Iterator[None]:
 # ---------------------------------------------------------------------- UI links
 def ui_base(uri: str) -> str | None:
     """The MLflow UI's address for a tracking URI: an http(s) server serves its own UI; a local
-    store has none until ``mlflow ui`` runs (None)."""
-    return uri.rstrip("/") if uri.startswith(("http://", "https://")) else None
+    store has none until ``mlflow ui`` runs (None). No credentials: the links are printed and
+    written into reports (a browser asks for them)."""
+    return without_credentials(uri).rstrip("/") if uri.startswith(("http://", "https://")) else None
+
+
+def without_credentials(url: str) -> str:
+    """``url`` without its ``user:password@`` part."""
+    try:
+        parts = urlsplit(url)
+    except ValueError:
+        return url
+    if "@" not in parts.netloc:
+        return url
+    return urlunsplit(parts._replace(netloc=parts.netloc.rpartition("@")[2]))
 
 
 def run_url(base: str, experiment_id: str, run_id: str) -> str:

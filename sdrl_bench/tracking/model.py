@@ -57,10 +57,12 @@ def _csv_source(run: Run, artifact: str):
     from mlflow.data.http_dataset_source import HTTPDatasetSource
 
     from sdrl_bench.tracking.client import mlflow_client
+    from sdrl_bench.tracking.meta import without_credentials
 
     base = mlflow_client(run.uri).get_run(run.run_id).info.artifact_uri.rstrip("/")
     if base.startswith("mlflow-artifacts:") and run.uri.startswith(("http://", "https://")):
-        return HTTPDatasetSource(f"{run.uri.rstrip('/')}/get-artifact?path={quote(artifact, safe='')}&run_uuid={run.run_id}")
+        server = without_credentials(run.uri).rstrip("/")  # a dataset's source is shown to whoever reads the run
+        return HTTPDatasetSource(f"{server}/get-artifact?path={quote(artifact, safe='')}&run_uuid={run.run_id}")
     return f"{base}/{artifact}"
 
 

@@ -15,7 +15,7 @@ import pandas as pd
 import pytest
 from mlflow.tracking import MlflowClient
 
-from helpers import ROOT, compose_cfg, start_mlflow_server, stop_mlflow_server
+from helpers import ROOT, compose_cfg, run_cli, start_mlflow_server, stop_mlflow_server
 from sdrl_bench import tracking
 from sdrl_bench.cli.main import run_fit
 
@@ -149,3 +149,52 @@ def test_a_command_stopped_after_its_server_died_exits_in_one_line_not_after_min
     assert proc.returncode == 128 + signal.SIGTERM, err[-2000:]
     assert err.strip().splitlines()[-1] == (f"{prog}: stopped by SIGTERM; the tracking store at {url} did not answer, "
                                             "so this command's runs may still show RUNNING (the next command on this experiment ends them)")
+
+
+def test_credentials_in_the_tracking_uri_reach_no_output_run_or_report(tmp_path):
+    """A tracking URI with a user and password (``http://user:password@host``, sent as Basic
+    auth): the password appears nowhere the harness writes. Not in what the commands print, not
+    in any run's params, tags or artifacts (the backend's database and artifact files are read as
+    bytes), not in the report's files; its links carry no credentials (a browser asks for them).
+    Before, the fit's ``tracking.uri`` param and ``config.yaml``, a sweep's ``sdrl.overrides`` tag
+    and its summary's params, the printed run address and the report's links all carried it."""
+    secret = "s3cret-Pa55"
+    server_dir = tmp_path / "server"
+    server_dir.mkdir()
+    proc, url = start_mlflow_server(server_dir)
+    try:
+        host = url.removeprefix("http://")
+        uri = f"http://alice:{secret}@{host}"
+        work = tmp_path / "work"
+        work.mkdir()
+        commands = [
+            ("sdrl_bench.cli.main", [f"tracking.uri={uri}", "seed=1"]),
+            ("sdrl_bench.cli.main", ["-m", f"tracking.uri={uri}", "seed=2,3", "hydra.launcher.n_jobs=1"]),
+            ("sdrl_bench.cli.search", [f"tracking.uri={uri}", "study.name=creds", "search.n_trials=2"]),
+            ("sdrl_bench.cli.report", ["--uri", uri, "--out", str(work / "reports"), "--name", "r"]),
+        ]
+        printed = ""
+        for module, args in commands:
+            done = run_cli(*args, cwd=work, module=module, timeout=600)
+            assert done.returncode == 0, (module, done.stderr[-2000:])
+            # Hydra's launcher echoes each job's overrides as the user typed them: theirs, not ours
+            printed += "".join(line for line in (done.stdout + done.stderr).splitlines(keepends=True)
+                               if "[HYDRA]" not in line)
+        assert secret not in printed and f"open {url}/#/experiments/" in printed
+        assert f"http://alice:***@{host}" in printed  # the store each command names, its password hidden
+        client = MlflowClient(uri)
+        runs = client.search_runs([e.experiment_id for e in client.search_experiments()], max_results=1000)
+        kinds = {r.data.tags.get("sdrl.kind") for r in runs}
+        assert {"fit", "sweep", "study", "trial", "report"} <= kinds
+        fit = next(r for r in runs if r.data.tags.get("sdrl.kind") == "fit" and r.data.params.get("seed") == "1")
+        assert fit.data.params["tracking.uri"] == f"http://alice:***@{host}"
+        sweep = next(r for r in runs if r.data.tags.get("sdrl.kind") == "sweep")
+        assert f"tracking.uri=http://alice:***@{host}" in sweep.data.tags["sdrl.overrides"]
+        stored = [p for p in server_dir.rglob("*") if p.is_file()] + [p for p in work.rglob("*") if p.is_file()]
+        assert any(p.name == "config.yaml" for p in stored) and any(p.name == "report.html" for p in stored)
+        hydra_record = work / "mlruns" / "hydra"  # Hydra's own record of each command line: the user's, kept as typed
+        leaked = [str(p) for p in stored if secret.encode() in p.read_bytes() and p.name != "server.log"
+                  and not p.is_relative_to(hydra_record)]
+        assert leaked == []
+    finally:
+        stop_mlflow_server(proc)

@@ -80,3 +80,24 @@ def test_a_stop_caps_mlflows_waits_on_a_server_and_keeps_a_users_lower_setting(m
     monkeypatch.delenv("MLFLOW_HTTP_REQUEST_MAX_RETRIES")  # MLflow's default (7) is capped too
     sdrl_bench.run_stop_hooks()
     assert MLFLOW_HTTP_REQUEST_MAX_RETRIES.get() == 1
+
+
+@pytest.mark.parametrize("given, hidden, bare", [
+    ("http://alice:s3cr:et@127.0.0.1:5000/x?y=1", "http://alice:***@127.0.0.1:5000/x?y=1", "http://127.0.0.1:5000/x?y=1"),
+    ("postgresql+psycopg2://u:p%40ss@db:5432/optuna", "postgresql+psycopg2://u:***@db:5432/optuna",
+     "postgresql+psycopg2://db:5432/optuna"),
+    ("mysql://root:pw@[::1]:3306/o", "mysql://root:***@[::1]:3306/o", "mysql://[::1]:3306/o"),
+    ("http://bob@h:1", "http://bob@h:1", "http://h:1"),  # a user and no password: nothing to hide
+    ("sqlite:////tmp/a:b@c.db", "sqlite:////tmp/a:b@c.db", "sqlite:////tmp/a:b@c.db"),  # a path, not a login
+    ("journal:/tmp/j.log", "journal:/tmp/j.log", "journal:/tmp/j.log"),
+    ("http://[::1", "http://[::1", "http://[::1"),  # not a URL: as it is
+])
+def test_a_password_in_a_url_is_hidden_and_links_carry_no_login(given, hidden, bare):
+    from sdrl_bench import redact, redact_arg
+    from sdrl_bench.tracking import display_uri, without_credentials
+
+    assert redact(given) == hidden and without_credentials(given) == bare
+    assert redact_arg(f"tracking.uri={given}") == f"tracking.uri={hidden}" and redact_arg(given) == hidden
+    assert redact_arg(f"--uri={given}") == f"--uri={hidden}"
+    if not given.startswith("sqlite"):
+        assert display_uri(given) == hidden
