@@ -376,24 +376,29 @@ def process_tags() -> dict[str, str]:
     the process's start time (``sdrl.pid_start``: a pid the system has reused is not the owner)
     and its pid namespace (``sdrl.pid_ns``: containers that share a host name do not share pids)."""
     tags = {"sdrl.host": socket.gethostname(), "sdrl.pid": str(os.getpid())}
-    identity = process_identity()
-    if identity is not None:
-        tags["sdrl.pid_start"], tags["sdrl.pid_ns"] = identity
+    start, namespace = process_identity()
+    if start:
+        tags["sdrl.pid_start"] = start
+    if namespace:
+        tags["sdrl.pid_ns"] = namespace
     return tags
 
 
-def process_identity(pid: int | None = None) -> tuple[str, str] | None:
+def process_identity(pid: int | None = None) -> tuple[str, str]:
     """(start time in seconds since the epoch, pid namespace) of a process of this machine (this
-    one by default), as ``process_tags`` records them; None where the system does not say (no
-    ``/proc``) or the process is gone."""
+    one by default), as ``process_tags`` records them; each "" where the system does not say (a
+    process that is gone; no ``/proc``, as on macOS, for the namespace)."""
     import psutil  # noqa: PLC0415  (a few ms, paid by the processes that make runs)
 
     try:
-        start = psutil.Process(pid).create_time()
+        start = f"{psutil.Process(pid).create_time():.2f}"
+    except psutil.Error:
+        start = ""
+    try:
         namespace = os.readlink("/proc/self/ns/pid")
-    except (OSError, psutil.Error):
-        return None
-    return f"{start:.2f}", namespace
+    except OSError:
+        namespace = ""
+    return start, namespace
 
 
 VECTOR_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_bf16", "avx512_fp16", "avx_vnni", "amx_tile")

@@ -84,8 +84,7 @@ def owner_alive(tags: dict[str, str]) -> bool | None:
     host, pid = tags.get("sdrl.host"), tags.get("sdrl.pid")
     if host != socket.gethostname() or not (pid or "").isdigit():
         return None
-    here = process_identity()
-    if tags.get("sdrl.pid_ns") and (here is None or tags["sdrl.pid_ns"] != here[1]):
+    if tags.get("sdrl.pid_ns") and tags["sdrl.pid_ns"] != process_identity()[1]:
         return None
     try:
         proc = psutil.Process(int(pid))
