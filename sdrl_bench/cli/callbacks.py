@@ -4,9 +4,10 @@ The driver creates the tracking store and the parent run before any worker start
 the parent's id and the sweep's key into the sweep folder, where each job finds them.
 
 * **Resume.** The sweep key is a hash of the sweep's overrides and experiment: a rerun of the
-  same sweep on the same store has the same key. The driver first ends the stale RUNNING runs
-  of an earlier, dead sweep with that key (their owning processes are gone: ``sdrl.pid`` and
-  ``sdrl.host`` tags); each job then looks for a FINISHED run of its own config under that key
+  same sweep on the same store has the same key. The driver first ends the RUNNING runs that
+  dead processes of this host left in the experiment, an earlier run of this sweep's among them
+  (``tracking.end_runs_of_dead_processes``: ``sdrl.host``, ``sdrl.pid`` and the process's start
+  time and pid namespace tell a dead owner); each job then looks for a FINISHED run of its own config under that key
   and, when there is one, adopts it under the new parent instead of running again
   (``cli.main``; ``resume=false`` reruns every job).
 * **Stop signals.** SIGTERM or SIGINT to the driver stops the workers (terminate, then kill
@@ -59,10 +60,7 @@ class MlflowSweepCallback(Callback):
         overrides = list(config.hydra.overrides.task)
         key = sweep_key(overrides, experiment)
         tracking.ensure_experiment(uri, experiment)
-        stale = tracking.end_stale_runs(uri, experiment, f"tags.`{SWEEP_KEY_TAG}` = '{key}'")
-        if stale:
-            print(f"sdrl-bench: ended {len(stale)} stale RUNNING run(s) of an earlier run of this sweep "
-                  f"(their processes are gone)", file=sys.stderr)
+        tracking.end_runs_of_dead_processes(uri, experiment)  # an earlier run of this sweep's, or any command's
         run_id = tracking.create_parent_run(
             uri, experiment, f"sweep-{sweep_dir.name}",
             {"sdrl.kind": "sweep", "sdrl.sweep_dir": str(sweep_dir.resolve()),

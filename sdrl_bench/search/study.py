@@ -334,6 +334,7 @@ def run_study(
     heartbeat = settings.heartbeat_interval if not storage_url.startswith("journal:") else None
     storage = open_storage(storage_url, heartbeat, settings.heartbeat_grace if heartbeat else None, on_stale)
     tracking.ensure_experiment(uri, settings.experiment)
+    tracking.end_runs_of_dead_processes(uri, settings.experiment, "sdrl-bench-search")
     sd = study_data(base, settings.k_folds, settings.objective, checked)
     directions = ["minimize"] * len(settings.objectives)
     where = f" in {redact(storage_url)}"

@@ -6,8 +6,9 @@ MLflow's standard tags (user, source, commit: the UI's columns) and the job's ow
 resolved config as lean params and ``config.yaml``, a description, system metrics while the body
 runs, and its end: FINISHED, FAILED if the body raises, KILLED on a stop signal (``start_run``).
 A top-level run first ends the runs of its experiment that dead processes of this host left
-RUNNING (``read.end_dead_processes_runs``): a single command killed with SIGKILL, or stopped
-while its tracking server was down, has nobody else to end its runs.
+RUNNING (``end_runs_of_dead_processes``, which a sweep's driver and a search also call before
+their parent runs): a single command killed with SIGKILL, or stopped while its tracking server
+was down, has nobody else to end its runs.
 """
 
 from __future__ import annotations
@@ -33,10 +34,7 @@ def tracked_run(uri: str, experiment: str, run_name: str, kind: str, tags: Mappi
     metrics while the body runs (long jobs: training, Dyna)."""
     name = source or f"sdrl-bench task={task or kind}"
     if parent is None:
-        ended = end_dead_processes_runs(uri, experiment)
-        if ended:
-            print(f"sdrl-bench: ended {len(ended)} run(s) of experiment {experiment!r} KILLED that processes of this "
-                  "host left RUNNING when they died (tag sdrl.ended_by)", file=sys.stderr)
+        end_runs_of_dead_processes(uri, experiment)
     all_tags = {"sdrl.kind": kind, **standard_tags(name), **(tags or {})}
     with start_run(uri, experiment, run_name, all_tags, parent) as run:
         run.log_metrics(machine_load("start"))
@@ -47,6 +45,16 @@ def tracked_run(uri: str, experiment: str, run_name: str, kind: str, tags: Mappi
         with system_metrics(run) if system else contextlib.nullcontext():
             yield run
         run.log_metrics(machine_load("end"))
+
+
+def end_runs_of_dead_processes(uri: str, experiment: str, prog: str = "sdrl-bench") -> list[str]:
+    """End the runs of ``experiment`` that dead processes of this host left RUNNING
+    (``read.end_dead_processes_runs``), saying so in one line on stderr; returns their ids."""
+    ended = end_dead_processes_runs(uri, experiment)
+    if ended:
+        print(f"{prog}: ended {len(ended)} run(s) of experiment {experiment!r} KILLED that processes of this host "
+              "left RUNNING when they died (tag sdrl.ended_by)", file=sys.stderr)
+    return ended
 
 
 def machine_load(when: str) -> dict[str, float]:
