@@ -13,11 +13,23 @@ class ConfigError(ValueError):
 def redact(url: str) -> str:
     """``url`` with its password hidden (``user:***@host``), for messages, tags, params, logged
     configs and reports: a tracking server's or a database's credentials are the user's to keep.
-    Anything without a password (a path, ``sqlite:///...``, ``journal:...``) comes back as it is.
-    Hand-written on ``urllib.parse``: the URLs are MLflow's, Optuna's and SQLAlchemy's, and no
-    one of their parsers takes all of them."""
+    Text that is no ``scheme://`` URL (a path, ``journal:...``, any other value) and a SQLite URL
+    come back as they are. Another database URL (an Optuna storage) is read and written by SQLAlchemy, which takes a
+    password with ``/`` or ``?`` in it as the database does, as earlier versions did (a study's
+    parent run is found again by its redacted storage, tag ``sdrl.storage``); an HTTP(S) URL by
+    ``urllib.parse``, which SQLAlchemy does not read as MLflow does (a path after the port)."""
+    import re
     import urllib.parse
 
+    if "://" not in url or url.lower().startswith("sqlite:"):  # a SQLite URL holds a path, never a login
+        return url
+    if not url.lower().startswith(("http://", "https://")):
+        try:
+            from sqlalchemy.engine import make_url
+
+            return make_url(url).render_as_string(hide_password=True)
+        except Exception:  # not a URL SQLAlchemy reads (or no SQLAlchemy): hide what looks like a login
+            return re.sub(r"//([^:/@]*):[^@]*@", r"//\1:***@", url)
     try:
         parts = urllib.parse.urlsplit(url)
         if parts.password is None:
@@ -29,13 +41,20 @@ def redact(url: str) -> str:
 
 
 def redact_arg(arg: str) -> str:
-    """A command-line argument, a URL or an override (``key=URL``, ``--flag=URL``), with any
-    password in it hidden (``redact``)."""
-    whole = redact(arg)
-    if whole != arg:
-        return whole
+    """A command-line argument, a URL or an override (``key=URL``, ``--flag=URL``, the URL
+    quoted or not, as Hydra wants it when the password holds a comma), with any password in it
+    hidden (``redact``)."""
     key, eq, value = arg.partition("=")
-    return f"{key}{eq}{redact(value)}" if eq else arg
+    if eq and "://" not in key:
+        return f"{key}{eq}{_redact_quoted(value)}"
+    return _redact_quoted(arg)
+
+
+def _redact_quoted(text: str) -> str:
+    quote = text[:1]
+    if quote in ("'", '"') and len(text) > 1 and text.endswith(quote):
+        return quote + redact(text[1:-1]) + quote
+    return redact(text)
 
 
 class Terminated(KeyboardInterrupt):

@@ -169,6 +169,7 @@ def job_label(sweep_dir: str | Path, job_overrides: list[str], groups: Sequence[
     path = Path(sweep_dir) / VARYING_FILE
     keys = json.loads(path.read_text()) if path.is_file() else []
     values = dict(o.lstrip("+~").split("=", 1) for o in job_overrides if "=" in o)
+    values = {k: redact_arg(v) for k, v in values.items()}
     parts = [values[k] if k in groups else f"{k.rsplit('.', 1)[-1]}={values[k]}" for k in keys if k in values]
     return " ".join(parts) or " ".join(redact_arg(o) for o in job_overrides)
 

@@ -372,33 +372,41 @@ class Run:
 
 def process_tags() -> dict[str, str]:
     """Which process owns a run, so that a later process can tell a run whose owner died (still
-    RUNNING) from one still at work (``read.owner_alive``): ``sdrl.host`` and ``sdrl.pid``, plus
-    the process's start time (``sdrl.pid_start``: a pid the system has reused is not the owner)
-    and its pid namespace (``sdrl.pid_ns``: containers that share a host name do not share pids)."""
+    RUNNING) from one still at work (``read.owner_alive``): ``sdrl.host`` and ``sdrl.pid``, and
+    where Linux's ``/proc`` says them, the machine (``sdrl.machine``: ``/etc/machine-id``), its
+    boot (``sdrl.boot``: the kernel's boot id), the process's start in clock ticks since that
+    boot (``sdrl.pid_start``: a pid the system has reused is not the owner) and its pid namespace
+    (``sdrl.pid_ns``: containers that share a host name do not share pids). None of these moves
+    when the system clock is stepped, as a start time in seconds since the epoch would."""
     tags = {"sdrl.host": socket.gethostname(), "sdrl.pid": str(os.getpid())}
-    start, namespace = process_identity()
-    if start:
+    names = ("sdrl.machine", "sdrl.boot", "sdrl.pid_ns")
+    tags.update({k: v for k, v in zip(names, system_identity(), strict=True) if v})
+    if start := process_start(os.getpid()):
         tags["sdrl.pid_start"] = start
-    if namespace:
-        tags["sdrl.pid_ns"] = namespace
     return tags
 
 
-def process_identity(pid: int | None = None) -> tuple[str, str]:
-    """(start time in seconds since the epoch, pid namespace) of a process of this machine (this
-    one by default), as ``process_tags`` records them; each "" where the system does not say (a
-    process that is gone; no ``/proc``, as on macOS, for the namespace)."""
-    import psutil  # noqa: PLC0415  (a few ms, paid by the processes that make runs)
+def system_identity() -> tuple[str, str, str]:
+    """(machine id, boot id, pid namespace) of this process's system, each "" where it cannot
+    be read (no ``/proc``, as on macOS; no machine id in some containers)."""
+    def read(path: str, link: bool = False) -> str:
+        try:
+            return os.readlink(path) if link else Path(path).read_text().strip()
+        except OSError:
+            return ""
 
+    return (read("/etc/machine-id"), read("/proc/sys/kernel/random/boot_id"), read("/proc/self/ns/pid", link=True))
+
+
+def process_start(pid: int) -> str:
+    """When process ``pid`` (of this pid namespace) started, in clock ticks since boot (field 22
+    of ``/proc/<pid>/stat``, an integer the clock does not move); "" where it cannot be read."""
     try:
-        start = f"{psutil.Process(pid).create_time():.2f}"
-    except psutil.Error:
-        start = ""
-    try:
-        namespace = os.readlink("/proc/self/ns/pid")
+        stat = Path(f"/proc/{pid}/stat").read_text()
     except OSError:
-        namespace = ""
-    return start, namespace
+        return ""
+    fields = stat[stat.rindex(")") + 2:].split()  # after the command name, which may hold spaces
+    return fields[19] if len(fields) > 19 else ""
 
 
 VECTOR_FLAGS = ("sse4_2", "avx", "avx2", "fma", "avx512f", "avx512_bf16", "avx512_fp16", "avx_vnni", "amx_tile")
@@ -461,7 +469,7 @@ def start_run(
         killed = isinstance(exc, KeyboardInterrupt) or stop_signal_received()
         if not killed:
             with contextlib.suppress(Exception):  # the reason is a courtesy; the status is what counts
-                run.set_tags({ERROR_TAG: _one_line(exc)})
+                run.set_tags({ERROR_TAG: hide_password(_one_line(exc), uri)})
         run.end("KILLED" if killed else "FAILED")
         raise
     run.end("FINISHED")
@@ -469,6 +477,20 @@ def start_run(
 
 ERROR_TAG = "sdrl.error"
 """Why a run ended FAILED: one line."""
+
+
+def hide_password(text: str, uri: str) -> str:
+    """``text`` with the password of ``uri`` hidden wherever it appears (MLflow's messages quote
+    the request's URL, login included: ``API request to http://user:password@host/... failed``)."""
+    from urllib.parse import unquote, urlsplit
+
+    try:
+        password = urlsplit(uri).password
+    except ValueError:
+        return text
+    for secret in {password, unquote(password or "")} - {None, ""}:
+        text = text.replace(secret, "***")
+    return text
 
 
 def _one_line(exc: BaseException) -> str:

@@ -7,7 +7,8 @@ from pathlib import Path
 from typing import Any
 
 from sdrl_bench import ConfigError
-from sdrl_bench.tracking.client import PARENT_TAG, display_uri, mlflow_client, process_identity, process_tags, sqlite_path
+from sdrl_bench.tracking.client import (PARENT_TAG, display_uri, mlflow_client, process_start, process_tags, sqlite_path,
+                                        system_identity)
 
 
 def find_runs(uri: str, experiment: str, filter_string: str = "", *, missing_ok: bool = True,
@@ -71,12 +72,13 @@ def download_artifact(uri: str, run_id: str, path: str, dst: str | Path) -> Path
 
 def owner_alive(tags: dict[str, str]) -> bool | None:
     """Whether the process that owns a run (``client.process_tags``) is alive: None when that
-    cannot be told here (no tags, another host, or another pid namespace of this host name, as
-    in a container). A zombie is dead: a sweep's worker killed with its driver stays one until
-    init reaps it, which can come after a rerun looks (seen here: the workers of a sweep killed
-    with SIGKILL were zombies a moment later, and a rerun that asked then left their runs
-    RUNNING). A live process whose start time is not the run's (``sdrl.pid_start``, where the
-    run has it) holds a reused pid: the owner is dead."""
+    cannot be told here (no tags; another host name, machine id or pid namespace, as in a
+    container that shares the host name). A run of an earlier boot of this machine is dead. A
+    zombie is dead: a sweep's worker killed with its driver stays one until init reaps it, which
+    can come after a rerun looks (seen here: the workers of a sweep killed with SIGKILL were
+    zombies a moment later, and a rerun that asked then left their runs RUNNING). A live process
+    whose start is not the run's (``sdrl.pid_start``, clock ticks since boot) holds a reused
+    pid: the owner is dead. Runs made before these tags existed are judged by host and pid."""
     import socket
 
     import psutil
@@ -84,41 +86,49 @@ def owner_alive(tags: dict[str, str]) -> bool | None:
     host, pid = tags.get("sdrl.host"), tags.get("sdrl.pid")
     if host != socket.gethostname() or not (pid or "").isdigit():
         return None
-    if tags.get("sdrl.pid_ns") and tags["sdrl.pid_ns"] != process_identity()[1]:
+    machine, boot, namespace = system_identity()
+    if tags.get("sdrl.machine", machine) != machine or tags.get("sdrl.pid_ns", namespace) != namespace:
         return None
+    if tags.get("sdrl.boot", boot) != boot:
+        return False  # this machine has rebooted since: no process of that boot lives
     try:
-        proc = psutil.Process(int(pid))
-        if proc.status() == psutil.STATUS_ZOMBIE:
+        if psutil.Process(int(pid)).status() == psutil.STATUS_ZOMBIE:
             return False
-        started = tags.get("sdrl.pid_start")
-        return not started or abs(proc.create_time() - float(started)) < 1.0
     except psutil.NoSuchProcess:
         return False
     except psutil.AccessDenied:
         return True
-    except ValueError:  # a start time that is not a number: not ours to judge
-        return None
+    started = tags.get("sdrl.pid_start")
+    return not started or process_start(int(pid)) in (started, "")
 
 
-def end_stale_runs(uri: str, experiment: str, filter_string: str, status: str = "KILLED") -> list[str]:
+def end_stale_runs(uri: str, experiment: str, filter_string: str, status: str = "KILLED",
+                   skip_kinds: tuple[str, ...] = ()) -> list[str]:
     """End the RUNNING runs matching ``filter_string`` whose owning process is dead (same host);
     returns their ids. Runs of live processes, or of other hosts, are left alone."""
     stale = [r for r in find_runs(uri, experiment, filter_string)
-             if r["status"] == "RUNNING" and owner_alive(r["tags"]) is False]
+             if r["status"] == "RUNNING" and r["tags"].get("sdrl.kind") not in skip_kinds
+             and owner_alive(r["tags"]) is False]
     client = mlflow_client(uri)
+    ended = []
     for r in stale:
+        if client.get_run(r["run_id"]).info.status != "RUNNING":
+            continue  # ended since the search above (a search's worker summarizing its study)
         client.set_tag(r["run_id"], "sdrl.ended_by", "a later process: its owner had died")
         client.set_terminated(r["run_id"], status)
-    return [r["run_id"] for r in stale]
+        ended.append(r["run_id"])
+    return ended
 
 
 def end_dead_processes_runs(uri: str, experiment: str, status: str = "KILLED") -> list[str]:
     """End every RUNNING run of ``experiment`` whose owning process on this host is dead: what a
     ``kill -9``, an out-of-memory kill or a tracking server that died under a stopped command left
-    behind. Runs of live processes, of other hosts or of other pid namespaces are left alone."""
+    behind. Runs of live processes, of other hosts or of other pid namespaces are left alone, and
+    so are studies' parent runs: a study's workers share its parent, whose maker may die while
+    the others work on (each worker ends it when it finishes)."""
     if (local := sqlite_path(uri)) is not None and not local.is_file():
         return []  # a new store: nothing to end, and no store to make before the run does
-    return end_stale_runs(uri, experiment, "attributes.status = 'RUNNING'", status)
+    return end_stale_runs(uri, experiment, "attributes.status = 'RUNNING'", status, skip_kinds=("study",))
 
 
 def runs_of_this_process(uri: str, experiment: str, status: str | None = None) -> list[dict[str, Any]]:

@@ -84,20 +84,33 @@ def test_a_stop_caps_mlflows_waits_on_a_server_and_keeps_a_users_lower_setting(m
 
 @pytest.mark.parametrize("given, hidden, bare", [
     ("http://alice:s3cr:et@127.0.0.1:5000/x?y=1", "http://alice:***@127.0.0.1:5000/x?y=1", "http://127.0.0.1:5000/x?y=1"),
-    ("postgresql+psycopg2://u:p%40ss@db:5432/optuna", "postgresql+psycopg2://u:***@db:5432/optuna",
-     "postgresql+psycopg2://db:5432/optuna"),
-    ("mysql://root:pw@[::1]:3306/o", "mysql://root:***@[::1]:3306/o", "mysql://[::1]:3306/o"),
+    ("postgresql+psycopg2://u:p%40ss@db:5432/optuna", "postgresql+psycopg2://u:***@db:5432/optuna", None),
+    ("mysql://root:pw@[::1]:3306/o", "mysql://root:***@[::1]:3306/o", None),
     ("http://bob@h:1", "http://bob@h:1", "http://h:1"),  # a user and no password: nothing to hide
-    ("sqlite:////tmp/a:b@c.db", "sqlite:////tmp/a:b@c.db", "sqlite:////tmp/a:b@c.db"),  # a path, not a login
-    ("journal:/tmp/j.log", "journal:/tmp/j.log", "journal:/tmp/j.log"),
+    ("sqlite:////tmp/a:b@c.db", "sqlite:////tmp/a:b@c.db", None),  # a path, not a login
+    ("journal:/tmp/j.log", "journal:/tmp/j.log", None),
     ("http://[::1", "http://[::1", "http://[::1"),  # not a URL: as it is
+    # a database password with "/" in it, unescaped: SQLAlchemy (and so Optuna) reads it so
+    ("postgresql://u:p/w@h/db?b=2&a=1", "postgresql://u:***@h/db?a=1&b=2", None),
 ])
 def test_a_password_in_a_url_is_hidden_and_links_carry_no_login(given, hidden, bare):
     from sdrl_bench import redact, redact_arg
     from sdrl_bench.tracking import display_uri, without_credentials
 
-    assert redact(given) == hidden and without_credentials(given) == bare
+    assert redact(given) == hidden
+    if given.startswith("http"):  # the links: a UI's address, never a database's
+        assert without_credentials(given) == bare
     assert redact_arg(f"tracking.uri={given}") == f"tracking.uri={hidden}" and redact_arg(given) == hidden
     assert redact_arg(f"--uri={given}") == f"--uri={hidden}"
+    assert redact_arg(f"tracking.uri='{given}'") == f"tracking.uri='{hidden}'"  # quoted, as Hydra wants a comma
     if not given.startswith("sqlite"):
         assert display_uri(given) == hidden
+
+
+def test_a_password_quoted_in_mlflows_error_message_is_hidden():
+    from sdrl_bench.tracking.client import hide_password
+
+    said = "MlflowException: API request to http://alice:p%40ss@h:5000/api/2.0/mlflow/runs/get failed (p@ss)"
+    assert hide_password(said, "http://alice:p%40ss@h:5000") == (
+        "MlflowException: API request to http://alice:***@h:5000/api/2.0/mlflow/runs/get failed (***)")
+    assert hide_password(said, "sqlite:////tmp/s.db") == said

@@ -193,6 +193,7 @@ def test_a_run_whose_owner_is_a_zombie_is_stale_and_one_whose_owner_lives_is_not
     """``end_stale_runs`` (a sweep's rerun) ends the RUNNING runs of dead owners: a zombie (a
     killed process not yet reaped, as a sweep's workers are a moment after a kill -9 of their
     driver) is dead; a live process's run is left alone."""
+    import os
     import socket
     import subprocess
     import sys
@@ -201,12 +202,13 @@ def test_a_run_whose_owner_is_a_zombie_is_stale_and_one_whose_owner_lives_is_not
     import psutil
 
     from sdrl_bench import tracking
-    from sdrl_bench.tracking.client import process_identity
+    from sdrl_bench.tracking.client import process_start, process_tags, system_identity
     from sdrl_bench.tracking.read import owner_alive
 
     def owner(pid: int) -> dict[str, str]:  # the tags process ``pid`` would give its own runs
-        start, namespace = process_identity(pid)
-        return {"sdrl.host": socket.gethostname(), "sdrl.pid": str(pid), "sdrl.pid_start": start, "sdrl.pid_ns": namespace}
+        machine, boot, namespace = system_identity()
+        return {"sdrl.host": socket.gethostname(), "sdrl.pid": str(pid), "sdrl.machine": machine, "sdrl.boot": boot,
+                "sdrl.pid_ns": namespace, "sdrl.pid_start": process_start(pid)}
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     live = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(120)"])
@@ -218,18 +220,30 @@ def test_a_run_whose_owner_is_a_zombie_is_stale_and_one_whose_owner_lives_is_not
         here = socket.gethostname()
         assert owner_alive({"sdrl.host": here, "sdrl.pid": str(dead.pid)}) is False
         assert owner_alive({"sdrl.host": here, "sdrl.pid": str(live.pid)}) is True
-        assert owner_alive(owner(live.pid)) is True
-        # the live pid, but started at another time: the system reused the pid of a dead owner
-        reused = {**owner(live.pid), "sdrl.pid_start": f"{float(owner(live.pid)['sdrl.pid_start']) - 60:.2f}"}
+        assert owner_alive(owner(live.pid)) is True and owner(os.getpid()) == process_tags()
+        assert all(owner(live.pid).values()) and owner(live.pid)["sdrl.pid_start"].isdigit()  # Linux says them all
+        # the live pid, but started at another tick: the system reused the pid of a dead owner
+        reused = {**owner(live.pid), "sdrl.pid_start": str(int(owner(live.pid)["sdrl.pid_start"]) - 1)}
         assert owner_alive(reused) is False
-        # another pid namespace under the same host name (a container): not for this process to judge
+        # an earlier boot of this machine: nothing of it lives
+        assert owner_alive({**owner(live.pid), "sdrl.boot": "an-earlier-boot"}) is False
+        # another pid namespace or machine under the same host name (a container, a cloned VM):
+        # not for this process to judge
         assert owner_alive({**owner(dead.pid), "sdrl.pid_ns": "pid:[1]"}) is None
+        assert owner_alive({**owner(dead.pid), "sdrl.machine": "another-machine"}) is None
         assert owner_alive({**owner(live.pid), "sdrl.host": here + "-elsewhere"}) is None
         ids = {name: tracking.create_parent_run(store, "stale", name, {**owner(p.pid), "sdrl.test": "owners"})
                for name, p in (("dead", dead), ("live", live))}
         assert tracking.end_stale_runs(store, "stale", "tags.`sdrl.test` = 'owners'") == [ids["dead"]]
         status = {r["run_id"]: r["status"] for r in tracking.find_runs(store, "stale")}
         assert status == {ids["dead"]: "KILLED", ids["live"]: "RUNNING"}
+        # any command's sweep: every dead owner's run but a study's parent, which its other workers share
+        more = {kind: tracking.create_parent_run(store, "stale", kind, {**owner(dead.pid), "sdrl.kind": kind})
+                for kind in ("fit", "study", "dyna")}
+        assert sorted(tracking.end_dead_processes_runs(store, "stale")) == sorted([more["fit"], more["dyna"]])
+        status = {r["run_id"]: r["status"] for r in tracking.find_runs(store, "stale")}
+        assert [status[more[k]] for k in ("fit", "study", "dyna")] == ["KILLED", "RUNNING", "KILLED"]
+        assert status[ids["live"]] == "RUNNING"
     finally:
         live.kill()
         live.wait()
