@@ -387,15 +387,23 @@ def process_tags() -> dict[str, str]:
 
 
 def system_identity() -> tuple[str, str, str]:
-    """(machine id, boot id, pid namespace) of this process's system, each "" where it cannot
-    be read (no ``/proc``, as on macOS; no machine id in some containers)."""
+    """(machine, boot id, pid namespace) of this process's system, each "" where it cannot be
+    read (no ``/proc``, as on macOS; no machine id in some containers). The machine is a keyed
+    hash of ``/etc/machine-id``, not the id itself, which systemd asks applications not to
+    expose (machine-id(5))."""
+    import hashlib  # noqa: PLC0415
+    import hmac  # noqa: PLC0415
+
     def read(path: str, link: bool = False) -> str:
         try:
             return os.readlink(path) if link else Path(path).read_text().strip()
         except OSError:
             return ""
 
-    return (read("/etc/machine-id"), read("/proc/sys/kernel/random/boot_id"), read("/proc/self/ns/pid", link=True))
+    machine = read("/etc/machine-id")
+    if machine:
+        machine = hmac.new(b"sdrl-bench", machine.encode(), hashlib.sha256).hexdigest()[:16]
+    return machine, read("/proc/sys/kernel/random/boot_id"), read("/proc/self/ns/pid", link=True)
 
 
 def process_start(pid: int) -> str:
