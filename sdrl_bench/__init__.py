@@ -14,10 +14,10 @@ def redact(url: str) -> str:
     """``url`` with its password hidden (``user:***@host``), for messages, tags, params, logged
     configs and reports: a tracking server's or a database's credentials are the user's to keep.
     Text that is no ``scheme://`` URL (a path, ``journal:...``, any other value) and a SQLite URL
-    come back as they are. Another database URL (an Optuna storage) is read and written by SQLAlchemy, which takes a
-    password with ``/`` or ``?`` in it as the database does, as earlier versions did (a study's
-    parent run is found again by its redacted storage, tag ``sdrl.storage``); an HTTP(S) URL by
-    ``urllib.parse``, which SQLAlchemy does not read as MLflow does (a path after the port)."""
+    come back as they are. Another database URL (an Optuna storage) is read and written by
+    SQLAlchemy, which takes a password with ``/`` or ``?`` in it as the database does, as earlier
+    versions did (a study's parent run is found again by its redacted storage, tag
+    ``sdrl.storage``); an HTTP(S) URL by ``urllib.parse``, which reads it as MLflow does."""
     import re
     import urllib.parse
 

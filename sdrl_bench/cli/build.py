@@ -317,8 +317,7 @@ def exit_after_stop_signal(cfg: DictConfig, signum: int, prog: str, what: str,
     import signal
     import sys
 
-    from sdrl_bench import tracking
-    from sdrl_bench import redact
+    from sdrl_bench import redact, tracking
 
     # the stop's handler has capped MLflow's waits on a server (``sdrl_bench.on_stop_signal``)
     made, said, uri = True, what, str(cfg.tracking.uri)

@@ -6,9 +6,8 @@ the parent's id and the sweep's key into the sweep folder, where each job finds 
 * **Resume.** The sweep key is a hash of the sweep's overrides and experiment: a rerun of the
   same sweep on the same store has the same key. The driver first ends the RUNNING runs that
   dead processes of this host left in the experiment, an earlier run of this sweep's among them
-  (``tracking.end_runs_of_dead_processes``: ``sdrl.host``, ``sdrl.pid`` and the process's start
-  time and pid namespace tell a dead owner); each job then looks for a FINISHED run of its own config under that key
-  and, when there is one, adopts it under the new parent instead of running again
+  (``tracking.end_runs_of_dead_processes``; ``tracking.owner_alive`` tells a dead owner); each
+  job then looks for a FINISHED run of its own config under that key and, when there is one, adopts it under the new parent instead of running again
   (``cli.main``; ``resume=false`` reruns every job).
 * **Stop signals.** SIGTERM or SIGINT to the driver stops the workers (terminate, then kill
   after a grace period), ends the runs they left RUNNING and the parent KILLED, and exits with
@@ -32,8 +31,7 @@ from typing import Any
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
-from sdrl_bench import run_stop_hooks, tracking
-from sdrl_bench import redact, redact_arg
+from sdrl_bench import redact, redact_arg, run_stop_hooks, tracking
 
 PARENT_FILE = "mlflow_parent_run_id"
 KEY_FILE = "mlflow_sweep_key"

@@ -18,8 +18,7 @@ from collections.abc import Callable, Mapping
 
 import optuna
 
-from sdrl_bench import ConfigError, tracking
-from sdrl_bench import redact
+from sdrl_bench import ConfigError, redact, tracking
 from sdrl_bench.search.space import space_differences
 
 FINGERPRINT_ATTR = "sdrl.fingerprint"

@@ -27,14 +27,13 @@ from collections.abc import Callable, Mapping
 import numpy as np
 import optuna
 
-from sdrl_bench import ConfigError, raise_pending_stop, stop_signal_received, stop_signals_held, seeds, tracking
+from sdrl_bench import ConfigError, raise_pending_stop, redact, stop_signal_received, stop_signals_held, seeds, tracking
 from sdrl_bench.data import Transitions, collect, random_policy
 from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.models.libraries import build_library
 from sdrl_bench.pipeline import FitJob, build_model, check
 from sdrl_bench.fidelity import DATA_METRICS, POLICY_METRICS
 from sdrl_bench.search.space import GROUP_PARAMS, NN_PARAMS, PARAM_KEYS, SearchSpace, describe_space, grid_values, suggest
-from sdrl_bench import redact
 from sdrl_bench.search.location import resolve_storage
 from sdrl_bench.search.storage import open_storage, open_study, study_parent_run
 from sdrl_bench.search.validation import Fold, aggregate, cross_validate, fit_model, make_folds, resolution_floor

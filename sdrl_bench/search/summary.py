@@ -16,12 +16,11 @@ from collections.abc import Mapping
 
 import optuna
 
-from sdrl_bench import tracking
+from sdrl_bench import redact, tracking
 from sdrl_bench.pipeline import fit_dynamics
 from sdrl_bench.search.study import BuildJob, WorkerResult, counted, fit_params
 from sdrl_bench.search.plots import history_figure, importance_figure, pareto_figure
 from sdrl_bench.search.space import describe_space, experiment_pack, to_overrides
-from sdrl_bench import redact
 from sdrl_bench.search.location import resolve_storage
 from sdrl_bench.search.storage import open_storage
 
