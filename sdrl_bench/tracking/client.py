@@ -162,7 +162,8 @@ _OTHER_KIND = {  # tables that mark a SQLite file as the other tool's: MLflow's 
 
 def check_store(uri: str, key: str = "tracking.uri", kind: str = "mlflow", reach: bool = False) -> None:
     """What can be told of the store at ``uri`` before a job's libraries load, each failure a
-    ConfigError naming ``key`` (where the user gave the URI): a local SQLite file that is a folder,
+    ConfigError naming ``key`` (where the user gave the URI): a folder (a path or ``file://``: MLflow
+    3 refuses its file store unless ``MLFLOW_ALLOW_FILE_STORE`` is set), a local SQLite file that is a folder,
     damaged, or the other tool's (``kind``: ``mlflow`` or ``optuna``; each would add its tables to
     the other's file), an in-memory SQLite URI (its runs would be lost when the process ends), a
     scheme MLflow has no store for, and with ``reach`` a tracking server that does not answer
@@ -177,6 +178,11 @@ def check_store(uri: str, key: str = "tracking.uri", kind: str = "mlflow", reach
         check_integrity(local, key, kind)
         return
     scheme = uri.split("://", 1)[0] if "://" in uri else ""
+    if kind == "mlflow" and scheme in ("", "file") and os.environ.get("MLFLOW_ALLOW_FILE_STORE", "").lower() not in (
+            "true", "1"):
+        raise ConfigError(f"{key}: {uri} is a folder store, which MLflow 3 refuses (its file store is in maintenance "
+                          f"mode); give sqlite:///<file> (sqlite:///mlruns/mlflow.db is the default) or "
+                          "http://<host>:<port>, or set MLFLOW_ALLOW_FILE_STORE=true")
     if kind == "mlflow" and scheme and not _MLFLOW_SCHEMES.match(scheme) and scheme not in _plugin_schemes():
         raise ConfigError(f"{key}: MLflow has no store for '{scheme}://' (sqlite:///<file>, http://<host>:<port>, "
                           "or a database URL)")

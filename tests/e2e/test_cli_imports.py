@@ -134,15 +134,22 @@ def _free_port() -> int:
         return sock.getsockname()[1]
 
 
-@pytest.mark.parametrize("case", ["folder", "no server", "scheme", "in memory", "no experiment", "optuna's file"])
+@pytest.mark.parametrize("case", ["folder", "path", "no server", "scheme", "in memory", "no experiment", "optuna's file"])
 def test_a_store_that_cannot_serve_is_named_before_the_heavy_libraries_load(tmp_path, case):
     """A tracking store that is a folder, a server that does not answer (MLflow's client retried
-    it for minutes; a folder took about 2), a scheme MLflow has no store for (a traceback), an
+    it for minutes; a folder took about 2), a plain path (MLflow 3's file store refuses with a
+    traceback), a scheme MLflow has no store for (a traceback), an
     in-memory SQLite store (its runs lost at exit), an empty experiment name (a traceback), an
     Optuna study's file (MLflow would add its tables to it): one line, exit 2, nothing loaded."""
     if case == "folder":
         (tmp_path / "store.db").mkdir()
         args, line = ["tracking.uri=sqlite:///store.db"], f"tracking.uri: {tmp_path / 'store.db'} is a folder, not an SQLite file"
+    elif case == "path":
+        (tmp_path / "runs").mkdir()
+        args = [f"tracking.uri={tmp_path / 'runs'}"]
+        line = (f"tracking.uri: {tmp_path / 'runs'} is a folder store, which MLflow 3 refuses (its file store is in "
+                "maintenance mode); give sqlite:///<file> (sqlite:///mlruns/mlflow.db is the default) or "
+                "http://<host>:<port>, or set MLFLOW_ALLOW_FILE_STORE=true")
     elif case == "no server":
         port = _free_port()
         args = [f"tracking.uri=http://127.0.0.1:{port}"]
