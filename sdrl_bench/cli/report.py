@@ -35,11 +35,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     """The ``sdrl-bench-report`` command; exit code 0, or 2 when the input named nothing to report."""
     ap = argparse.ArgumentParser(prog="sdrl-bench-report", description=__doc__.splitlines()[0])
     ap.add_argument("--uri", help="tracking URI (default: MLFLOW_TRACKING_URI, else sqlite:///mlruns/mlflow.db)")
-    ap.add_argument("--experiment", default="sdrl-bench", help="MLflow experiment (default: sdrl-bench)")
+    ap.add_argument("--experiment", default="sdrl-bench", help="MLflow experiment (default: sdrl-bench; the searches "
+                                                               "log to sdrl-bench-search)")
     ap.add_argument("--parent-run", help="only this sweep/study run and its descendants")
     ap.add_argument("--tag", action="append", default=[], metavar="K=V", help="only runs with this tag (repeatable)")
-    ap.add_argument("--name", default="report", help="report folder name under --out: new, empty or an earlier "
-                                                     "report's (rebuilt in place); one holding other files is refused")
+    ap.add_argument("--name", default="report", help="report folder name under --out: new, or an earlier report's "
+                                                     "(rebuilt in place); other files there are left alone, and a file "
+                                                     "of yours under a name the report writes is refused")
     ap.add_argument("--out", default="reports", type=Path, help="output folder (default: reports/)")
     ap.add_argument("--ui-url", help="MLflow UI base URL: numbers link to their runs there (default: the tracking "
                                      "server's own URL when --uri is a server; none for a local store)")
