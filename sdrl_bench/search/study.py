@@ -255,8 +255,14 @@ def _evaluate(job: FitJob, sd: StudyData, report: Callable[[int, float], bool] |
     return TrialOutcome(aggregate(errors, sd.floor), errors, False, n_terms, len(errors) + 1, model.describe())
 
 
-def make_sampler(s: StudySettings) -> optuna.samplers.BaseSampler:
-    seed = int(seeds.generator(s.seed, "search", s.worker).integers(2**31))  # each worker its own sampler stream
+def make_sampler(s: StudySettings, resumed_at: int = 0) -> optuna.samplers.BaseSampler:
+    """The study's sampler: each worker its own stream, and a study resumed with ``resumed_at``
+    trials in it a stream of its own too. A sampler seeded as at the start would draw the
+    start's random points again (TPE's first ten, a random search's every one): a rerun of a
+    3-trial TPE study ran its trial 0's parameters as trial 3. A new study (0) keeps the
+    stream it always had."""
+    sub = (s.worker, resumed_at) if resumed_at else (s.worker,)
+    seed = int(seeds.generator(s.seed, "search", *sub).integers(2**31))
     if s.sampler == "grid":
         return optuna.samplers.GridSampler(grid_values(s.space), seed=seed)
     if s.sampler == "random":
@@ -339,6 +345,8 @@ def run_study(
     where = f" in {redact(storage_url)}"
     study = open_study(storage, settings.name, directions, fingerprint(settings, sd),
                        make_sampler(settings), make_pruner(settings), where)
+    if resumed_at := len(study.get_trials(deepcopy=False)):
+        study.sampler = make_sampler(settings, resumed_at)
     parent = study_parent_run(
         uri, settings.experiment, settings.name, redact(storage_url),
         {"env": sd.spec.name, "sampler": settings.sampler, "objectives": ",".join(settings.objectives),

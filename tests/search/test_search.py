@@ -221,7 +221,22 @@ def test_journal_storage_resumes_too(tmp_path, uri):
     assert (tmp_path / "optuna.journal").stat().st_size > 0 and not (tmp_path / "optuna.db").exists()
 
 
-# ---------------------------------------------------------------------- grid, Pareto, refinement
+
+def test_a_resumed_study_draws_new_points_not_its_first_ones_again(tmp_path, uri):
+    """TPE's first trials are random draws from the sampler's seed; a rerun seeded as at the
+    start drew them again (trial 3 ran trial 0's parameters). A resumed study's sampler has a
+    stream of its own; the same rerun of the same study still draws the same points."""
+    def params(study):
+        return [tuple(sorted(t.params.items())) for t in study.trials]
+
+    for name in ("a", "b"):  # the same study twice over: determinism
+        run_search(search_cfg(tmp_path, uri, f"study.name={name}", "search.n_trials=3", "study.final_score=false"),
+                   quiet=True)
+    again = {name: run_search(search_cfg(tmp_path, uri, f"study.name={name}", "search.n_trials=6",
+                                         "study.final_score=false"), quiet=True)[0] for name in ("a", "b")}
+    drawn = params(again["a"].study)
+    assert again["a"].trials == [3, 4, 5] and len(set(drawn)) == 6  # no point drawn twice
+    assert params(again["b"].study) == drawn
 def test_grid_visits_every_point_once_and_compares_with_tpe(tmp_path, uri):
     grid = ["search=grid", "search.space.threshold.grid=[1e-4,1e-3,1e-2]", "search.space.alpha.grid=[1e-10,1e-5]"]
     result, summary = run_search(search_cfg(tmp_path, uri, "study.name=grid", *grid), quiet=True)
