@@ -38,7 +38,7 @@ def run_train(cfg: DictConfig, fit_job, parent: str | None, extra_tags: dict[str
         recorder = RunRecorder(run, cfg.tracking.experiment, key, tmp)
         outcome = run_transfer(job, checked, recorder, reuse_real_arm=bool_key(cfg, "rl.reuse_real_arm"))
         tracking.set_description(run, _description(outcome.summary, job, outcome.model_text))
-    _print(outcome.summary, uri, run.run_id, job, outcome.model_text, exp_id)
+    _print(outcome.summary, uri, run.run_id, job, outcome.model_text, exp_id, recorder.reused_from)
     return outcome.summary
 
 
@@ -91,7 +91,26 @@ def _description(summary: dict[str, float], job: TransferJob, model_text: str) -
     return "\n".join(lines) + "\n"
 
 
-def _print(summary: dict[str, float], uri: str, run_id: str, job: TransferJob, model_text: str, exp_id: str = "0") -> None:
+def _notes(summary: dict[str, float], job: TransferJob, reused_from: str | None) -> list[str]:
+    """What the table alone would not say: a real arm reused from an earlier run, and an arm that
+    trained past its budget (an agent rounds a budget up to whole rollouts: 2,000 steps of
+    ``ppo_fast``'s 128 envs x 32 steps are 4,096)."""
+    notes = []
+    if reused_from and "real" in job.arms:
+        notes.append(f"the real arm is reused from run {reused_from} (the same env, agent, budgets and seed), not "
+                     "trained again; rl.reuse_real_arm=false trains it")
+    budgets = (("surrogate", "surrogate_steps", job.surrogate_steps, "rl.surrogate_steps"),
+               ("real", "real_transitions_train", job.real_steps, "rl.real_steps"))
+    for arm, metric, budget, key in budgets:
+        took = summary.get(f"{arm}/{metric}")
+        if arm in job.arms and took is not None and took > budget and not (arm == "real" and reused_from):
+            notes.append(f"the {arm} arm trained {took:,.0f} steps for {key}={budget:,}: the agent rounds a budget up "
+                         "to whole rollouts or training intervals, and every step is counted above")
+    return notes
+
+
+def _print(summary: dict[str, float], uri: str, run_id: str, job: TransferJob, model_text: str, exp_id: str = "0",
+           reused_from: str | None = None) -> None:
     from rich.console import Console
     from rich.table import Table
 
@@ -109,6 +128,8 @@ def _print(summary: dict[str, float], uri: str, run_id: str, job: TransferJob, m
         console.print(f"surrogate model ({job.fit.names['surrogate']}, {job.fit.n_transitions} real transitions):\n  "
                       + "\n  ".join(model_text.strip().splitlines()), highlight=False, markup=False)
     console.print(table)
+    for note in _notes(summary, job, reused_from):
+        console.print(f"note: {note}", highlight=False)
     if "policy_map_agreement" in summary:
         console.print(f"policy-map agreement: {summary['policy_map_agreement']:.3f}")
     console.print(f"MLflow run {run_id} in {tracking.display_uri(uri)}", highlight=False)

@@ -66,6 +66,8 @@ class RunRecorder:
 
     def __init__(self, run: Run, experiment: str, real_arm_key: str, local_dir: str | Path):
         self.run, self.experiment, self.key, self.local_dir = run, experiment, real_arm_key, Path(local_dir)
+        self.reused_from: str | None = None
+        """The run whose real arm this run reused, once it has."""
 
     def reusable_real_arm(self):
         import pandas as pd
@@ -77,6 +79,7 @@ class RunRecorder:
         if found is None:
             return None
         agent_zip, curve_csv = reuse_real_arm(self.run, found, self.local_dir)
+        self.reused_from = found["run_id"]
         curve = pd.read_csv(curve_csv)
         return ReusedArm(agent_zip, Curve(steps=curve["train_steps"].tolist(), means=curve["return_mean"].tolist(),
                                           stds=curve["return_std"].tolist()), found["metrics"])

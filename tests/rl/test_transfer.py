@@ -45,16 +45,30 @@ def test_real_arm_accounting_adds_up(store, tmp_path):
     assert {"agents/real.zip", "figures/learning_curves.png", "figures/policy_maps.png"} <= listed
 
 
-def test_real_arm_is_reused_by_a_later_run_with_the_same_key(store):
+def test_real_arm_is_reused_by_a_later_run_with_the_same_key(store, capsys):
     train(store, "rl.arms=[real]", "rl.real_steps=32")
+    assert "note:" not in capsys.readouterr().out  # trained, to its budget: nothing to add
     train(store, "rl.arms=[real]", "rl.real_steps=32", "library=polynomial")  # another surrogate variant
     runs = search(store).sort_values("start_time")
     first, second = runs.iloc[0], runs.iloc[1]
+    printed = " ".join(capsys.readouterr().out.split())
+    assert (f"note: the real arm is reused from run {first['run_id']} (the same env, agent, budgets and seed), not "
+            "trained again; rl.reuse_real_arm=false trains it") in printed
     assert second["tags.real_arm_reused_from"] == first["run_id"]
     assert second["metrics.real/final_return_mean"] == first["metrics.real/final_return_mean"]
     assert second["tags.real_arm_key"] == first["tags.real_arm_key"]
     listed = {a.path for d in ("curves", "figures") for a in MlflowClient(store).list_artifacts(second["run_id"], d)}
     assert {"curves/real.csv", "figures/learning_curves.png", "figures/policy_maps.png"} <= listed
+
+
+def test_a_budget_the_agent_rounds_up_is_said_beside_the_table(store, capsys):
+    """SAC collects in steps of ``train_freq`` (16 here): a budget of 40 real steps trains 48, all
+    counted; the console says so instead of leaving 40 in the banner as the story."""
+    summary = train(store, "rl.arms=[real]", "rl.real_steps=40")
+    assert summary["real/real_transitions_train"] == 48
+    printed = " ".join(capsys.readouterr().out.split())
+    assert ("note: the real arm trained 48 steps for rl.real_steps=40: the agent rounds a budget up to whole "
+            "rollouts or training intervals, and every step is counted above") in printed
 
 
 @pytest.mark.parametrize("overrides,message", [
