@@ -313,7 +313,8 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
     out: list[Block] = [Heading(2, "1. Fidelity per state (paper Table 1, top)")]
     fid = rt.fidelity_table(runs)
     out.append(_df_table(fid, [("env", "env", "text"), ("state", "state", "text"), ("library", "library", "text"),
-                               ("test_set", "test set", "text"), ("n_fits", "seeds", "int"),
+                               ("test_set", "test set", "text"),
+                               ("setup", "optimizer, collector, transitions", "text"), ("n_fits", "seeds", "int"),
                                ("mse", "one-step MSE (raw) [95% CI]", "eci"), ("mse_norm", "one-step MSE (normalized)", "e"),
                                ("corr", "corr", "f3"), ("floor_ratio", "one-step MSE / noise floor [95% CI]", "gci|-"),
                                ("floor_regime", "floor regime", "text"),
@@ -328,7 +329,9 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
     out.append(Heading(2, "2. Library ablation (paper Table 1, bottom)"))
     abl = rt.ablation_table(runs)
     out.append(_df_table(abl, [("env", "env", "text"), ("library", "library", "text"),
-                                                   ("test_set", "test set", "text"), ("n_fits", "seeds", "int"),
+                                                   ("test_set", "test set", "text"),
+                                                   ("setup", "optimizer, collector, transitions", "text"),
+                                                   ("n_fits", "seeds", "int"),
                                                    ("mse_mean", "one-step MSE, mean over states (raw) [95% CI]", "eci"),
                                                    ("mse_norm_mean", "normalized", "e"),
                                                    ("rollout_mean", f"{rt.HORIZON}-step MSE, mean over states", "e"),

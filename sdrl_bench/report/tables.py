@@ -66,7 +66,7 @@ def finished(runs: Iterable[Run], kind: str | None = None) -> list[Run]:
 def fit_records(runs: Iterable[Run]) -> list[dict[str, Any]]:
     """Every finished fit as one record: fit runs, and the fit inside each transfer run
     (its fit metrics). Keys: run_id, source ("fit"/"transfer"), env, library, surrogate,
-    collector, seed, test_set, metrics (unprefixed)."""
+    collector, optimizer, n_transitions, seed, test_set, metrics (unprefixed)."""
     out = []
     for r in finished(runs):
         kind, tags = r["tags"].get("sdrl.kind"), r["tags"]
@@ -84,9 +84,20 @@ def fit_records(runs: Iterable[Run]) -> list[dict[str, Any]]:
             continue
         out.append({"run_id": r["run_id"], "source": kind, "env": tags.get("env"), "library": tags.get("library"),
                     "surrogate": tags.get("surrogate", "sindy"), "collector": tags.get("collector"),
+                    "optimizer": tags.get("optimizer"), "n_transitions": (r.get("params") or {}).get("n_transitions"),
                     "seed": tags.get("seed"), "test_set": tags.get("test_set", "?"), "agent": tags.get("agent"),
                     "fit_regime": tags.get("fit_regime"), "start_time": r.get("start_time") or 0, "metrics": metrics})
     return out
+
+
+def setup(fits: Sequence[Mapping[str, Any]]) -> str:
+    """The setups a row's fits were made with (optimizer, collector, real transitions), so that a
+    row over fits of different setups says so: "stlsq, heuristic, 75", or "mixed: ... | ..."."""
+    def one(f: Mapping[str, Any]) -> str:
+        return ", ".join(str(f.get(k) or "?") for k in ("optimizer", "collector", "n_transitions"))
+
+    found = sorted({one(f) for f in fits})
+    return found[0] if len(found) == 1 else ("mixed: " + " | ".join(found) if found else "")
 
 
 def one_per_seed(fits: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
@@ -187,7 +198,7 @@ def fidelity_table(runs: Iterable[Run]) -> pd.DataFrame:
             rows.append({
                 "env": env, "state": state,
                 "library": fits[0]["library"] if fits else None,
-                "test_set": fits[0]["test_set"] if fits else None,
+                "test_set": fits[0]["test_set"] if fits else None, "setup": setup(fits),
                 "n_fits": len(fits), "statistic": one[3],
                 "mse": one[0], "mse_lo": one[1], "mse_hi": one[2],
                 "mse_norm": bootstrap_ci(_values(fits, f"mse_norm/{state}"))[0],
@@ -199,7 +210,7 @@ def fidelity_table(runs: Iterable[Run]) -> pd.DataFrame:
                 "paper_mse": ref[0], "paper_corr": ref[1],
                 "runs": [f["run_id"] for f in fits],
             })
-    return pd.DataFrame(rows, columns=["env", "state", "library", "test_set", "n_fits", "statistic", "mse", "mse_lo",
+    return pd.DataFrame(rows, columns=["env", "state", "library", "test_set", "setup", "n_fits", "statistic", "mse", "mse_lo",
                                        "mse_hi", "mse_norm", "corr", "floor_ratio", "floor_ratio_lo", "floor_ratio_hi",
                                        "floor_regime", "rollout", "rollout_lo", "rollout_hi", "rollout_n", "diverged",
                                        "paper_mse", "paper_corr", "runs"])
@@ -226,7 +237,7 @@ def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
         for lib in libraries:
             fits = one_per_seed([r for r in records if r["env"] == env and r["library"] == lib])
             one = bootstrap_ci(_values(fits, "mse/mean"))
-            rows.append({"env": env, "library": lib, "n_fits": len(fits),
+            rows.append({"env": env, "library": lib, "n_fits": len(fits), "setup": setup(fits),
                          "test_set": fits[0]["test_set"] if fits else None, "statistic": one[3],
                          "mse_mean": one[0], "mse_mean_lo": one[1], "mse_mean_hi": one[2],
                          "mse_norm_mean": bootstrap_ci(_values(fits, "mse_norm/mean"))[0],
@@ -235,7 +246,7 @@ def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
                          "n_terms": _mean(_values(fits, "n_parameters")),
                          "paper_mse": paper(env, "ablation").get(lib, math.nan),
                          "runs": [f["run_id"] for f in fits]})
-    return pd.DataFrame(rows, columns=["env", "library", "n_fits", "test_set", "statistic", "mse_mean", "mse_mean_lo",
+    return pd.DataFrame(rows, columns=["env", "library", "n_fits", "setup", "test_set", "statistic", "mse_mean", "mse_mean_lo",
                                        "mse_mean_hi", "mse_norm_mean", "rollout_mean", "diverged", "n_terms", "paper_mse",
                                        "runs"])
 

@@ -15,6 +15,7 @@ from sdrl_bench.report.build import ReportInput, build_report
 from helpers import compose_cfg, search
 
 EXP = "sdrl-bench"
+SETUP_CELL = "stlsq, expert, 1000"  # ``_ll_fit``'s optimizer, collector and real transitions
 
 
 def _fit(uri: str, env: str, library: str, surrogate: str, seed: int, mse: dict[str, float], parent: str | None = None) -> str:
@@ -178,7 +179,7 @@ def test_not_run_when_the_store_holds_only_fits(fits_store: str, tmp_path) -> No
     ll = [line for line in md.splitlines() if line.startswith("| lunar_lander | sindy | surrogate")]
     assert ll and ll[0].count("not run") >= 5
     assert "RL transfer: not run" in md and "Optuna search: not run" in md
-    assert "| mountain_car | rational | - | 0 | not run |" in md
+    assert "| mountain_car | rational | - |  | 0 | not run |" in md
 
 
 @pytest.mark.parametrize("case", ["empty", "experiment", "parent", "not_hex"])
@@ -453,12 +454,13 @@ def test_report_exports_every_run_it_read_and_names_its_commit(fits_store: str, 
     assert f"at commit `{commit}`" in md and "[runs.csv](runs.csv)" in md
 
 
-def _ll_fit(uri: str, library: str, surrogate: str, seed: int, kind: str = "fit") -> str:
+def _ll_fit(uri: str, library: str, surrogate: str, seed: int, kind: str = "fit", optimizer: str = "stlsq") -> str:
     """A LunarLander fit (or a transfer run's fit) with the fidelity metrics a real one logs:
     one-step and 50-step MSE per state, the flight regime's noise-floor ratio, divergence."""
     states = ("x", "y", "vx", "vy", "angle", "angvel")
     tags = {"sdrl.kind": kind, "env": "lunar_lander", "library": library, "surrogate": surrogate, "seed": seed,
-            "collector": "expert", "test_set": "lunar_lander-heldout-v1", "agent": "ppo", "arms": "surrogate,real",
+            "collector": "expert", "optimizer": optimizer, "test_set": "lunar_lander-heldout-v1", "agent": "ppo",
+            "arms": "surrogate,real",
             "fit_regime": "flight" if library == "lunar_lander_flight" else "all"}
     rng = np.random.default_rng(seed + (100 if surrogate == "nn" else 0))
     m: dict[str, float] = {}
@@ -476,7 +478,20 @@ def _ll_fit(uri: str, library: str, surrogate: str, seed: int, kind: str = "fit"
         m.update({"surrogate/final_return_mean": 150.0 + 10 * seed, "real/final_return_mean": 260.0})
     with tracking.start_run(uri, EXP, f"{kind}-ll-{library}-{surrogate}-s{seed}", tags) as run:
         run.log_metrics(m)
+        run.log_params({"n_transitions": 1000})
     return run.run_id
+
+
+def test_a_row_over_fits_of_different_setups_says_so(store: str) -> None:
+    """Rows are per env and library, over the newest fit of each seed; fits made with another
+    optimizer (or collector, or number of transitions) land in the same row, and its setup cell
+    names every setup, so a mixed row is not read as one configuration's."""
+    _ll_fit(store, "polynomial", "sindy", 0)
+    _ll_fit(store, "polynomial", "sindy", 1, optimizer="ensemble")
+    _ll_fit(store, "lunar_lander_flight", "sindy", 0)
+    abl = rt.ablation_table(tracking.find_runs(store, EXP)).set_index(["env", "library"])
+    assert abl.loc[("lunar_lander", "polynomial"), "setup"] == "mixed: ensemble, expert, 1000 | stlsq, expert, 1000"
+    assert abl.loc[("lunar_lander", "lunar_lander_flight"), "setup"] == SETUP_CELL
 
 
 def test_five_seed_fidelity_tables_report_iqm_cis_rollouts_and_noise_floor_ratios(store: str, tmp_path) -> None:
@@ -515,12 +530,13 @@ def test_five_seed_fidelity_tables_report_iqm_cis_rollouts_and_noise_floor_ratio
     res = build_report(ReportInput(store, EXP, ui_url="http://ui:5000"), "five", tmp_path, log_run=False)
     md = (res.folder / "report.md").read_text()
     plain = {r[1]: r for r in _md_rows(md, "## 1. Fidelity per state")}["angvel"]  # Markdown: plain numbers
-    assert not plain[5].startswith("[") and plain[-1].startswith("[")  # only the runs column links
+    assert not plain[6].startswith("[") and plain[-1].startswith("[")  # only the runs column links
+    assert plain[4] == SETUP_CELL  # the fits' one setup: optimizer, collector, real transitions
     row = {r[1]: r for r in _md_rows((res.folder / "report.html").read_text(), "## 1. Fidelity per state")}["angvel"]
     ref = rt.bootstrap_ci([by_id[i]["mse/angvel"] for i in flight])
-    assert row[5].startswith(f"[{ref[0]:.3e} [{ref[1]:.3e}, {ref[2]:.3e}]](")
-    assert row[9] == "flight"
-    for cell in row[5:9] + row[10:12]:
+    assert row[6].startswith(f"[{ref[0]:.3e} [{ref[1]:.3e}, {ref[2]:.3e}]](")
+    assert row[10] == "flight"
+    for cell in row[6:10] + row[11:13]:
         assert {i for i in flight + poly + nn if i in unquote(_link(cell))} == set(flight)
     vs_row = {r[1]: r for r in _md_rows((res.folder / "report.html").read_text(), "## 3. SINDy vs NN")}["rollout50_mse/vx"]
     assert {i for i in flight + poly + nn if i in unquote(_link(vs_row[2]))} == set(poly)
