@@ -109,6 +109,8 @@ def save_csv(transitions: Transitions, spec: EnvSpec, path: str | Path) -> Path:
 def load_csv(spec: EnvSpec, path: str | Path) -> Transitions:
     """Read a dataset CSV, checking columns and values; errors name the file."""
     path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"dataset.path: {path} is a folder, not a CSV file")
     if not path.is_file():
         raise ConfigError(f"dataset.path: no such file: {path}")
     try:

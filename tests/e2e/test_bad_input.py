@@ -161,6 +161,12 @@ def _dataset(tmp_path, mutate):
     return path
 
 
+def test_a_folder_as_dataset_path_is_named_as_a_folder(store, tmp_path):
+    with pytest.raises(ConfigError, match=f"^dataset.path: {tmp_path} is a folder, not a CSV file$"):
+        run_fit(compose_cfg(f"dataset.path={tmp_path}", f"tracking.uri={store}"))
+    assert no_running_runs(store) == 0
+
+
 def test_dataset_with_nan_is_rejected_naming_file_and_column(store, tmp_path):
     path = _dataset(tmp_path, lambda df: df.__setitem__("ns_v", df["ns_v"].where(df.index != 3, np.nan)))
     with pytest.raises(ConfigError, match=r"d.csv has a missing or non-numeric value in column 'ns_v' \(data row 4\)"):
