@@ -93,13 +93,25 @@ def _one_line(exc: BaseException, overrides: Sequence[str], compose) -> str:
         ok = [o for o in overrides if not o.lstrip("+~").startswith(key.split(".")[0] + ".") and
               not o.lstrip("+~").startswith(key + "=")]
         try:
-            known = _keys(compose(ok))
+            known = [k for k in _keys(compose(ok)) if not k.rsplit(".", 1)[-1].startswith("_")]  # not _target_
         except Exception:
             known = []
-        near = difflib.get_close_matches(key, known, n=1)
-        hint = f"; did you mean {near[0]}?" if near else ""
-        return f"{key}: unknown config key{hint} (to add a new key: +{key}=...)"
+        return f"{key}: unknown config key{_key_hint(key, known)} (to add a new key: +{key}=...)"
     return " ".join(text.split())
+
+
+def _key_hint(key: str, known: Sequence[str]) -> str:
+    """The nearest known key: among the keys of the same block when that block exists (its keys
+    listed when none is near: ``optimizer=sr3`` has no ``threshold``, its penalty is
+    ``reg_weight_lam``), else among all keys (``n_trials`` -> ``search.n_trials``)."""
+    parent, _, leaf = key.rpartition(".")
+    siblings = sorted(k.rsplit(".", 1)[-1] for k in known if k.rpartition(".")[0] == parent) if parent else []
+    if siblings:
+        near = difflib.get_close_matches(leaf, siblings, n=1)
+        shown = ", ".join(siblings[:12]) + (f", ... ({len(siblings)} keys)" if len(siblings) > 12 else "")
+        return f"; did you mean {parent}.{near[0]}?" if near else f"; {parent} has {shown}"
+    near = difflib.get_close_matches(key, known, n=1)
+    return f"; did you mean {near[0]}?" if near else ""
 
 
 def check_command_line(argv: Sequence[str], config_name: str, check_job: Callable | str | None = None) -> None:
