@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 from collections.abc import Iterator, Mapping
 
-from sdrl_bench import ConfigError, on_stop_signal, redact, stop_signal_received
+from sdrl_bench import ConfigError, on_stop_signal, redact, stop_signal_received, stop_signals_held
 
 DEFAULT_DB = Path("mlruns") / "mlflow.db"
 PARENT_TAG = "mlflow.parentRunId"
@@ -122,8 +122,10 @@ def mlflow_client(uri: str):
     logging.getLogger("mlflow").setLevel(logging.WARNING)  # its INFO chatter (table creation, monitors)
     os.environ.setdefault("MLFLOW_SUPPRESS_PRINTING_URL_TO_STDOUT", "true")
     local = sqlite_path(uri)
-    if local is None or uri in _READY:
+    if local is None:
         return MlflowClient(tracking_uri=uri)
+    if uri in _READY:
+        return _StopsHeld(MlflowClient(tracking_uri=uri))
     with store_lock(local):
         check_integrity(local)
         try:
@@ -134,7 +136,32 @@ def mlflow_client(uri: str):
             raise ConfigError(f"tracking.uri: cannot open the tracking store {local} ({detail[:200]})") from None
         use_wal(local)
     _READY.add(uri)
-    return client
+    return _StopsHeld(client)
+
+
+class _StopsHeld:
+    """An ``MlflowClient`` on a local SQLite store whose every call holds stop signals
+    (``stop_signals_held``): a stop that lands inside SQLAlchemy's session or pool bookkeeping can
+    leave the process's store connection unusable, and the stop's own last word (ending the
+    process's runs KILLED) then failed; seen once in about ten CI runs of a search stopped
+    mid-trial, which said its store "did not answer". A held stop is raised when the call
+    returns, milliseconds later. A server's calls are not held: a stop must cut their retries
+    short (``STOP_SERVER_WAITS``). Hand-written: MLflow has no hook around its store calls."""
+
+    def __init__(self, client):
+        self._client = client
+
+    def __getattr__(self, name: str):
+        attr = getattr(self._client, name)
+        if not callable(attr):
+            return attr
+
+        @functools.wraps(attr)
+        def held(*args, **kwargs):
+            with stop_signals_held():
+                return attr(*args, **kwargs)
+
+        return held
 
 
 @contextlib.contextmanager
