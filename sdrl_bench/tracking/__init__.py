@@ -40,7 +40,6 @@ from sdrl_bench.tracking.lifecycle import end_runs_of_dead_processes, tracked_ru
 from sdrl_bench.tracking.read import (
     child_statuses,
     download_artifact,
-    end_dead_processes_runs,
     end_runs_of_this_process,
     runs_of_this_process,
     end_stale_runs,
@@ -70,7 +69,7 @@ from sdrl_bench.tracking.transfer import find_real_arm, log_arm, log_curve_point
 
 __all__ = [
     "DEFAULT_DB", "PARENT_TAG", "RUN_NAME_TAG", "Run", "check_integrity", "check_store", "uri_key", "check_writable", "child_statuses", "create_parent_run",
-    "cpu_tags", "delete_run", "display_uri", "download_artifact", "end_run", "end_dead_processes_runs", "end_runs_of_dead_processes", "end_runs_of_this_process", "runs_of_this_process", "end_stale_runs", "owner_alive", "process_tags", "ensure_experiment", "find_real_arm", "find_runs",
+    "cpu_tags", "delete_run", "display_uri", "download_artifact", "end_run", "end_runs_of_dead_processes", "end_runs_of_this_process", "runs_of_this_process", "end_stale_runs", "owner_alive", "process_tags", "ensure_experiment", "find_real_arm", "find_runs",
     "fit_metrics", "flatten", "git_commit", "list_artifacts", "list_experiments", "log_arm", "log_curve_point",
     "log_fit", "log_report", "machine_label", "mlflow_client", "resolve_uri", "reuse_real_arm", "run_exists", "sb3_logger", "sqlite_path",
     "start_run", "tracked_run", "uncertainty_table", "use_wal",

@@ -419,11 +419,13 @@ def process_tags() -> dict[str, str]:
     return tags
 
 
+@functools.cache
 def system_identity() -> tuple[str, str, str]:
     """(machine, boot id, pid namespace) of this process's system, each "" where it cannot be
     read (no ``/proc``, as on macOS; no machine id in some containers). The machine is a keyed
     hash of ``/etc/machine-id``, not the id itself, which systemd asks applications not to
-    expose (machine-id(5))."""
+    expose (machine-id(5)). Read once: none of them changes while the process lives (a
+    ``setns`` of the pid namespace moves only its children)."""
     import hashlib  # noqa: PLC0415
     import hmac  # noqa: PLC0415
 

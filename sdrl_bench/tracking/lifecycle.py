@@ -18,8 +18,8 @@ import sys
 from collections.abc import Iterator, Mapping
 from typing import Any
 
-from sdrl_bench.tracking.client import Run, start_run
-from sdrl_bench.tracking.read import end_dead_processes_runs
+from sdrl_bench.tracking.client import Run, sqlite_path, start_run
+from sdrl_bench.tracking.read import end_stale_runs
 from sdrl_bench.tracking.meta import log_config, set_description, standard_tags, system_metrics
 
 
@@ -48,9 +48,15 @@ def tracked_run(uri: str, experiment: str, run_name: str, kind: str, tags: Mappi
 
 
 def end_runs_of_dead_processes(uri: str, experiment: str, prog: str = "sdrl-bench") -> list[str]:
-    """End the runs of ``experiment`` that dead processes of this host left RUNNING
-    (``read.end_dead_processes_runs``), saying so in one line on stderr; returns their ids."""
-    ended = end_dead_processes_runs(uri, experiment)
+    """End KILLED every RUNNING run of ``experiment`` whose owning process on this host is dead
+    (``read.end_stale_runs``), saying so in one line on stderr; returns their ids. That is what a
+    ``kill -9``, an out-of-memory kill or a tracking server that died under a stopped command left
+    behind. Runs of live processes, of other hosts or of other pid namespaces are left alone, and
+    so are studies' parent runs: a study's workers share its parent, whose maker may die while
+    the others work on (each worker ends it when it finishes)."""
+    if (local := sqlite_path(uri)) is not None and not local.is_file():
+        return []  # a new store: nothing to end, and no store to make before the run does
+    ended = end_stale_runs(uri, experiment, "attributes.status = 'RUNNING'", skip_kinds=("study",))
     if ended:
         print(f"{prog}: ended {len(ended)} run(s) of experiment {experiment!r} KILLED that processes of this host "
               "left RUNNING when they died (tag sdrl.ended_by)", file=sys.stderr)

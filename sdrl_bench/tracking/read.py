@@ -7,8 +7,7 @@ from pathlib import Path
 from typing import Any
 
 from sdrl_bench import ConfigError
-from sdrl_bench.tracking.client import (PARENT_TAG, display_uri, mlflow_client, process_start, process_tags, sqlite_path,
-                                        system_identity)
+from sdrl_bench.tracking.client import PARENT_TAG, display_uri, mlflow_client, process_start, process_tags, system_identity
 
 
 def find_runs(uri: str, experiment: str, filter_string: str = "", *, missing_ok: bool = True,
@@ -118,17 +117,6 @@ def end_stale_runs(uri: str, experiment: str, filter_string: str, status: str = 
         client.set_terminated(r["run_id"], status)
         ended.append(r["run_id"])
     return ended
-
-
-def end_dead_processes_runs(uri: str, experiment: str, status: str = "KILLED") -> list[str]:
-    """End every RUNNING run of ``experiment`` whose owning process on this host is dead: what a
-    ``kill -9``, an out-of-memory kill or a tracking server that died under a stopped command left
-    behind. Runs of live processes, of other hosts or of other pid namespaces are left alone, and
-    so are studies' parent runs: a study's workers share its parent, whose maker may die while
-    the others work on (each worker ends it when it finishes)."""
-    if (local := sqlite_path(uri)) is not None and not local.is_file():
-        return []  # a new store: nothing to end, and no store to make before the run does
-    return end_stale_runs(uri, experiment, "attributes.status = 'RUNNING'", status, skip_kinds=("study",))
 
 
 def runs_of_this_process(uri: str, experiment: str, status: str | None = None) -> list[dict[str, Any]]:

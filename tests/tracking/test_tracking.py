@@ -240,7 +240,7 @@ def test_a_run_whose_owner_is_a_zombie_is_stale_and_one_whose_owner_lives_is_not
         # any command's sweep: every dead owner's run but a study's parent, which its other workers share
         more = {kind: tracking.create_parent_run(store, "stale", kind, {**owner(dead.pid), "sdrl.kind": kind})
                 for kind in ("fit", "study", "dyna")}
-        assert sorted(tracking.end_dead_processes_runs(store, "stale")) == sorted([more["fit"], more["dyna"]])
+        assert sorted(tracking.end_runs_of_dead_processes(store, "stale")) == sorted([more["fit"], more["dyna"]])
         status = {r["run_id"]: r["status"] for r in tracking.find_runs(store, "stale")}
         assert [status[more[k]] for k in ("fit", "study", "dyna")] == ["KILLED", "RUNNING", "KILLED"]
         assert status[ids["live"]] == "RUNNING"
