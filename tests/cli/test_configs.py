@@ -129,3 +129,23 @@ def test_paper_packs_use_the_papers_budgets():
     assert (mc.n_transitions, mc.rl.surrogate_steps, mc.rl.real_steps, mc.agent.name) == (75, 65000, 100000, "sac")
     assert (ll.n_transitions, ll.rl.surrogate_steps, ll.rl.real_steps, ll.agent.name) == (1000, 800000, 1000000, "ppo")
     assert mc.collector.name == ll.collector.name == "expert" and mc.collector.epsilon == 0.2
+
+
+def test_help_names_the_app_and_says_which_groups_other_commands_read(tmp_path):
+    """``sdrl-bench --help`` (a real process): our header and example commands, every group Hydra
+    finds, and a line saying that ``search`` and ``reference`` are read by the other commands."""
+    from helpers import run_cli
+
+    out = run_cli("--help", cwd=tmp_path, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.startswith("sdrl-bench: collect real transitions")
+    assert "sdrl-bench experiment=quick_mountain_car" in out.stdout
+    for group in ("agent", "env", "experiment", "library", "search", "reference"):
+        assert f"\n{group}: " in out.stdout
+    assert "search is read by sdrl-bench-search and reference by sdrl-bench-report" in out.stdout
+    assert not any(tmp_path.iterdir())  # help makes no store, no run folder
+    search = run_cli("--help", cwd=tmp_path, timeout=120, module="sdrl_bench.cli.search")
+    assert search.returncode == 0, search.stderr
+    assert search.stdout.startswith("sdrl-bench-search: an Optuna study")
+    assert "experiment holds sdrl-bench's packs" in search.stdout
+    assert not any(tmp_path.iterdir())
