@@ -103,9 +103,10 @@ def summarize(
     if best is not None:
         _describe_best(summary, best, done, s.context)
         previous = study.user_attrs.get(SUMMARY_ATTR) or {}
-        if final_score:
+        same_best = previous.get("best_number") == best.number
+        if final_score and not (same_best and previous.get("test_metrics") and _refit_run(result, best.number)):
             _final_score(summary, result, build_job, best)
-        elif previous.get("best_number") == best.number:  # same best trial: its test score stands
+        elif same_best:  # its test score stands (and its refit run, when there is one: a rerun adds none)
             summary.test_name, summary.test_error = previous.get("test_name"), previous.get("test_error")
             summary.test_metrics = dict(previous.get("test_metrics") or {})
         _log_figures(parent_run, study, complete, points, summary)
@@ -146,6 +147,14 @@ def _describe_best(summary: StudySummary, best, done, context: Mapping[str, Any]
               f"Use: sdrl-bench 'hydra.searchpath=[file://<the folder holding experiment/>]' "
               f"experiment={summary.name}\n(or copy it into <your --config-dir>/experiment/ and run: sdrl-bench experiment={summary.name})")
     summary.experiment_yaml = experiment_pack(best.params, choices, values, header)
+
+
+def _refit_run(result: WorkerResult, number: int) -> str | None:
+    """The id of a FINISHED best-refit run of trial ``number`` under the study's parent, if any."""
+    filt = (f"tags.`{tracking.PARENT_TAG}` = '{result.parent_run_id}' and tags.`sdrl.role` = 'best-refit' "
+            f"and tags.`optuna.trial` = '{number}' and attributes.status = 'FINISHED'")
+    found = tracking.find_runs(result.tracking_uri, result.settings.experiment, filt)
+    return found[0]["run_id"] if found else None
 
 
 def _final_score(summary: StudySummary, result: WorkerResult, build_job: BuildJob, best) -> None:

@@ -237,6 +237,23 @@ def test_a_resumed_study_draws_new_points_not_its_first_ones_again(tmp_path, uri
     drawn = params(again["a"].study)
     assert again["a"].trials == [3, 4, 5] and len(set(drawn)) == 6  # no point drawn twice
     assert params(again["b"].study) == drawn
+def test_a_rerun_of_a_done_study_adds_no_second_refit_of_the_same_best_trial(tmp_path, uri):
+    """The best trial's refit on the test set is a fit run of its own; a rerun of a study that has
+    its trials (or whose best trial did not change) reuses its score and adds no refit run."""
+    cfg = search_cfg(tmp_path, uri, "study.name=refit", "search.n_trials=2")
+    first, summary = run_search(cfg, quiet=True)
+    again, summary_again = run_search(cfg, quiet=True)
+    refits = tracking.find_runs(uri, EXPERIMENT, f"tags.`mlflow.parentRunId` = '{first.parent_run_id}' "
+                                                 "and tags.`sdrl.role` = 'best-refit'")
+    assert again.trials == [] and again.parent_run_id == first.parent_run_id
+    assert len(refits) == 1 and refits[0]["status"] == "FINISHED"
+    assert refits[0]["tags"]["optuna.trial"] == str(summary.best_number)
+    assert summary_again.test_error == summary.test_error and summary.test_error > 0
+    assert summary_again.test_metrics == summary.test_metrics
+    parent = tracking.find_runs(uri, EXPERIMENT, f"attributes.run_id = '{first.parent_run_id}'")[0]
+    assert parent["metrics"]["test/mse_norm/mean"] == summary.test_error
+
+
 def test_grid_visits_every_point_once_and_compares_with_tpe(tmp_path, uri):
     grid = ["search=grid", "search.space.threshold.grid=[1e-4,1e-3,1e-2]", "search.space.alpha.grid=[1e-10,1e-5]"]
     result, summary = run_search(search_cfg(tmp_path, uri, "study.name=grid", *grid), quiet=True)
