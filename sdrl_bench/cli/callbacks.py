@@ -80,6 +80,7 @@ class MlflowSweepCallback(Callback):
             failed = any(s != "FINISHED" for s in tracking.child_statuses(uri, experiment, run_id))
             try:
                 tracking.summarize_sweep(uri, run_id)  # overrides as params, best child, description
+                tracking.note_adoptions(uri, run_id)  # the earlier runs of this sweep: where their jobs went
             except Exception as exc:  # the summary is a courtesy: the sweep's status still counts
                 print(f"sdrl-bench: could not summarize sweep run {run_id}: {exc}")
             self._finish("FAILED" if failed else "FINISHED")

@@ -49,8 +49,10 @@ def adopt_finished_job(cfg: DictConfig, parent: str, tags: dict[str, str]) -> fl
     if not done:
         return None
     run = done[-1]  # the newest
-    if run["tags"].get(tracking.PARENT_TAG) != parent:
-        tracking.Run(uri, run["run_id"]).set_tags({tracking.PARENT_TAG: parent, "sdrl.adopted_by": parent})
+    before = run["tags"].get(tracking.PARENT_TAG)
+    if before != parent:
+        tracking.Run(uri, run["run_id"]).set_tags({tracking.PARENT_TAG: parent, tracking.ADOPTED_BY_TAG: parent,
+                                                   tracking.ADOPTED_FROM_TAG: before or ""})
     print(f"sdrl-bench: this job FINISHED in run {run['run_id']} of an earlier run of this sweep: adopted, not "
           "rerun (resume=false reruns it)", file=sys.stderr)
     m = run["metrics"]

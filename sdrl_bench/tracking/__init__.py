@@ -64,7 +64,7 @@ from sdrl_bench.tracking.meta import (
     used_params,
 )
 from sdrl_bench.tracking.sb3 import sb3_logger
-from sdrl_bench.tracking.sweep import summarize_sweep
+from sdrl_bench.tracking.sweep import ADOPTED_BY_TAG, ADOPTED_FROM_TAG, note_adoptions, summarize_sweep
 from sdrl_bench.tracking.transfer import find_real_arm, log_arm, log_curve_point, reuse_real_arm
 
 __all__ = [
@@ -74,5 +74,5 @@ __all__ = [
     "log_fit", "log_report", "machine_label", "mlflow_client", "resolve_uri", "reuse_real_arm", "run_exists", "sb3_logger", "sqlite_path",
     "start_run", "tracked_run", "uncertainty_table", "use_wal",
     "browse_hint", "compare_url", "describe_experiment", "log_config", "run_url", "runs_url", "set_description",
-    "standard_tags", "summarize_sweep", "system_metrics", "ui_base", "used_params", "without_credentials",
+    "standard_tags", "summarize_sweep", "note_adoptions", "ADOPTED_BY_TAG", "ADOPTED_FROM_TAG", "system_metrics", "ui_base", "used_params", "without_credentials",
 ]

@@ -1,13 +1,17 @@
 """A sweep parent's summary: the sweep's overrides as params, its children counted, the best
-child's objective as metrics and tag, and a Markdown description listing the children."""
+child's objective as metrics and tag, and a Markdown description listing the children; after a
+rerun that adopted finished jobs, the earlier runs of the sweep say where their jobs went."""
 
 from __future__ import annotations
 
 import math
+from collections import Counter
 
 from sdrl_bench.tracking.client import PARENT_TAG, RUN_NAME_TAG, Run, mlflow_client
 from sdrl_bench.tracking.meta import NOTE_TAG, standard_tags
 
+#: A job's run adopted by a rerun of its sweep: the rerun's parent, and the parent it had before.
+ADOPTED_BY_TAG, ADOPTED_FROM_TAG = "sdrl.adopted_by", "sdrl.adopted_from"
 #: What a child run is judged by, per kind: (metric, "min" or "max").
 OBJECTIVES = {"fit": ("mse_norm/mean", "min"), "transfer": ("surrogate/final_return_mean", "max")}
 
@@ -62,3 +66,24 @@ def summarize_sweep(uri: str, parent_run_id: str) -> dict[str, float]:
     tags[NOTE_TAG] = "\n".join(lines)
     run.set_tags(tags)
     return metrics
+
+
+def note_adoptions(uri: str, parent_run_id: str) -> dict[str, int]:
+    """The earlier runs of a sweep whose finished jobs the rerun ``parent_run_id`` adopted: each
+    summarized again (its children now the jobs it kept, often none), tagged ``sdrl.resumed_by``,
+    its description opening with where its jobs went. Returns {earlier parent: jobs adopted}."""
+    client = mlflow_client(uri)
+    parent = client.get_run(parent_run_id)
+    adopted = client.search_runs(
+        [parent.info.experiment_id], max_results=10_000,
+        filter_string=f"tags.{PARENT_TAG} = '{parent_run_id}' and tags.`{ADOPTED_BY_TAG}` = '{parent_run_id}'")
+    moved = Counter(c.data.tags[ADOPTED_FROM_TAG] for c in adopted
+                    if c.data.tags.get(ADOPTED_FROM_TAG) not in (None, "", parent_run_id))
+    name = parent.data.tags.get(RUN_NAME_TAG, parent_run_id)
+    for old, n in moved.items():
+        summarize_sweep(uri, old)
+        note = client.get_run(old).data.tags.get(NOTE_TAG, "")
+        Run(uri, old).set_tags({"sdrl.resumed_by": parent_run_id, NOTE_TAG: (
+            f"**Resumed** by the sweep run **{name}** (`{parent_run_id}`), which adopted {n} of this run's "
+            f"finished jobs: they are listed there.\n\n{note}")})
+    return dict(moved)

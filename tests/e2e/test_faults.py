@@ -139,6 +139,16 @@ def test_sigkill_mid_sweep_then_rerun_leaves_one_finished_run_per_job(tmp_path):
     assert rerun.stderr.count("adopted, not rerun") == len(finished_before)
     new_parent = [r for r in _kinds(runs, "sweep") if r["status"] == "FINISHED"]
     assert len(new_parent) == 1 and {r["tags"][tracking.PARENT_TAG] for r in fits} == {new_parent[0]["run_id"]}
+    # the killed sweep's parent says where its finished jobs went, and counts what it kept
+    old_parent = [r for r in _kinds(runs, "sweep") if r["status"] == "KILLED"]
+    assert len(old_parent) == 1 and old_parent[0]["tags"]["sdrl.resumed_by"] == new_parent[0]["run_id"]
+    adopted = [r for r in fits if r["run_id"] in finished_before]
+    assert {r["tags"]["sdrl.adopted_from"] for r in adopted} == {old_parent[0]["run_id"]}
+    kept = [r for r in runs if r["tags"].get(tracking.PARENT_TAG) == old_parent[0]["run_id"]]
+    assert old_parent[0]["metrics"]["n_children"] == len(kept)
+    assert old_parent[0]["tags"]["mlflow.note.content"].startswith(
+        f"**Resumed** by the sweep run **{new_parent[0]['tags']['mlflow.runName']}** (`{new_parent[0]['run_id']}`), "
+        f"which adopted {len(finished_before)} of this run's finished jobs")
     # resume=false forces finished jobs to run again (a new run each; two of them, in one process: n_jobs=1)
     one_process = [a for a in args if not a.startswith(("hydra.launcher.n_jobs=", "seed="))] + ["seed=0,1",
                                                                                                   "hydra.launcher.n_jobs=1"]
