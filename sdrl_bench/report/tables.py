@@ -90,13 +90,15 @@ def fit_records(runs: Iterable[Run]) -> list[dict[str, Any]]:
     return out
 
 
-def setup(fits: Sequence[Mapping[str, Any]]) -> str:
-    """The setups a row's fits were made with (optimizer, collector, real transitions), so that a
-    row over fits of different setups says so: "stlsq, heuristic, 75", or "mixed: ... | ..."."""
-    def one(f: Mapping[str, Any]) -> str:
-        return ", ".join(str(f.get(k) or "?") for k in ("optimizer", "collector", "n_transitions"))
+def setup_of(fit: Mapping[str, Any]) -> str:
+    """What a fit was made with besides its library: "optimizer, collector, real transitions"."""
+    return ", ".join(str(fit.get(k) or "?") for k in ("optimizer", "collector", "n_transitions"))
 
-    found = sorted({one(f) for f in fits})
+
+def setup(fits: Sequence[Mapping[str, Any]]) -> str:
+    """The setups a row's fits were made with (``setup_of``): "stlsq, heuristic, 75", or
+    "mixed: ... | ..." should a row ever hold fits of several."""
+    found = sorted({setup_of(f) for f in fits})
     return found[0] if len(found) == 1 else ("mixed: " + " | ".join(found) if found else "")
 
 
@@ -139,7 +141,8 @@ def envs_of(records: Iterable[Mapping[str, Any]]) -> list[str]:
 def main_fits(records: Sequence[Mapping[str, Any]], env: str, surrogate: str = "sindy") -> list[Mapping[str, Any]]:
     """The fits that stand for an env's surrogate: those made inside transfer runs (the
     paper's pipeline) if any, else fit runs; of the paper pack's agent and library when present
-    (SINDy), and of the most frequent (library, test set)."""
+    (SINDy), and of the most frequent (library, test set, setup): fits of another optimizer,
+    collector or number of transitions (a sweep over them) never share a seed's place."""
     mine = [r for r in records if r["env"] == env and r["surrogate"] == surrogate]
     mine = [r for r in mine if r["source"] == "transfer"] or mine
     # the paper packs' runs when there are any: a fast recipe's runs fit the same data again
@@ -148,8 +151,8 @@ def main_fits(records: Sequence[Mapping[str, Any]], env: str, surrogate: str = "
         mine = [r for r in mine if r["library"] == pack(env, "library")] or mine
     if not mine:
         return []
-    key = Counter((r["library"], r["test_set"]) for r in mine).most_common(1)[0][0]
-    return one_per_seed([r for r in mine if (r["library"], r["test_set"]) == key])
+    key = Counter((r["library"], r["test_set"], setup_of(r)) for r in mine).most_common(1)[0][0]
+    return one_per_seed([r for r in mine if (r["library"], r["test_set"], setup_of(r)) == key])
 
 
 def _mean(values: Iterable[float | None]) -> float:
@@ -223,7 +226,8 @@ def _state_mean(metrics: Mapping[str, float], prefix: str) -> float:
 
 
 def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
-    """Paper Table 1 bottom: per env and library, over the SINDy fit runs (one per seed): the
+    """Paper Table 1 bottom: per env, library and setup (``setup_of``: a sweep over optimizers,
+    collectors or transitions gives a row each), over the SINDy fit runs (one per seed): the
     one-step MSE averaged over states (``mse/mean``, raw units; IQM with a 95% bootstrap CI
     over seeds, the mean below 5), the normalized one, the ``HORIZON``-step rollout MSE
     averaged over states, the fraction of rollouts that diverged and the active terms
@@ -234,8 +238,7 @@ def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
         # the paper's libraries ("not run" where missing) for the paper's envs; others: what was fitted
         paper_libs = list(ABLATION_LIBRARIES) if paper(env, "ablation") else []
         libraries = paper_libs + sorted({r["library"] for r in records if r["env"] == env and r["library"]} - set(paper_libs))
-        for lib in libraries:
-            fits = one_per_seed([r for r in records if r["env"] == env and r["library"] == lib])
+        for lib, fits in ((name, group) for name in libraries for group in _by_setup(records, env, name)):
             one = bootstrap_ci(_values(fits, "mse/mean"))
             rows.append({"env": env, "library": lib, "n_fits": len(fits), "setup": setup(fits),
                          "test_set": fits[0]["test_set"] if fits else None, "statistic": one[3],
@@ -249,6 +252,17 @@ def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=["env", "library", "n_fits", "setup", "test_set", "statistic", "mse_mean", "mse_mean_lo",
                                        "mse_mean_hi", "mse_norm_mean", "rollout_mean", "diverged", "n_terms", "paper_mse",
                                        "runs"])
+
+
+def _by_setup(records: Sequence[Mapping[str, Any]], env: str, library: str) -> list[list[Mapping[str, Any]]]:
+    """An env's fits of one library, one group per setup (the most fits first, then by name),
+    each its newest fit per seed; [[]] when there are none (a "not run" row)."""
+    groups: dict[str, list[Mapping[str, Any]]] = {}
+    for r in records:
+        if r["env"] == env and r["library"] == library:
+            groups.setdefault(setup_of(r), []).append(r)
+    fits = [one_per_seed(g) for _, g in sorted(groups.items(), key=lambda kv: (-len(one_per_seed(kv[1])), kv[0]))]
+    return fits or [[]]
 
 
 def _ratio(a: float, b: float) -> float:

@@ -482,16 +482,28 @@ def _ll_fit(uri: str, library: str, surrogate: str, seed: int, kind: str = "fit"
     return run.run_id
 
 
-def test_a_row_over_fits_of_different_setups_says_so(store: str) -> None:
-    """Rows are per env and library, over the newest fit of each seed; fits made with another
-    optimizer (or collector, or number of transitions) land in the same row, and its setup cell
-    names every setup, so a mixed row is not read as one configuration's."""
-    _ll_fit(store, "polynomial", "sindy", 0)
-    _ll_fit(store, "polynomial", "sindy", 1, optimizer="ensemble")
-    _ll_fit(store, "lunar_lander_flight", "sindy", 0)
-    abl = rt.ablation_table(tracking.find_runs(store, EXP)).set_index(["env", "library"])
-    assert abl.loc[("lunar_lander", "polynomial"), "setup"] == "mixed: ensemble, expert, 1000 | stlsq, expert, 1000"
-    assert abl.loc[("lunar_lander", "lunar_lander_flight"), "setup"] == SETUP_CELL
+def test_fits_of_different_setups_get_rows_of_their_own(store: str) -> None:
+    """A sweep over optimizers (or collectors, or numbers of transitions) on the same seeds: the
+    ablation has a row per setup, each over its own newest fit per seed, the setup with the most
+    seeds first; the fidelity table stands on one setup, never the newest fit of each seed across
+    setups."""
+    stlsq = [_ll_fit(store, "polynomial", "sindy", s) for s in (0, 1, 2)]
+    ensemble = [_ll_fit(store, "polynomial", "sindy", s, optimizer="ensemble") for s in (0, 1)]
+    flight = _ll_fit(store, "lunar_lander_flight", "sindy", 0)
+    runs = tracking.find_runs(store, EXP)
+    abl = rt.ablation_table(runs)
+    poly = abl[(abl["env"] == "lunar_lander") & (abl["library"] == "polynomial")]
+    assert list(poly["setup"]) == [SETUP_CELL, "ensemble, expert, 1000"]
+    assert list(poly["n_fits"]) == [3, 2]
+    assert [sorted(r) for r in poly["runs"]] == [sorted(stlsq), sorted(ensemble)]
+    by_id = {r["run_id"]: r["metrics"] for r in runs}
+    assert poly.iloc[1]["mse_mean"] == pytest.approx(np.mean([by_id[i]["mse/mean"] for i in ensemble]))
+    flight_row = abl.set_index(["env", "library"]).loc[("lunar_lander", "lunar_lander_flight")]
+    assert flight_row["setup"] == SETUP_CELL and flight_row["runs"] == [flight]
+    assert set(abl[abl["library"] == "rational"]["n_fits"]) == {0}  # a paper library not run: one row
+    fid = rt.fidelity_table(runs)
+    fid = fid[fid["env"] == "lunar_lander"]
+    assert {s for s in fid["setup"]} == {SETUP_CELL} and all(sorted(r) in (sorted(stlsq), [flight]) for r in fid["runs"])
 
 
 def test_five_seed_fidelity_tables_report_iqm_cis_rollouts_and_noise_floor_ratios(store: str, tmp_path) -> None:
