@@ -230,8 +230,12 @@ TASKS = ("fit", "train", "dyna", "fidelity")
 
 
 def check_task(cfg: DictConfig) -> None:
+    """The task is one ``sdrl-bench`` has; the switches of any task are true or false."""
     if cfg.task not in TASKS:
         raise ConfigError(f"task: {cfg.task!r} is not one of {', '.join(repr(t) for t in TASKS)}")
+    for key in ("resume", "progress_bar"):
+        if key in cfg:
+            bool_key(cfg, key)
 
 
 def check_run_keys(cfg: DictConfig) -> tuple[int, int]:
@@ -301,7 +305,9 @@ def config_key(cfg: DictConfig) -> str:
     """What a job computes: its resolved config, less what does not change the result
     (progress bars, the resume switch, Hydra's own settings)."""
     body = OmegaConf.to_container(cfg, resolve=True)
-    for key in ("hydra", "progress_bar", "resume"):
+    from sdrl_bench.cli.callbacks import NOT_OF_THE_SWEEP  # noqa: PLC0415
+
+    for key in ("hydra", *NOT_OF_THE_SWEEP):
         body.pop(key, None)
     if isinstance(body.get("rl"), dict) and body["rl"].get("confirm_episodes") == 0:
         body["rl"].pop("confirm_episodes")  # the default (added later): earlier runs' keys stay as they were

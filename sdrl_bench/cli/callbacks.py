@@ -22,6 +22,7 @@ import atexit
 import hashlib
 import json
 import os
+import shlex
 import signal
 import sys
 from pathlib import Path
@@ -41,15 +42,23 @@ CONFIG_KEY_TAG = "sdrl.config_key"
 WORKER_GRACE_SECONDS = 5.0
 
 
+#: Keys that change no job's result (``cli.build.config_key`` leaves them out too): adding
+#: ``resume=true`` or ``progress_bar=false`` to a rerun keeps it the same sweep.
+NOT_OF_THE_SWEEP = ("resume", "progress_bar")
+
+
 def sweep_key(overrides: list[str], experiment: str) -> str:
-    """Same sweep (the same overrides, in any order) on the same experiment: same key."""
-    body = json.dumps({"overrides": sorted(overrides), "experiment": experiment})
+    """Same sweep (the same overrides, in any order, less ``NOT_OF_THE_SWEEP``) on the same
+    experiment: same key."""
+    kept = [o for o in overrides if o.partition("=")[0].lstrip("+~") not in NOT_OF_THE_SWEEP]
+    body = json.dumps({"overrides": sorted(kept), "experiment": experiment})
     return hashlib.sha256(body.encode()).hexdigest()[:16]
 
 
 class MlflowSweepCallback(Callback):
     def __init__(self) -> None:
         self._parent: tuple[str, str, str] | None = None
+        self._browse = ""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         uri = tracking.resolve_uri(config.tracking.uri)
@@ -57,7 +66,7 @@ class MlflowSweepCallback(Callback):
         experiment = config.tracking.experiment
         overrides = list(config.hydra.overrides.task)
         key = sweep_key(overrides, experiment)
-        tracking.ensure_experiment(uri, experiment)
+        experiment_id = tracking.ensure_experiment(uri, experiment)
         tracking.end_runs_of_dead_processes(uri, experiment)  # an earlier run of this sweep's, or any command's
         run_id = tracking.create_parent_run(
             uri, experiment, f"sweep-{sweep_dir.name}",
@@ -70,6 +79,9 @@ class MlflowSweepCallback(Callback):
         (sweep_dir / KEY_FILE).write_text(key)
         (sweep_dir / VARYING_FILE).write_text(json.dumps(varying_keys(overrides)))
         self._parent = (uri, run_id, experiment)
+        self._browse = tracking.browse_hint(uri, experiment_id, run_id, tracking.display_uri(uri))
+        print(f"sdrl-bench: sweep run {run_id} in {tracking.display_uri(uri)}, experiment {experiment!r}: "
+              "its jobs' runs are its children", flush=True)
         atexit.register(self._abort)
         for sig in (signal.SIGTERM, signal.SIGINT):
             signal.signal(sig, self._on_stop_signal)
@@ -84,6 +96,10 @@ class MlflowSweepCallback(Callback):
             except Exception as exc:  # the summary is a courtesy: the sweep's status still counts
                 print(f"sdrl-bench: could not summarize sweep run {run_id}: {exc}")
             self._finish("FAILED" if failed else "FINISHED")
+            report = shlex.join(["sdrl-bench-report", "--uri", tracking.display_uri(uri), "--experiment", experiment,
+                                 "--parent-run", run_id, "--name", f"sweep-{run_id[:8]}"])
+            print(f"sdrl-bench: sweep run {run_id} ended {'FAILED' if failed else 'FINISHED'}; its report: {report}\n"
+                  f"{self._browse}", flush=True)
 
     def _finish(self, status: str) -> None:
         if self._parent is not None:

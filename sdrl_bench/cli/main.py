@@ -144,7 +144,7 @@ def app(cfg: DictConfig) -> float:
                 tags["sdrl.experiment"] = str(pack)
         check_task(cfg)
         fit_job = build_fit_job(cfg)  # validates the config before anything else
-        if parent is not None and key and cfg.get("resume", True):
+        if parent is not None and key and cfg.get("resume", True) is True:
             done = adopt_finished_job(cfg, parent, tags)
             if done is not None:
                 return done

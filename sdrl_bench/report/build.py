@@ -445,12 +445,14 @@ def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
 
 
 def overview_blocks(inp: ReportInput, runs: Sequence[Mapping[str, Any]], problems: Sequence[str], command: str) -> list[Block]:
-    commit = tracking.standard_tags().get("git_commit", "unknown")
+    tags = tracking.standard_tags()
+    commit = tags.get("git_commit", "unknown")
     out: list[Block] = [Heading(1, "sdrl-bench report: SINDy surrogates in RL, ours beside the paper's"),
                         Para(f"Made by `{command}` from store `{tracking.display_uri(inp.uri)}`, experiment "
                              f"`{inp.experiment}`" + (f", parent run `{inp.parent_run}`" if inp.parent_run else "")
                              + (f", tags `{inp.tags}`" if inp.tags else "") + f", {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}"
-                             + f", at commit `{commit}`.")]
+                             + f", by sdrl-bench {tags['sdrl.package_version']}"
+                             + ("" if commit == "unknown" else f" at commit `{commit}`") + ".")]
     for p in problems:
         out.append(Para(f"Missing: {p}"))
     if runs:

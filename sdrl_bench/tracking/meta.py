@@ -5,8 +5,10 @@ descriptions, system metrics, and the UI's own URLs for runs and comparisons."""
 from __future__ import annotations
 
 import contextlib
+import functools
 import getpass
 import json
+import subprocess
 import sys
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -28,9 +30,32 @@ EXPERIMENT_NOTE = (
 )
 
 
+@functools.cache
 def package_commit() -> str:
-    """The git commit of the sdrl_bench source that runs ("unknown" for an installed wheel)."""
-    return git_commit(Path(__file__).resolve().parents[2])
+    """The git commit of the sdrl_bench source that runs, read once per process (the code that
+    runs is the code imported): "unknown" for an installed wheel, also one whose venv sits inside
+    another git repository (the folder above the package must be that repository's top)."""
+    root = Path(__file__).resolve().parents[2]
+    try:
+        top = subprocess.run(["git", "rev-parse", "--show-toplevel"], capture_output=True, text=True, cwd=root,
+                             timeout=5)
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    if top.returncode != 0 or Path(top.stdout.strip()).resolve() != root:
+        return "unknown"
+    return git_commit(root)
+
+
+def package_version() -> str:
+    """The installed distribution's version (a wheel's, or an editable install's)."""
+    from importlib import metadata
+
+    try:
+        return metadata.version("sdrl-bench")
+    except metadata.PackageNotFoundError:  # imported from a source tree that is not installed
+        from sdrl_bench import __version__
+
+        return __version__
 
 
 def source_commit() -> str:
@@ -43,7 +68,8 @@ def source_commit() -> str:
 
 def standard_tags(source: str | None = None) -> dict[str, str]:
     """MLflow's own tags, which fill the UI's Version, User and Source columns; plus the
-    project's ``git_commit`` tag (same value) and ``sdrl.package_commit`` (the harness's own)."""
+    project's ``git_commit`` tag (same value), ``sdrl.package_version`` and, from a checkout,
+    ``sdrl.package_commit`` (the harness's own)."""
     commit = source_commit()
     try:
         user = getpass.getuser()
@@ -52,7 +78,8 @@ def standard_tags(source: str | None = None) -> dict[str, str]:
     name = source or (Path(sys.argv[0]).name if sys.argv and sys.argv[0] else "sdrl-bench")
     if name in ("__main__.py", "-m", "-c", ""):
         name = "sdrl-bench"
-    tags = {"mlflow.user": user, "mlflow.source.name": name, "mlflow.source.type": "LOCAL", "git_commit": commit}
+    tags = {"mlflow.user": user, "mlflow.source.name": name, "mlflow.source.type": "LOCAL", "git_commit": commit,
+            "sdrl.package_version": package_version()}
     if commit != "unknown":
         tags["mlflow.source.git.commit"] = commit
     harness = package_commit()

@@ -35,6 +35,9 @@ QUICK = ("experiment=quick_mountain_car", "rl.arms=[surrogate]")
     (("torch_threads=abc",), "torch_threads: an integer is required, got 'abc'"),
     (("seed=99999999999999999999",), "seed must be <= 4294967295, got 99999999999999999999"),
     (("rl.reuse_real_arm=maybe",), "rl.reuse_real_arm: true or false is required, got 'maybe'"),
+    (("resume=maybe",), "resume: true or false is required, got 'maybe'"),  # was read as true
+    (("progress_bar=nah",), "progress_bar: true or false is required, got 'nah'"),
+    (("task=fit", "resume=no"), "resume: true or false is required, got 'no'"),  # a fit's too
     (("dataset.exclude_bound_transitions=abc",), "dataset.exclude_bound_transitions: true or false is required, got 'abc'"),
     (("rl.arms=surrogate",), "rl.arms: a list is required (e.g. rl.arms=[surrogate] or rl.arms=[surrogate,real]), got "
                             "'surrogate'"),

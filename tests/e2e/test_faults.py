@@ -117,6 +117,17 @@ def test_eight_parallel_first_fits_on_an_empty_folder(tmp_path):
 SWEEP = ["-m", "env=mountain_car", "seed=0,1,2,3", "hydra.launcher.n_jobs=2"]
 
 
+def test_switches_that_change_no_result_keep_a_rerun_the_same_sweep():
+    """``resume=true`` or ``progress_bar=false`` added to a rerun: still the same sweep (its finished
+    jobs adopted); an override that changes a job, or another experiment, is another sweep."""
+    from sdrl_bench.cli.callbacks import sweep_key
+
+    base = sweep_key(["env=mountain_car", "seed=0,1"], EXP)
+    assert sweep_key(["seed=0,1", "resume=true", "env=mountain_car", "progress_bar=false"], EXP) == base
+    assert sweep_key(["env=mountain_car", "seed=0,1", "n_transitions=80"], EXP) != base
+    assert sweep_key(["env=mountain_car", "seed=0,1"], "other") != base
+
+
 def test_sigkill_mid_sweep_then_rerun_leaves_one_finished_run_per_job(tmp_path):
     uri = f"sqlite:///{tmp_path / 'mlruns' / 'mlflow.db'}"
     args = [*SWEEP, f"tracking.uri={uri}"]
@@ -139,6 +150,11 @@ def test_sigkill_mid_sweep_then_rerun_leaves_one_finished_run_per_job(tmp_path):
     assert rerun.stderr.count("adopted, not rerun") == len(finished_before)
     new_parent = [r for r in _kinds(runs, "sweep") if r["status"] == "FINISHED"]
     assert len(new_parent) == 1 and {r["tags"][tracking.PARENT_TAG] for r in fits} == {new_parent[0]["run_id"]}
+    sweep_id = new_parent[0]["run_id"]
+    assert f"sdrl-bench: sweep run {sweep_id} in " in rerun.stdout
+    assert (f"sdrl-bench: sweep run {sweep_id} ended FINISHED; its report: sdrl-bench-report --uri "
+            "sqlite:///mlruns/mlflow.db "  # the store as the user named it, from the folder they ran in
+            f"--experiment {EXP} --parent-run {sweep_id}") in rerun.stdout
     # the killed sweep's parent says where its finished jobs went, and counts what it kept
     old_parent = [r for r in _kinds(runs, "sweep") if r["status"] == "KILLED"]
     assert len(old_parent) == 1 and old_parent[0]["tags"]["sdrl.resumed_by"] == new_parent[0]["run_id"]

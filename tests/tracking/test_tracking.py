@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -248,3 +249,33 @@ def test_a_run_whose_owner_is_a_zombie_is_stale_and_one_whose_owner_lives_is_not
         live.kill()
         live.wait()
         dead.wait()
+
+
+def test_the_harness_commit_is_its_own_checkouts_never_an_enclosing_repositorys(tmp_path):
+    """From this checkout, ``sdrl.package_commit`` is its HEAD. Installed in a venv that sits inside
+    another git repository (``myproject/.venv``, a wheel's usual place), the package has no commit
+    of its own: no ``sdrl.package_commit``, but the version it was installed as."""
+    import shutil
+    import subprocess
+    import sys
+
+    from helpers import ROOT
+    from sdrl_bench.tracking import meta
+
+    head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True)
+    if head.returncode == 0 and (ROOT / ".git").exists():
+        assert meta.package_commit() == head.stdout.strip()
+    project = tmp_path / "myproject"
+    site = project / ".venv" / "lib" / "python3.11" / "site-packages"
+    shutil.copytree(ROOT / "sdrl_bench", site / "sdrl_bench", ignore=shutil.ignore_patterns("__pycache__"))
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q"], cwd=project, check=True)
+    subprocess.run([*git, "commit", "-q", "--allow-empty", "-m", "theirs"], cwd=project, check=True)
+    code = ("import json; from sdrl_bench.tracking import meta; "
+            "print(json.dumps([meta.package_commit(), meta.standard_tags()]))")
+    out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=120,
+                         env={**os.environ, "PYTHONPATH": str(site)})
+    assert out.returncode == 0, out.stderr
+    commit, tags = json.loads(out.stdout.strip().splitlines()[-1])
+    assert commit == "unknown" and "sdrl.package_commit" not in tags
+    assert tags["git_commit"] == "unknown" and tags["sdrl.package_version"] == meta.package_version()
