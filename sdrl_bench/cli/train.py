@@ -49,12 +49,13 @@ def prepare(cfg: DictConfig, job):
 
     torch_threads, jax_threads = check_run_keys(cfg)  # checked whatever the agent
     torch.set_num_threads(torch_threads)
-    compiled = bool(getattr(getattr(job.agent.algo, "func", None), "USES_JAX", False))  # rl.jax_agent's agents
+    algo = getattr(job.agent.algo, "func", None)
+    compiled = bool(getattr(algo, "USES_JAX", False))  # rl.jax_agent's agents
     if compiled:  # before anything creates JAX's backend (the job's check may)
         from sdrl_bench.rl.jax_agent import size_cpu_pool
 
         try:
-            size_cpu_pool(jax_threads)
+            size_cpu_pool(jax_threads, algo.LABEL)
         except ImportError as exc:  # the [jax] extra missing: the agent's check would say the same
             raise ConfigError(f"agent.algo: {exc}") from None
     checked = job.check()

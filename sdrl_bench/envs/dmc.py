@@ -30,7 +30,12 @@ from sdrl_bench.envs.functional import array_namespace, standard_normal
 os.environ.setdefault("MUJOCO_GL", "disabled")
 logging.getLogger("absl").setLevel(logging.WARNING)  # no import notes on the OpenGL backend
 with warnings.catch_warnings():  # the suite's imports reset the warning filters; keep the user's
-    import shimmy  # noqa: E402,F401  (registers dm_control/* with gymnasium)
+    try:
+        import shimmy  # noqa: E402,F401  (registers dm_control/* with gymnasium)
+        import dm_control  # noqa: E402,F401
+    except ImportError as exc:  # an optional extra: the config's error line says which
+        raise ImportError(f"the dm_control envs need the [dmc] extra ({exc.name} is missing): "
+                          "pip install 'sdrl-bench[dmc]'") from exc
 
 CART_MARGIN = 2.0
 """``centered``: tolerance margin on the cart position (m)."""

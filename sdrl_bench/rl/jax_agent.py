@@ -254,10 +254,11 @@ def cpu_pool_threads() -> int | None:
     return n
 
 
-def size_cpu_pool(threads: int) -> int | None:
+def size_cpu_pool(threads: int, who: str = "sdrl_bench.rl.jax_agent") -> int | None:
     """Create JAX's CPU backend with ``threads`` threads in XLA's CPU pool (config ``jax_threads``;
     0: XLA's default, one per CPU the process may run on), as ``torch_threads`` sets torch's.
-    Returns the pool's size (``cpu_pool_threads``).
+    Returns the pool's size (``cpu_pool_threads``); ``who`` names the caller in the install hint
+    when jax is missing (an agent's ``LABEL``).
 
     Hand-written, and why: jax (0.10) has no setting for the pool (``make_cpu_client`` takes no
     thread count); XLA sizes it to the CPUs the creating thread may run on. So the creating
@@ -269,7 +270,7 @@ def size_cpu_pool(threads: int) -> int | None:
     products and fusions are small; handing them between two threads costs more than the second
     core gives. Only on Linux (``os.sched_setaffinity``); elsewhere, or once the backend exists
     (a sweep's later jobs), the pool stays as it is, with a warning if it differs."""
-    jax, _, _ = jax_ppo._modules()
+    jax, _, _ = jax_ppo._modules(who)
     have = cpu_pool_threads()
     if threads == 0 or have is None or not hasattr(os, "sched_setaffinity"):
         jax.devices("cpu")
@@ -397,6 +398,7 @@ class _CompiledAgent:
     the ahead-of-time, timed compile of a program (``compile_program``)."""
 
     USES_JAX = True
+    LABEL = "a compiled agent (sdrl_bench.rl.jax_agent)"
     """Read by the CLI (``cli.train.prepare``): size XLA's CPU pool and turn the compilation cache
     on before anything creates JAX's backend."""
 
@@ -493,6 +495,9 @@ class JaxPPO(_CompiledAgent):
     """PPO with the rollout and the update compiled by jax, behind SB3's interface (module
     docstring)."""
 
+    LABEL = "the compiled PPO (agent=ppo_jax, sdrl_bench.rl.jax_agent.JaxPPO)"
+    """What a missing extra's message names."""
+
     def __init__(self, policy: str = "MlpPolicy", env: Any = None, seed: int | None = None, verbose: int = 0,
                  device: Any = None, **kwargs: Any):
         if policy != "MlpPolicy":
@@ -535,7 +540,7 @@ class JaxPPO(_CompiledAgent):
         optional extra is installed and the recipe's keyword arguments are ones this PPO has,
         each failure one line naming the key. Reward scaling it has (``normalize_reward``)."""
         try:
-            jax_ppo._modules()
+            jax_ppo._modules(JaxPPO.LABEL)
         except ImportError as exc:
             raise ConfigError(f"agent.algo: {exc}") from None
         _compiled_rollout(kwargs)
@@ -828,6 +833,9 @@ class JaxSAC(_CompiledAgent):
     as SB3's does; not the replay buffer (SB3 keeps it apart, ``save_replay_buffer``, which this
     class does not have)."""
 
+    LABEL = "the compiled SAC (agent=sac_jax, sdrl_bench.rl.jax_agent.JaxSAC)"
+    """What a missing extra's message names."""
+
     def __init__(self, policy: str = "MlpPolicy", env: Any = None, seed: int | None = None, verbose: int = 0,
                  device: Any = None, **kwargs: Any):
         from sdrl_bench.rl import jax_sac  # noqa: PLC0415
@@ -867,7 +875,7 @@ class JaxSAC(_CompiledAgent):
         if normalize_reward:
             raise ConfigError(NO_REWARD_SCALING)
         try:
-            jax_ppo._modules()
+            jax_ppo._modules(JaxSAC.LABEL)
         except ImportError as exc:
             raise ConfigError(f"agent.algo: {exc}") from None
         from sdrl_bench.rl.jax_sac import SACConfig  # noqa: PLC0415

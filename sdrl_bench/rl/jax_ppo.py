@@ -85,15 +85,16 @@ another level: those four programs' outputs were the same bit for bit, and a Pen
 of 8 rows differed in the last bit of some float32 values (tested to rounding)."""
 
 
-def _modules() -> tuple[Any, Any, Any]:
-    """jax (float64 on), jax.numpy and optax, imported on first use (an optional extra)."""
+def _modules(who: str = "sdrl_bench.rl.jax_ppo") -> tuple[Any, Any, Any]:
+    """jax (float64 on), jax.numpy and optax, imported on first use (an optional extra);
+    ``who`` names what needs them in the install hint."""
     from sdrl_bench.models.jax_eval import jax_modules  # noqa: PLC0415
 
-    jax, jnp = jax_modules("sdrl_bench.rl.jax_ppo")
+    jax, jnp = jax_modules(who)
     try:
         import optax  # noqa: PLC0415
     except ImportError as exc:
-        raise ImportError(f"sdrl_bench.rl.jax_ppo needs optax, an optional extra: {INSTALL_HINT}") from exc
+        raise ImportError(f"{who} needs optax, an optional extra: {INSTALL_HINT}") from exc
     return jax, jnp, optax
 
 

@@ -95,7 +95,26 @@ def test_a_compiled_agent_without_the_jax_extra_is_one_line(store, tmp_path):
                           f"tracking.uri={store}"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [
-        "sdrl-bench: error: agent.algo: sdrl_bench.rl.jax_ppo needs jax, an optional extra: pip install 'sdrl-bench[jax]'"]
+        "sdrl-bench: error: agent.algo: the compiled SAC (agent=sac_jax, sdrl_bench.rl.jax_agent.JaxSAC) needs jax, "
+        "an optional extra: pip install 'sdrl-bench[jax]'"]
+    assert no_running_runs(store) == 0
+
+
+def test_a_dm_control_env_without_the_dmc_extra_is_one_line_naming_it(store, tmp_path):
+    """``env=cartpole_swingup`` needs the ``[dmc]`` extra; without it (made so here) one line names
+    the extra to install, exit 2, before any run."""
+    import subprocess
+    import sys
+
+    script = ("import sys; sys.modules['shimmy'] = None; sys.argv = ['sdrl-bench', *sys.argv[1:]]; "
+              "from sdrl_bench.cli.main import main; main()")
+    res = subprocess.run([sys.executable, "-c", script, "env=cartpole_swingup", f"tracking.uri={store}"],
+                         cwd=tmp_path, capture_output=True, text=True, timeout=300)
+    assert res.returncode == 2
+    lines = res.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("sdrl-bench: error: env.spec.")
+    assert lines[0].endswith("the dm_control envs need the [dmc] extra (shimmy is missing): "
+                             "pip install 'sdrl-bench[dmc]'")
     assert no_running_runs(store) == 0
 
 
