@@ -19,6 +19,9 @@ from pathlib import Path
 from sdrl_bench import ConfigError
 
 _YAML_WHERE = re.compile(r'in "([^"]+)", line (\d+), column (\d+)')
+SEARCH_EXPORTS = "mlruns/search"
+"""Where a search writes its best config by default (``study.export_dir`` of conf/search_app.yaml,
+less ``/experiment``): an unknown ``experiment=<name>`` found there gets the search path's hint."""
 
 
 def _parse(overrides: Sequence[str]):
@@ -86,6 +89,9 @@ def _one_line(exc: BaseException, overrides: Sequence[str], compose) -> str:
         options = re.findall(r"^\t(\S+)$", text, flags=re.M)
         near = difflib.get_close_matches(option, options, n=1)
         hint = f"; did you mean {group}={near[0]}?" if near else ""
+        searched = Path(SEARCH_EXPORTS) / group / f"{option}.yaml"
+        if searched.is_file():  # a search's best config, its folder not on the search path
+            hint = f"; a search wrote {searched}: add 'hydra.searchpath=[file://{SEARCH_EXPORTS}]'"
         return f"{group}={option}: no such option of '{group}' (options: {', '.join(options)}){hint}"
     unknown = re.search(r"full_key: (\S+)", text) or re.match(r"Could not override '([^']+)'", first)
     if unknown:

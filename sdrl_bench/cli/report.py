@@ -12,6 +12,7 @@ import shlex
 import sys
 from pathlib import Path
 from collections.abc import Sequence
+from urllib.parse import urlsplit
 
 from sdrl_bench import ConfigError, redact_arg, tracking
 from sdrl_bench.report.folder import report_files
@@ -29,6 +30,14 @@ def _parse_tags(items: Sequence[str]) -> dict[str, str]:
             raise ConfigError(f"--tag: expected key=value, got {item!r}")
         out[k] = v
     return out
+
+
+def _check_name(name: str) -> None:
+    """``--name`` is a folder under ``--out`` (``mine`` or ``thesis/ch3``): a report never writes
+    outside ``--out``, so no absolute path and no ``..``."""
+    parts = Path(name).parts
+    if not name.strip() or Path(name).is_absolute() or ".." in parts or not parts:
+        raise ConfigError(f"--name: a folder under --out is required (no absolute path, no '..'), got {name!r}")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -51,6 +60,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     command = "sdrl-bench-report " + " ".join(shlex.quote(redact_arg(a)) for a in (argv if argv is not None else sys.argv[1:]))
     try:
         tags = _parse_tags(args.tag)
+        _check_name(args.name)
+        if args.ui_url and urlsplit(args.ui_url).scheme not in ("http", "https"):
+            raise ConfigError(f"--ui-url: an http(s) URL of an MLflow UI is required (e.g. http://127.0.0.1:5000), "
+                              f"got {redact_arg(args.ui_url)!r}")
         uri = tracking.resolve_uri(args.uri)
         tracking.check_store(uri, tracking.uri_key(args.uri, "--uri"), reach=True)
         report_files(args.out, args.name)  # a folder holding the user's files: refused before the builder loads
@@ -64,7 +77,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ConfigError as exc:
         print(f"sdrl-bench-report: error: {exc}", file=sys.stderr)
         return 2
-    print(f"report: {res.folder / 'report.md'} and {res.folder / 'report.html'} ({res.n_runs} runs, {res.seconds:.1f} s)"
+    print(f"report: {res.folder / 'report.md'} and {res.folder / 'report.html'} "
+          f"({res.n_runs} run{'' if res.n_runs == 1 else 's'}, {res.seconds:.1f} s)"
           + (f"; logged as run {res.report_run_id}" if res.report_run_id else "; not logged to MLflow"))
     return 0
 

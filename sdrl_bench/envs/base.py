@@ -316,9 +316,11 @@ class EnvSpec:
         try:
             gym.spec(env_id)
         except Exception as exc:  # gymnasium raises several error types for unknown ids
-            raise ConfigError(f"env.spec.gym_id: {env_id!r} is not registered with gymnasium "
-                              f"({functional.one_line(exc)}); call gymnasium.register in your module and name it "
-                              "'my_module:MyEnv-v0' so that it is imported first") from None
+            cause = functional.one_line(exc).split(" Did you mean", 1)[0]  # its guess is of another env
+            fix = (f"module '{module}' imported, but it registers no {env_id!r}: check the id its gymnasium.register "
+                   "call gives" if sep else "call gymnasium.register in your module and name it "
+                   "'my_module:MyEnv-v0' so that it is imported first")
+            raise ConfigError(f"env.spec.gym_id: {env_id!r} is not registered with gymnasium ({cause}); {fix}") from None
 
     def make_env(self, **kwargs: Any) -> gym.Env:
         env = gym.make(self.gym_id, **{**self.gym_kwargs, **kwargs})

@@ -471,9 +471,9 @@ def _machines_sentence(runs: Sequence[Mapping[str, Any]]) -> str:
     a seed's digits repeat only on machines alike in these (docs/seeds.md)."""
     unknown = "not recorded (runs from before the tag)"
     counts = pd.Series([tracking.machine_label(r["tags"]) or unknown for r in runs]).value_counts().sort_index()
-    return ("Machines: " + "; ".join(f"{k}: {v} run(s)" for k, v in counts.items())
+    return ("Machines: " + "; ".join(f"{k}: {v} run{'' if v == 1 else 's'}" for k, v in counts.items())
             + ". A seed repeats bit for bit only on machines alike in CPU and vector extensions; "
-            "compare other machines' runs over seeds (docs/seeds.md).")
+            "compare other machines' runs over seeds (docs/seeds.md in sdrl-bench's source).")
 
 
 def _ui_sentence(inp: ReportInput) -> str:

@@ -76,6 +76,9 @@ def check_writable(uri: str) -> None:
             raise PermissionError(f"{local} is read-only")
     except OSError as exc:
         reason = exc.strerror or str(exc)
+        blocker = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
+        if blocker is not None:  # mkdir's "File exists" names no file
+            reason = f"{blocker} is a file, not a folder"
         raise ConfigError(f"tracking.uri: cannot write the tracking store at {folder} ({reason})") from None
 
 

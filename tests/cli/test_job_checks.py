@@ -126,3 +126,26 @@ def test_the_config_dir_stays_on_the_search_path_beside_a_given_searchpath(tmp_p
     check_command_line([*both, "library=mine"], "config")
     with pytest.raises(ConfigError, match=r"^library=nosuch: no such option of 'library' \(options: .*mine"):
         check_command_line([*both, "library=nosuch"], "config")
+
+
+def test_a_searchs_pack_named_without_its_folder_gets_the_search_paths_hint(tmp_path, monkeypatch):
+    """``experiment=<study>`` right after a search, without ``hydra.searchpath``: the pack is found
+    where the search wrote it and the line says what to add; with the hint's override it composes."""
+    import shutil
+
+    from omegaconf import OmegaConf
+
+    from sdrl_bench.cli.precheck import SEARCH_EXPORTS, check_command_line
+
+    app = OmegaConf.load(ROOT / "sdrl_bench" / "conf" / "search_app.yaml")
+    assert app.study.export_dir == SEARCH_EXPORTS  # the default the hint looks in
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / SEARCH_EXPORTS / "experiment").mkdir(parents=True)
+    shutil.copyfile(ROOT / "sdrl_bench" / "conf" / "experiment" / "quick_mountain_car.yaml",
+                    tmp_path / SEARCH_EXPORTS / "experiment" / "mountain_car-tpe-s0.yaml")
+    uri = f"tracking.uri=sqlite:///{tmp_path / 't.db'}"
+    with pytest.raises(ConfigError) as err:
+        check_command_line(["experiment=mountain_car-tpe-s0", uri], "config")
+    assert str(err.value).endswith("; a search wrote mlruns/search/experiment/mountain_car-tpe-s0.yaml: add "
+                                   "'hydra.searchpath=[file://mlruns/search]'")
+    check_command_line(["experiment=mountain_car-tpe-s0", "hydra.searchpath=[file://mlruns/search]", uri], "config")

@@ -202,6 +202,13 @@ def test_unregistered_gym_id_fails_before_collection(user_dir):
         build_fit_job(user_cfg(user_dir[1], "env.spec.gym_id=Nope-v0"))
     with pytest.raises(ConfigError, match=r"env.spec.gym_id \('nomod:X-v0'\): cannot import module 'nomod'"):
         build_fit_job(user_cfg(user_dir[1], "env.spec.gym_id=nomod:X-v0"))
+    # the module imports but registers another id: the line says so, not "name it module:Env" again,
+    # and gymnasium's guess at another env ("Did you mean: ...") is left out
+    with pytest.raises(ConfigError) as err:
+        build_fit_job(user_cfg(user_dir[1], "env.spec.gym_id=json:Hoper-v5"))
+    assert str(err.value).endswith("module 'json' imported, but it registers no 'Hoper-v5': check the id its "
+                                   "gymnasium.register call gives")
+    assert "Did you mean" not in str(err.value) and "\n" not in str(err.value)
 
 
 def test_expert_collector_without_an_expert_names_the_key(user_dir):

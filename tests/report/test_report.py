@@ -166,7 +166,7 @@ def test_transfer_table_and_report_from_a_sweep(store: str, tmp_path) -> None:
     assert "http://ui:5000/#/experiments/" in md and f"/runs/{ids[0]}" in md
     assert "94 [" in md and "(mean)" in md and "not run" in md
     cpu = tracking.cpu_tags()  # the machine every run was made on, counted (docs/seeds.md)
-    assert f"Machines: {cpu['sdrl.cpu']} [{cpu['sdrl.cpu_vectors']}]: 5 run(s)." in md
+    assert f"Machines: {cpu['sdrl.cpu']} [{cpu['sdrl.cpu_vectors']}]: 5 runs." in md
     assert "figures/curves_mountain_car_sac_sindy.png" in md and (res.folder / "figures/curves_mountain_car_sac_sindy.png").is_file()
     assert "data:image/png;base64," in html and "<img class='math'" in html and "src='figures/" not in html
     logged = search(store, EXP, "tags.`sdrl.kind` = 'report'")
@@ -655,6 +655,6 @@ def test_the_machines_sentence_counts_runs_by_cpu_and_names_runs_without_the_tag
     a = {"sdrl.cpu": "AMD EPYC (family 25, model 17)", "sdrl.cpu_vectors": "sse4_2 avx avx2 fma"}
     b = {"sdrl.cpu": "Xeon (family 6, model 143)", "sdrl.cpu_vectors": "sse4_2 avx avx2 fma avx512f amx_tile"}
     text = _machines_sentence([{"tags": a}, {"tags": b}, {"tags": a}, {"tags": {}}])
-    assert text.startswith("Machines: AMD EPYC (family 25, model 17) [sse4_2 avx avx2 fma]: 2 run(s); "
-                           "Xeon (family 6, model 143) [sse4_2 avx avx2 fma avx512f amx_tile]: 1 run(s); "
-                           "not recorded (runs from before the tag): 1 run(s).")
+    assert text.startswith("Machines: AMD EPYC (family 25, model 17) [sse4_2 avx avx2 fma]: 2 runs; "
+                           "Xeon (family 6, model 143) [sse4_2 avx avx2 fma avx512f amx_tile]: 1 run; "
+                           "not recorded (runs from before the tag): 1 run.")

@@ -176,6 +176,26 @@ def test_a_file_where_the_folder_goes_is_one_line_before_the_runs_load(case: str
     assert calls == [] and afile.read_text() == "the user's\n"
 
 
+@pytest.mark.parametrize("args, line", [
+    (["--name", "../escape"], "--name: a folder under --out is required (no absolute path, no '..'), got '../escape'"),
+    (["--name", "a/../../escape"], "--name: a folder under --out is required (no absolute path, no '..'), got "
+                                   "'a/../../escape'"),
+    (["--name", "/tmp/escape"], "--name: a folder under --out is required (no absolute path, no '..'), got "
+                                "'/tmp/escape'"),
+    (["--ui-url", "notaurl"], "--ui-url: an http(s) URL of an MLflow UI is required (e.g. http://127.0.0.1:5000), "
+                              "got 'notaurl'"),
+])
+def test_a_name_that_leaves_out_or_a_ui_url_that_is_no_url_is_one_line(args, line, report_store: str, tmp_path,
+                                                                       capsys, monkeypatch) -> None:
+    """``--name ../escape`` wrote the report outside ``--out``; ``--ui-url notaurl`` made relative
+    links. Both refused in one line before the runs load, nothing written."""
+    calls = _no_runs_loaded(monkeypatch)
+    out = tmp_path / "out"
+    assert main(["--uri", report_store, "--out", str(out), "--no-log", *args]) == 2
+    assert _one_error_line(capsys) == f"sdrl-bench-report: error: {line}"
+    assert calls == [] and not out.exists() and not (tmp_path / "escape").exists()
+
+
 def test_an_empty_or_absent_folder_is_fine(report_store: str, tmp_path) -> None:
     (tmp_path / "empty").mkdir()
     for name in ("empty", "new/deeper"):
