@@ -11,6 +11,9 @@ if [ ! -x .venv/bin/python ]; then
 fi
 .venv/bin/python -m pip install --quiet --upgrade pip
 .venv/bin/python -m pip install --quiet "torch==2.13.0"
+# PYTHONWARNINGS=ignore: setuptools' editable build prints a banner (a Python warning, not an error)
+# on every install of a flat-layout package; pip's own messages are not warnings and still show
+export PYTHONWARNINGS=ignore
 if [ "${SDRL_LOCKED:-0}" = "1" ]; then
   # the exact versions the reference report was rebuilt with (scripts/requirements-lock.txt), so
   # that a clean clone reproduces it seed by seed; by default the ranges of pyproject.toml
@@ -18,4 +21,5 @@ if [ "${SDRL_LOCKED:-0}" = "1" ]; then
 else
   .venv/bin/python -m pip install --quiet -e ".[dev]"
 fi
+unset PYTHONWARNINGS
 echo "sdrl-bench installed in $(pwd)/.venv"

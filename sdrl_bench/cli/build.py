@@ -334,5 +334,20 @@ def exit_after_stop_signal(cfg: DictConfig, signum: int, prog: str, what: str,
     except Exception:  # the store went away mid-run: its runs could not be ended, and the line says so
         said = (f"the tracking store at {redact(uri)} did not answer, so this command's runs may still show RUNNING "
                 "(the next command on this experiment ends them)")
+    close_progress_bars()  # an open bar would draw its last line below this one at exit
     print(f"{prog}: stopped by {signal.Signals(signum).name}; {said if made else before_runs}", file=sys.stderr)
     sys.exit(128 + signum)
+
+
+def close_progress_bars() -> None:
+    """Close the progress bars a stop left open (SB3's, tqdm over rich), so that their last line is
+    drawn now, not after the stop's message when the interpreter exits. Hand-written: tqdm has no
+    public list of its open bars; its class keeps them in ``_instances``."""
+    import sys
+
+    tqdm = getattr(sys.modules.get("tqdm"), "tqdm", None)
+    for bar in list(getattr(tqdm, "_instances", None) or ()):
+        try:
+            bar.close()
+        except Exception:  # a bar half torn down by the stop: it has nothing left to draw
+            pass

@@ -258,23 +258,31 @@ def test_sigterm_mid_run_ends_the_run_killed(store, tmp_path):
     import sys
     import time
 
+    from mlflow.tracking import MlflowClient
+
+    # the progress bar on, and both streams in one: the bar's last line comes before the stop's
+    # line, not after it (the bar was once drawn at the interpreter's exit, below the message)
     proc = subprocess.Popen(
         [sys.executable, "-m", "sdrl_bench.cli.main", "task=train", "rl.arms=[real]", "rl.real_steps=100000",
-         "progress_bar=false", f"tracking.uri={store}"],
-        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+         "rl.eval_every=500", "progress_bar=true", f"tracking.uri={store}"],
+        cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
     )
-    deadline = time.monotonic() + 120
-    while time.monotonic() < deadline:  # wait until the run exists, then stop the process
+    deadline = time.monotonic() + 180
+    while time.monotonic() < deadline:  # wait until the agent trains (a curve point past step 0), then stop it
         try:
-            if len(search(store)):
+            runs = search(store)
+            if len(runs) and len(MlflowClient(store).get_metric_history(runs.iloc[0]["run_id"],
+                                                                        "real/curve_return_mean")) >= 2:
                 break
         except Exception:
             pass
         time.sleep(0.5)
     proc.send_signal(signal.SIGTERM)
-    _, err = proc.communicate(timeout=120)
+    out, _ = proc.communicate(timeout=120)
     assert proc.returncode == 128 + signal.SIGTERM
-    assert err.strip().splitlines()[-1] == "sdrl-bench: stopped by SIGTERM; the run ended KILLED"
+    lines = out.strip().splitlines()
+    assert lines[-1] == "sdrl-bench: stopped by SIGTERM; the run ended KILLED", out[-2000:]
+    assert lines[-2].startswith("real arm, SAC"), out[-2000:]  # the bar, closed before the line
     assert list(search(store)["status"]) == ["KILLED"]
 
 
