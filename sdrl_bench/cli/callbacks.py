@@ -59,6 +59,7 @@ class MlflowSweepCallback(Callback):
     def __init__(self) -> None:
         self._parent: tuple[str, str, str] | None = None
         self._browse = ""
+        self._key = ""
 
     def on_multirun_start(self, config: DictConfig, **kwargs: Any) -> None:
         uri = tracking.resolve_uri(config.tracking.uri)
@@ -79,6 +80,7 @@ class MlflowSweepCallback(Callback):
         (sweep_dir / KEY_FILE).write_text(key)
         (sweep_dir / VARYING_FILE).write_text(json.dumps(varying_keys(overrides)))
         self._parent = (uri, run_id, experiment)
+        self._key = key
         self._browse = tracking.browse_hint(uri, experiment_id, run_id, tracking.display_uri(uri))
         print(f"sdrl-bench: sweep run {run_id} in {tracking.display_uri(uri)}, experiment {experiment!r}: "
               "its jobs' runs are its children", flush=True)
@@ -92,9 +94,14 @@ class MlflowSweepCallback(Callback):
             failed = any(s != "FINISHED" for s in tracking.child_statuses(uri, experiment, run_id))
             try:
                 tracking.summarize_sweep(uri, run_id)  # overrides as params, best child, description
-                tracking.note_adoptions(uri, run_id)  # the earlier runs of this sweep: where their jobs went
             except Exception as exc:  # the summary is a courtesy: the sweep's status still counts
                 print(f"sdrl-bench: could not summarize sweep run {run_id}: {exc}")
+            try:  # the earlier runs of this sweep (a chain of reruns too): where their jobs went
+                earlier = tracking.find_runs(uri, experiment, f"tags.`{SWEEP_KEY_TAG}` = '{self._key}' "
+                                                              "and tags.`sdrl.kind` = 'sweep'")
+                tracking.note_adoptions(uri, run_id, [r["run_id"] for r in earlier])
+            except Exception as exc:  # a courtesy too
+                print(f"sdrl-bench: could not note this rerun on the earlier runs of sweep {self._key}: {exc}")
             self._finish("FAILED" if failed else "FINISHED")
             report = shlex.join(["sdrl-bench-report", "--uri", tracking.display_uri(uri), "--experiment", experiment,
                                  "--parent-run", run_id, "--name", f"sweep-{run_id[:8]}"])

@@ -90,7 +90,7 @@ def _one_line(exc: BaseException, overrides: Sequence[str], compose) -> str:
         near = difflib.get_close_matches(option, options, n=1)
         hint = f"; did you mean {group}={near[0]}?" if near else ""
         searched = Path(SEARCH_EXPORTS) / group / f"{option}.yaml"
-        if searched.is_file():  # a search's best config, its folder not on the search path
+        if group == "experiment" and searched.is_file():  # a search's best config, its folder not on the search path
             hint = f"; a search wrote {searched}: add 'hydra.searchpath=[file://{SEARCH_EXPORTS}]'"
         return f"{group}={option}: no such option of '{group}' (options: {', '.join(options)}){hint}"
     unknown = re.search(r"full_key: (\S+)", text) or re.match(r"Could not override '([^']+)'", first)

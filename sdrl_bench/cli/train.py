@@ -55,7 +55,7 @@ def prepare(cfg: DictConfig, job):
         from sdrl_bench.rl.jax_agent import size_cpu_pool
 
         try:
-            size_cpu_pool(jax_threads, algo.LABEL)
+            size_cpu_pool(jax_threads, getattr(algo, "LABEL", getattr(algo, "__qualname__", "the agent")))
         except ImportError as exc:  # the [jax] extra missing: the agent's check would say the same
             raise ConfigError(f"agent.algo: {exc}") from None
     checked = job.check()

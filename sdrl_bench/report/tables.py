@@ -151,8 +151,10 @@ def main_fits(records: Sequence[Mapping[str, Any]], env: str, surrogate: str = "
         mine = [r for r in mine if r["library"] == pack(env, "library")] or mine
     if not mine:
         return []
-    key = Counter((r["library"], r["test_set"], setup_of(r)) for r in mine).most_common(1)[0][0]
-    return one_per_seed([r for r in mine if (r["library"], r["test_set"], setup_of(r)) == key])
+    groups: dict[tuple, list[Mapping[str, Any]]] = {}
+    for r in mine:
+        groups.setdefault((str(r["library"]), str(r["test_set"]), setup_of(r)), []).append(r)
+    return _most_seeds(groups)[0]
 
 
 def _mean(values: Iterable[float | None]) -> float:
@@ -257,12 +259,18 @@ def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
 def _by_setup(records: Sequence[Mapping[str, Any]], env: str, library: str) -> list[list[Mapping[str, Any]]]:
     """An env's fits of one library, one group per setup (the most fits first, then by name),
     each its newest fit per seed; [[]] when there are none (a "not run" row)."""
-    groups: dict[str, list[Mapping[str, Any]]] = {}
+    groups: dict[tuple, list[Mapping[str, Any]]] = {}
     for r in records:
         if r["env"] == env and r["library"] == library:
-            groups.setdefault(setup_of(r), []).append(r)
-    fits = [one_per_seed(g) for _, g in sorted(groups.items(), key=lambda kv: (-len(one_per_seed(kv[1])), kv[0]))]
-    return fits or [[]]
+            groups.setdefault((setup_of(r),), []).append(r)
+    return _most_seeds(groups) or [[]]
+
+
+def _most_seeds(groups: Mapping[tuple, Sequence[Mapping[str, Any]]]) -> list[list[Mapping[str, Any]]]:
+    """Each group's newest fit per seed, the groups with the most seeds first (then by key): a
+    setup fitted five times on two seeds does not outrank one fitted once on each of five."""
+    kept = {k: one_per_seed(g) for k, g in groups.items()}
+    return [kept[k] for k in sorted(kept, key=lambda k: (-len(kept[k]), k))]
 
 
 def _ratio(a: float, b: float) -> float:

@@ -398,9 +398,10 @@ class _CompiledAgent:
     the ahead-of-time, timed compile of a program (``compile_program``)."""
 
     USES_JAX = True
-    LABEL = "a compiled agent (sdrl_bench.rl.jax_agent)"
     """Read by the CLI (``cli.train.prepare``): size XLA's CPU pool and turn the compilation cache
     on before anything creates JAX's backend."""
+    LABEL = "a compiled agent (sdrl_bench.rl.jax_agent)"
+    """What a missing extra's message names."""
 
     def _init_counters(self) -> None:
         self.num_timesteps = 0

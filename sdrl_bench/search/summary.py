@@ -25,6 +25,9 @@ from sdrl_bench.search.location import resolve_storage
 from sdrl_bench.search.storage import open_storage
 
 SUMMARY_ATTR = "sdrl.summary"
+REFITS_ATTR = "sdrl.refit_scores"
+"""Study attribute: {trial number: the test score of its best-refit run}, so that a best trial
+that is best again (after another was) is not refitted a second time."""
 S = optuna.trial.TrialState
 
 
@@ -103,12 +106,18 @@ def summarize(
     if best is not None:
         _describe_best(summary, best, done, s.context)
         previous = study.user_attrs.get(SUMMARY_ATTR) or {}
-        same_best = previous.get("best_number") == best.number
-        if final_score and not (same_best and previous.get("test_metrics") and _refit_run(result, best.number)):
+        scores = dict(study.user_attrs.get(REFITS_ATTR) or {})  # {trial number: its refit's test score}
+        if previous.get("best_number") == best.number and previous.get("test_metrics"):  # before REFITS_ATTR
+            scores.setdefault(str(best.number), {k: previous.get(k) for k in ("test_name", "test_error", "test_metrics")})
+        known = scores.get(str(best.number))
+        if final_score and not (known and _refit_run(result, best.number)):
             _final_score(summary, result, build_job, best)
-        elif same_best:  # its test score stands (and its refit run, when there is one: a rerun adds none)
-            summary.test_name, summary.test_error = previous.get("test_name"), previous.get("test_error")
-            summary.test_metrics = dict(previous.get("test_metrics") or {})
+            scores[str(best.number)] = {"test_name": summary.test_name, "test_error": summary.test_error,
+                                        "test_metrics": summary.test_metrics}
+            study.set_user_attr(REFITS_ATTR, json.loads(json.dumps(scores, default=str)))
+        elif known:  # its test score stands (and its refit run, when there is one: a rerun adds none)
+            summary.test_name, summary.test_error = known.get("test_name"), known.get("test_error")
+            summary.test_metrics = dict(known.get("test_metrics") or {})
         _log_figures(parent_run, study, complete, points, summary)
     _log_parent(parent_run, result, summary)
     if export_dir is not None and summary.experiment_yaml:

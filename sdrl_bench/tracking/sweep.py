@@ -5,7 +5,9 @@ rerun that adopted finished jobs, the earlier runs of the sweep say where their 
 from __future__ import annotations
 
 import math
+import sys
 from collections import Counter
+from collections.abc import Sequence
 
 from sdrl_bench.tracking.client import PARENT_TAG, RUN_NAME_TAG, Run, mlflow_client
 from sdrl_bench.tracking.meta import NOTE_TAG, standard_tags
@@ -25,10 +27,11 @@ def _overrides(text: str) -> dict[str, str]:
     return out
 
 
-def summarize_sweep(uri: str, parent_run_id: str) -> dict[str, float]:
+def summarize_sweep(uri: str, parent_run_id: str, stamp: bool = True) -> dict[str, float]:
     """Write the summary onto the parent run (its ``sdrl.overrides`` tag names the sweep);
     returns the metrics logged. The best child is the one with the lowest normalized one-step
-    MSE (fits) or the highest surrogate-arm real return (transfer runs)."""
+    MSE (fits) or the highest surrogate-arm real return (transfer runs). ``stamp``: add this
+    process's standard tags the parent lacks (not for another process's earlier run)."""
     client = mlflow_client(uri)
     parent = client.get_run(parent_run_id)
     children = client.search_runs([parent.info.experiment_id], filter_string=f"tags.{PARENT_TAG} = '{parent_run_id}'",
@@ -50,7 +53,7 @@ def summarize_sweep(uri: str, parent_run_id: str) -> dict[str, float]:
             best = (min if direction == "min" else max)(scored, key=lambda c: c.data.metrics[key])
             metrics[f"best/{key}"] = best.data.metrics[key]
     run.log_metrics(metrics)
-    tags = {k: v for k, v in standard_tags().items() if not parent.data.tags.get(k)}
+    tags = {k: v for k, v in standard_tags().items() if not parent.data.tags.get(k)} if stamp else {}
     lines = [f"**Sweep** over `{parent.data.tags.get('sdrl.overrides', '')}`: {len(children)} runs, "
              f"{metrics['n_finished']:.0f} finished, {metrics['n_failed']:.0f} failed."]
     if best is not None:
@@ -68,22 +71,39 @@ def summarize_sweep(uri: str, parent_run_id: str) -> dict[str, float]:
     return metrics
 
 
-def note_adoptions(uri: str, parent_run_id: str) -> dict[str, int]:
-    """The earlier runs of a sweep whose finished jobs the rerun ``parent_run_id`` adopted: each
-    summarized again (its children now the jobs it kept, often none), tagged ``sdrl.resumed_by``,
-    its description opening with where its jobs went. Returns {earlier parent: jobs adopted}."""
+def note_adoptions(uri: str, parent_run_id: str, earlier: Sequence[str]) -> list[str]:
+    """The earlier runs of a sweep (``earlier``: their ids, same sweep key) after the rerun
+    ``parent_run_id`` adopted finished jobs: each that is not RUNNING and whose children are no
+    longer those its summary counts (``n_children``; none when it was stopped before its summary)
+    is summarized again (the jobs it kept, often none), tagged ``sdrl.resumed_by``, its description
+    opening with where its jobs went. A run this cannot update (deleted meanwhile) is left as it
+    is. Returns the ids noted."""
     client = mlflow_client(uri)
     parent = client.get_run(parent_run_id)
+    name = parent.data.tags.get(RUN_NAME_TAG, parent_run_id)
     adopted = client.search_runs(
         [parent.info.experiment_id], max_results=10_000,
         filter_string=f"tags.{PARENT_TAG} = '{parent_run_id}' and tags.`{ADOPTED_BY_TAG}` = '{parent_run_id}'")
-    moved = Counter(c.data.tags[ADOPTED_FROM_TAG] for c in adopted
-                    if c.data.tags.get(ADOPTED_FROM_TAG) not in (None, "", parent_run_id))
-    name = parent.data.tags.get(RUN_NAME_TAG, parent_run_id)
-    for old, n in moved.items():
-        summarize_sweep(uri, old)
-        note = client.get_run(old).data.tags.get(NOTE_TAG, "")
-        Run(uri, old).set_tags({"sdrl.resumed_by": parent_run_id, NOTE_TAG: (
-            f"**Resumed** by the sweep run **{name}** (`{parent_run_id}`), which adopted {n} of this run's "
-            f"finished jobs: they are listed there.\n\n{note}")})
-    return dict(moved)
+    moved = Counter(c.data.tags.get(ADOPTED_FROM_TAG) for c in adopted)
+    noted = []
+    for old in earlier:
+        try:
+            run = client.get_run(old)
+            if old == parent_run_id or run.info.lifecycle_stage != "active" or run.info.status == "RUNNING":
+                continue
+            kept = client.search_runs([run.info.experiment_id], filter_string=f"tags.{PARENT_TAG} = '{old}'",
+                                      max_results=10_000)
+            if run.data.metrics.get("n_children") == len(kept):
+                continue  # nothing of it moved since its summary
+            summarize_sweep(uri, old, stamp=False)
+            note = client.get_run(old).data.tags.get(NOTE_TAG, "")
+            here = (f"which adopted {moved[old]} of this run's finished jobs" if moved[old] else
+                    "which holds the finished jobs this run had, adopted through a later rerun")
+            Run(uri, old).set_tags({"sdrl.resumed_by": parent_run_id, NOTE_TAG: (
+                f"**Resumed** by the sweep run **{name}** (`{parent_run_id}`), {here}: they are listed there; "
+                f"{len(kept)} run{'' if len(kept) == 1 else 's'} remain here.\n\n{note}")})
+            noted.append(old)
+        except Exception as exc:  # one earlier run that cannot be updated does not stop the others
+            print(f"sdrl-bench: could not note the rerun on earlier sweep run {old}: {(str(exc).splitlines() or [type(exc).__name__])[0]}",
+                  file=sys.stderr)
+    return noted

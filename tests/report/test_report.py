@@ -450,8 +450,10 @@ def test_report_exports_every_run_it_read_and_names_its_commit(fits_store: str, 
         assert by_id.loc[r["run_id"], "tag.sdrl.kind"] == r["tags"]["sdrl.kind"]
     assert by_id.loc[ids[0], "param.agent.name"] == "sac" and pd.isna(by_id.loc[ids[1], "param.agent.name"])
     md = (res.folder / "report.md").read_text()
-    commit = tracking.standard_tags()["git_commit"]
-    assert f"at commit `{commit}`" in md and "[runs.csv](runs.csv)" in md
+    tags = tracking.standard_tags()
+    made_by = f"by sdrl-bench {tags['sdrl.package_version']}"
+    assert (made_by + ("." if tags["git_commit"] == "unknown" else f" at commit `{tags['git_commit']}`.")) in md
+    assert "[runs.csv](runs.csv)" in md
 
 
 def _ll_fit(uri: str, library: str, surrogate: str, seed: int, kind: str = "fit", optimizer: str = "stlsq") -> str:
@@ -489,7 +491,11 @@ def test_fits_of_different_setups_get_rows_of_their_own(store: str) -> None:
     setups."""
     stlsq = [_ll_fit(store, "polynomial", "sindy", s) for s in (0, 1, 2)]
     ensemble = [_ll_fit(store, "polynomial", "sindy", s, optimizer="ensemble") for s in (0, 1)]
-    flight = _ll_fit(store, "lunar_lander_flight", "sindy", 0)
+    # the paper pack's library (the fidelity table's): three seeds of stlsq, and two seeds of the
+    # ensemble fitted three times each (more runs, fewer seeds), the newest last
+    flight = [_ll_fit(store, "lunar_lander_flight", "sindy", s) for s in (0, 1, 2)]
+    for _ in range(3):
+        flight_ens = [_ll_fit(store, "lunar_lander_flight", "sindy", s, optimizer="ensemble") for s in (0, 1)]
     runs = tracking.find_runs(store, EXP)
     abl = rt.ablation_table(runs)
     poly = abl[(abl["env"] == "lunar_lander") & (abl["library"] == "polynomial")]
@@ -498,12 +504,13 @@ def test_fits_of_different_setups_get_rows_of_their_own(store: str) -> None:
     assert [sorted(r) for r in poly["runs"]] == [sorted(stlsq), sorted(ensemble)]
     by_id = {r["run_id"]: r["metrics"] for r in runs}
     assert poly.iloc[1]["mse_mean"] == pytest.approx(np.mean([by_id[i]["mse/mean"] for i in ensemble]))
-    flight_row = abl.set_index(["env", "library"]).loc[("lunar_lander", "lunar_lander_flight")]
-    assert flight_row["setup"] == SETUP_CELL and flight_row["runs"] == [flight]
+    flight_rows = abl[(abl["env"] == "lunar_lander") & (abl["library"] == "lunar_lander_flight")]
+    assert list(flight_rows["setup"]) == [SETUP_CELL, "ensemble, expert, 1000"]  # by seeds, not by runs
+    assert [sorted(r) for r in flight_rows["runs"]] == [sorted(flight), sorted(flight_ens)]
     assert set(abl[abl["library"] == "rational"]["n_fits"]) == {0}  # a paper library not run: one row
     fid = rt.fidelity_table(runs)
     fid = fid[fid["env"] == "lunar_lander"]
-    assert {s for s in fid["setup"]} == {SETUP_CELL} and all(sorted(r) in (sorted(stlsq), [flight]) for r in fid["runs"])
+    assert set(fid["setup"]) == {SETUP_CELL} and all(sorted(r) == sorted(flight) for r in fid["runs"])
 
 
 def test_five_seed_fidelity_tables_report_iqm_cis_rollouts_and_noise_floor_ratios(store: str, tmp_path) -> None:

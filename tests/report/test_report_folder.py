@@ -182,6 +182,8 @@ def test_a_file_where_the_folder_goes_is_one_line_before_the_runs_load(case: str
                                    "'a/../../escape'"),
     (["--name", "/tmp/escape"], "--name: a folder under --out is required (no absolute path, no '..'), got "
                                 "'/tmp/escape'"),
+    (["--ui-url", "http:x"], "--ui-url: an http(s) URL of an MLflow UI is required (e.g. http://127.0.0.1:5000), "
+                             "got 'http:x'"),
     (["--ui-url", "notaurl"], "--ui-url: an http(s) URL of an MLflow UI is required (e.g. http://127.0.0.1:5000), "
                               "got 'notaurl'"),
 ])

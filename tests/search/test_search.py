@@ -237,6 +237,8 @@ def test_a_resumed_study_draws_new_points_not_its_first_ones_again(tmp_path, uri
     drawn = params(again["a"].study)
     assert again["a"].trials == [3, 4, 5] and len(set(drawn)) == 6  # no point drawn twice
     assert params(again["b"].study) == drawn
+
+
 def test_a_rerun_of_a_done_study_adds_no_second_refit_of_the_same_best_trial(tmp_path, uri):
     """The best trial's refit on the test set is a fit run of its own; a rerun of a study that has
     its trials (or whose best trial did not change) reuses its score and adds no refit run."""
@@ -252,6 +254,8 @@ def test_a_rerun_of_a_done_study_adds_no_second_refit_of_the_same_best_trial(tmp
     assert summary_again.test_metrics == summary.test_metrics
     parent = tracking.find_runs(uri, EXPERIMENT, f"attributes.run_id = '{first.parent_run_id}'")[0]
     assert parent["metrics"]["test/mse_norm/mean"] == summary.test_error
+    scores = again.study.user_attrs["sdrl.refit_scores"]  # per trial: a best that is best again reuses its own
+    assert list(scores) == [str(summary.best_number)] and scores[str(summary.best_number)]["test_error"] == summary.test_error
 
 
 def test_grid_visits_every_point_once_and_compares_with_tpe(tmp_path, uri):

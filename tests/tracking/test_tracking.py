@@ -279,3 +279,34 @@ def test_the_harness_commit_is_its_own_checkouts_never_an_enclosing_repositorys(
     commit, tags = json.loads(out.stdout.strip().splitlines()[-1])
     assert commit == "unknown" and "sdrl.package_commit" not in tags
     assert tags["git_commit"] == "unknown" and tags["sdrl.package_version"] == meta.package_version()
+
+
+def test_a_chain_of_sweep_reruns_notes_every_earlier_run_whose_jobs_moved(store):
+    """Sweep A is killed; rerun B adopts A's finished job and is killed too (B never summarizes);
+    rerun C adopts it from B. C's end notes A and B, each counted again and pointing to C, and
+    leaves alone a run whose children did not move, a RUNNING one and a deleted one."""
+    from sdrl_bench import tracking
+
+    key = {"sdrl.kind": "sweep", "sdrl.sweep_key": "k1"}
+    a, b, c, same, live, gone = (tracking.create_parent_run(store, "sdrl-bench", f"sweep-{n}", key)
+                                 for n in ("a", "b", "c", "same", "live", "gone"))
+    with tracking.start_run(store, "sdrl-bench", "job-0", {"sdrl.kind": "fit"}, parent_run_id=c) as run:
+        run.set_tags({tracking.ADOPTED_BY_TAG: c, tracking.ADOPTED_FROM_TAG: b})  # C took it from B, B from A
+    with tracking.start_run(store, "sdrl-bench", "job-1", {"sdrl.kind": "fit"}, parent_run_id=same):
+        pass
+    tracking.summarize_sweep(store, same)
+    for r in (a, b, same, gone):
+        tracking.end_run(store, r, "KILLED")
+    MlflowClient(store).delete_run(gone)
+    noted = tracking.note_adoptions(store, c, [a, b, c, same, live, gone])
+    assert sorted(noted) == sorted([a, b])
+    runs = {r["run_id"]: r for r in tracking.find_runs(store, "sdrl-bench")}
+    for r in (a, b):
+        assert runs[r]["tags"]["sdrl.resumed_by"] == c and runs[r]["metrics"]["n_children"] == 0
+        assert "sdrl.package_version" not in runs[r]["tags"]  # no provenance stamped by another process
+    assert runs[b]["tags"]["mlflow.note.content"].startswith(
+        f"**Resumed** by the sweep run **sweep-c** (`{c}`), which adopted 1 of this run's finished jobs: they are "
+        "listed there; 0 runs remain here.")
+    assert runs[a]["tags"]["mlflow.note.content"].startswith(
+        f"**Resumed** by the sweep run **sweep-c** (`{c}`), which holds the finished jobs this run had")
+    assert "sdrl.resumed_by" not in runs[same]["tags"] and "sdrl.resumed_by" not in runs[live]["tags"]
