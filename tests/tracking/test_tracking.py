@@ -264,6 +264,7 @@ def test_the_harness_commit_is_its_own_checkouts_never_an_enclosing_repositorys(
 
     head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True)
     if head.returncode == 0 and (ROOT / ".git").exists():
+        meta.package_commit.cache_clear()  # read once per process: HEAD may have moved since
         assert meta.package_commit() == head.stdout.strip()
     project = tmp_path / "myproject"
     site = project / ".venv" / "lib" / "python3.11" / "site-packages"
