@@ -125,3 +125,20 @@ def test_evaluate_against_exact_model_is_at_float_floor():
     _, test = held_out_test_set(SPEC)
     m = evaluate(TrueLaw(), SPEC, test).metrics
     assert m["mse/x"] < 1e-15 and m["mse/v"] < 2e-18
+
+
+def test_sr3_thresholds_at_the_envs_threshold_and_finds_the_law():
+    """``optimizer=sr3`` (its config, composed) thresholds where STLSQ does: pysindy's SR3 takes
+    the L0 penalty's weight, threshold**2 / (2 nu) = 4.5e-6 here. Given the threshold itself as
+    the weight, it thresholded at 0.077 and fitted a model without the action's term."""
+    from helpers import compose_cfg
+    from sdrl_bench.cli.build import build_fit_job
+
+    job = build_fit_job(compose_cfg("optimizer=sr3"))
+    assert isinstance(job.optimizer, ps.SR3) and job.optimizer.regularizer == "L0"
+    assert job.optimizer.reg_weight_lam == pytest.approx(0.003**2 / 2, rel=1e-12)
+    fit = fit_dynamics(job)
+    coefs = fit.model.coefficients_by_name()
+    for state in ("x", "v"):
+        assert set(coefs[state]) == set(TRUE[state]), fit.model.equations()
+        assert coefs[state]["u"] == pytest.approx(0.0015, rel=1e-3)

@@ -108,8 +108,8 @@ def _one_line(exc: BaseException, overrides: Sequence[str], compose) -> str:
 
 def _key_hint(key: str, known: Sequence[str]) -> str:
     """The nearest known key: among the keys of the same block when that block exists (its keys
-    listed when none is near: ``optimizer=sr3`` has no ``threshold``, its penalty is
-    ``reg_weight_lam``), else among all keys (``n_trials`` -> ``search.n_trials``)."""
+    listed when none is near: ``optimizer=sr3`` has no ``alpha``), else among all keys
+    (``n_trials`` -> ``search.n_trials``)."""
     parent, _, leaf = key.rpartition(".")
     siblings = sorted(k.rsplit(".", 1)[-1] for k in known if k.rpartition(".")[0] == parent) if parent else []
     if siblings:

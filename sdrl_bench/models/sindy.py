@@ -31,6 +31,20 @@ from sdrl_bench.models.terms import evaluate_terms, validate_terms
 FORMAT = "sdrl-bench/sindy-model-v1"
 
 
+def sr3_l0(threshold: float, relax_coeff_nu: float = 1.0, **kwargs) -> ps.SR3:
+    """pysindy's SR3 with an L0 penalty that thresholds at ``threshold``, the env's
+    ``env.sindy.threshold`` as STLSQ reads it (``optimizer=sr3``). pysindy's SR3 takes the
+    penalty's weight, not the threshold; its ``SR3.calculate_l0_weight`` converts (threshold**2 /
+    (2 nu)), and a config cannot call it, hence this function. Given the threshold as the weight,
+    MountainCar's SR3 thresholded at sqrt(2 x 0.003) = 0.077 and dropped the action's term."""
+    if isinstance(threshold, bool) or not isinstance(threshold, (int, float)) or not threshold >= 0:
+        raise ConfigError(f"optimizer.threshold: a number >= 0 is required, got {threshold!r}")
+    if isinstance(relax_coeff_nu, bool) or not isinstance(relax_coeff_nu, (int, float)) or not relax_coeff_nu > 0:
+        raise ConfigError(f"optimizer.relax_coeff_nu: a number > 0 is required, got {relax_coeff_nu!r}")
+    return ps.SR3(reg_weight_lam=ps.SR3.calculate_l0_weight(float(threshold), float(relax_coeff_nu)),
+                  regularizer="L0", relax_coeff_nu=float(relax_coeff_nu), **kwargs)
+
+
 class SindyModel:
     """s_{t+1} = Xi Theta(s_t, c_t) for regressed states s and controls c (actions, exogenous).
 

@@ -43,9 +43,9 @@ def test_unknown_group_option_fails_at_composition(new_store, tmp_path, override
      "env.spec.fit_regim: unknown config key; did you mean env.spec.fit_regime? (to add a new key: +env.spec.fit_regim=...)"),
     (["-m", "seed=0,1", "rl.surrogate_stepz=5"],
      "rl.surrogate_stepz: unknown config key; did you mean rl.surrogate_steps? (to add a new key: +rl.surrogate_stepz=...)"),
-    (["optimizer=sr3", "optimizer.threshold=0.1"],  # no near key in the block (not _target_): its keys
-     "optimizer.threshold: unknown config key; optimizer has max_iter, name, normalize_columns, reg_weight_lam, "
-     "regularizer, relax_coeff_nu (to add a new key: +optimizer.threshold=...)"),
+    (["optimizer=sr3", "optimizer.alpha=0.1"],  # no near key in the block (not _target_): its keys
+     "optimizer.alpha: unknown config key; optimizer has max_iter, name, normalize_columns, relax_coeff_nu, "
+     "threshold (to add a new key: +optimizer.alpha=...)"),
     (["-m", "library=polynomial,splines"], "library=splines: no such option of 'library' (options: "),
     (["seed=[1"], "seed=[1: cannot parse this override (no viable alternative at input '[1')"),
     (["optimizer.threshold=${env.nope}"], "optimizer.threshold: Interpolation key 'env.nope' not found"),
