@@ -8,6 +8,7 @@ comparison) come from the env's ``reference/<env>.yaml`` and sit in their own co
 
 from __future__ import annotations
 
+import json
 import math
 from collections import Counter
 from typing import Any
@@ -40,7 +41,7 @@ def paper(env: str, key: str) -> dict:
 
 
 def pack(env: str, key: str) -> str | None:
-    """The paper pack's ``library`` or ``agent`` for ``env`` (preferred for the fidelity table)."""
+    """The paper pack's ``library``, ``agent`` or ``optimizer`` for ``env`` (preferred for the fidelity table)."""
     return (references().get(env, {}).get("pack") or {}).get(key)
 
 
@@ -86,8 +87,14 @@ def fit_records(runs: Iterable[Run]) -> list[dict[str, Any]]:
                     "surrogate": tags.get("surrogate", "sindy"), "collector": tags.get("collector"),
                     "optimizer": tags.get("optimizer"), "n_transitions": (r.get("params") or {}).get("n_transitions"),
                     "seed": tags.get("seed"), "test_set": tags.get("test_set", "?"), "agent": tags.get("agent"),
-                    "fit_regime": tags.get("fit_regime"), "start_time": r.get("start_time") or 0, "metrics": metrics})
+                    "fit_regime": tags.get("fit_regime"), "start_time": r.get("start_time") or 0, "metrics": metrics,
+                    "fit_params": {k: v for k, v in (r.get("params") or {}).items() if k.startswith(FIT_PARAMS)}})
     return out
+
+
+FIT_PARAMS = ("optimizer.", "library.", "collector.", "surrogate.", "dataset.", "n_transitions")
+"""The params (as runs log them) that shape a fit: two fits that differ in any of them (a sweep
+over thresholds) never share a row or a seed's place."""
 
 
 def setup_of(fit: Mapping[str, Any]) -> str:
@@ -95,11 +102,24 @@ def setup_of(fit: Mapping[str, Any]) -> str:
     return ", ".join(str(fit.get(k) or "?") for k in ("optimizer", "collector", "n_transitions"))
 
 
-def setup(fits: Sequence[Mapping[str, Any]]) -> str:
-    """The setups a row's fits were made with (``setup_of``): "stlsq, heuristic, 75", or
-    "mixed: ... | ..." should a row ever hold fits of several."""
+def setup_key(fit: Mapping[str, Any]) -> tuple[str, str]:
+    """A fit's whole setup: ``setup_of`` and every param that shapes the fit (``FIT_PARAMS``)."""
+    return setup_of(fit), json.dumps(dict(fit.get("fit_params") or {}), sort_keys=True, default=str)
+
+
+def setup(fits: Sequence[Mapping[str, Any]], others: Sequence[Sequence[Mapping[str, Any]]] = ()) -> str:
+    """The setup a row's fits were made with: ``setup_of`` ("stlsq, heuristic, 75"), then the
+    params in which it differs from ``others`` (the rows beside it of the same setup_of, e.g.
+    "; optimizer.threshold=0.0003"); "mixed: ... | ..." should a row ever hold fits of several."""
     found = sorted({setup_of(f) for f in fits})
-    return found[0] if len(found) == 1 else ("mixed: " + " | ".join(found) if found else "")
+    if len(found) != 1:
+        return "mixed: " + " | ".join(found) if found else ""
+    mine = dict(fits[0].get("fit_params") or {})
+    twins = [dict(g[0].get("fit_params") or {}) for g in others if g and setup_of(g[0]) == found[0]
+             and setup_key(g[0]) != setup_key(fits[0])]
+    differ = sorted(k for k in set(mine).union(*twins) if any(t.get(k) != mine.get(k) for t in twins))
+    shown = [f"{k}={mine.get(k, '-')}" for k in differ if len(str(mine.get(k, "-"))) <= 40]
+    return found[0] + ("; " + ", ".join(shown) if shown else "; other params" if differ else "")
 
 
 def one_per_seed(fits: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
@@ -141,19 +161,21 @@ def envs_of(records: Iterable[Mapping[str, Any]]) -> list[str]:
 def main_fits(records: Sequence[Mapping[str, Any]], env: str, surrogate: str = "sindy") -> list[Mapping[str, Any]]:
     """The fits that stand for an env's surrogate: those made inside transfer runs (the
     paper's pipeline) if any, else fit runs; of the paper pack's agent and library when present
-    (SINDy), and of the most frequent (library, test set, setup): fits of another optimizer,
-    collector or number of transitions (a sweep over them) never share a seed's place."""
+    (SINDy) and the pack's optimizer when it names one, and of the (library, test set, setup:
+    ``setup_key``) with the most seeds: fits of another optimizer, collector, number of
+    transitions or threshold (a sweep over them) never share a seed's place."""
     mine = [r for r in records if r["env"] == env and r["surrogate"] == surrogate]
     mine = [r for r in mine if r["source"] == "transfer"] or mine
     # the paper packs' runs when there are any: a fast recipe's runs fit the same data again
     mine = [r for r in mine if r["agent"] in (None, pack(env, "agent"))] or mine
     if surrogate == "sindy":
         mine = [r for r in mine if r["library"] == pack(env, "library")] or mine
+        mine = [r for r in mine if r["optimizer"] in (None, pack(env, "optimizer"))] or mine
     if not mine:
         return []
     groups: dict[tuple, list[Mapping[str, Any]]] = {}
     for r in mine:
-        groups.setdefault((str(r["library"]), str(r["test_set"]), setup_of(r)), []).append(r)
+        groups.setdefault((str(r["library"]), str(r["test_set"]), *setup_key(r)), []).append(r)
     return _most_seeds(groups)[0]
 
 
@@ -240,9 +262,10 @@ def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
         # the paper's libraries ("not run" where missing) for the paper's envs; others: what was fitted
         paper_libs = list(ABLATION_LIBRARIES) if paper(env, "ablation") else []
         libraries = paper_libs + sorted({r["library"] for r in records if r["env"] == env and r["library"]} - set(paper_libs))
-        for lib, fits in ((name, group) for name in libraries for group in _by_setup(records, env, name)):
+        for lib, fits, beside in ((name, group, groups) for name in libraries
+                                  for groups in [_by_setup(records, env, name)] for group in groups):
             one = bootstrap_ci(_values(fits, "mse/mean"))
-            rows.append({"env": env, "library": lib, "n_fits": len(fits), "setup": setup(fits),
+            rows.append({"env": env, "library": lib, "n_fits": len(fits), "setup": setup(fits, beside),
                          "test_set": fits[0]["test_set"] if fits else None, "statistic": one[3],
                          "mse_mean": one[0], "mse_mean_lo": one[1], "mse_mean_hi": one[2],
                          "mse_norm_mean": bootstrap_ci(_values(fits, "mse_norm/mean"))[0],
@@ -262,7 +285,7 @@ def _by_setup(records: Sequence[Mapping[str, Any]], env: str, library: str) -> l
     groups: dict[tuple, list[Mapping[str, Any]]] = {}
     for r in records:
         if r["env"] == env and r["library"] == library:
-            groups.setdefault((setup_of(r),), []).append(r)
+            groups.setdefault(setup_key(r), []).append(r)
     return _most_seeds(groups) or [[]]
 
 

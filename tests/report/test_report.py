@@ -456,7 +456,8 @@ def test_report_exports_every_run_it_read_and_names_its_commit(fits_store: str, 
     assert "[runs.csv](runs.csv)" in md
 
 
-def _ll_fit(uri: str, library: str, surrogate: str, seed: int, kind: str = "fit", optimizer: str = "stlsq") -> str:
+def _ll_fit(uri: str, library: str, surrogate: str, seed: int, kind: str = "fit", optimizer: str = "stlsq",
+            params: dict | None = None) -> str:
     """A LunarLander fit (or a transfer run's fit) with the fidelity metrics a real one logs:
     one-step and 50-step MSE per state, the flight regime's noise-floor ratio, divergence."""
     states = ("x", "y", "vx", "vy", "angle", "angvel")
@@ -480,7 +481,7 @@ def _ll_fit(uri: str, library: str, surrogate: str, seed: int, kind: str = "fit"
         m.update({"surrogate/final_return_mean": 150.0 + 10 * seed, "real/final_return_mean": 260.0})
     with tracking.start_run(uri, EXP, f"{kind}-ll-{library}-{surrogate}-s{seed}", tags) as run:
         run.log_metrics(m)
-        run.log_params({"n_transitions": 1000})
+        run.log_params({"n_transitions": 1000, **(params or {})})
     return run.run_id
 
 
@@ -511,6 +512,28 @@ def test_fits_of_different_setups_get_rows_of_their_own(store: str) -> None:
     fid = rt.fidelity_table(runs)
     fid = fid[fid["env"] == "lunar_lander"]
     assert set(fid["setup"]) == {SETUP_CELL} and all(sorted(r) == sorted(flight) for r in fid["runs"])
+
+
+def test_fits_of_other_hyperparameters_get_rows_of_their_own_and_the_pack_optimizer_leads(store: str) -> None:
+    """A sweep over thresholds on the same seeds: a row per threshold, each naming it (the newest
+    fit of a seed once dropped the other threshold's); on the pack's library, an optimizer the
+    pack does not use (sr3, which sorts first) never stands for the env in the fidelity table."""
+    coarse = [_ll_fit(store, "polynomial", "sindy", s, params={"optimizer.threshold": 0.03}) for s in (0, 1)]
+    fine = [_ll_fit(store, "polynomial", "sindy", s, params={"optimizer.threshold": 0.0003}) for s in (0, 1)]
+    stlsq = [_ll_fit(store, "lunar_lander_flight", "sindy", s) for s in (0, 1)]
+    sr3 = [_ll_fit(store, "lunar_lander_flight", "sindy", s, optimizer="sr3") for s in (0, 1)]
+    runs = tracking.find_runs(store, EXP)
+    abl = rt.ablation_table(runs)
+    poly = abl[(abl["env"] == "lunar_lander") & (abl["library"] == "polynomial")]
+    assert sorted(poly["setup"]) == [f"{SETUP_CELL}; optimizer.threshold=0.0003", f"{SETUP_CELL}; optimizer.threshold=0.03"]
+    by_setup = dict(zip(poly["setup"], poly["runs"], strict=True))
+    assert sorted(by_setup[f"{SETUP_CELL}; optimizer.threshold=0.03"]) == sorted(coarse)
+    assert sorted(by_setup[f"{SETUP_CELL}; optimizer.threshold=0.0003"]) == sorted(fine)
+    fid = rt.fidelity_table(runs)
+    fid = fid[fid["env"] == "lunar_lander"]
+    assert all(sorted(r) == sorted(stlsq) for r in fid["runs"]) and not set(sr3) & set(fid["runs"].iloc[0])
+    vs = rt.sindy_vs_nn_table(runs)
+    assert sorted(vs[vs["env"] == "lunar_lander"]["runs_sindy"].iloc[0]) == sorted(stlsq)
 
 
 def test_five_seed_fidelity_tables_report_iqm_cis_rollouts_and_noise_floor_ratios(store: str, tmp_path) -> None:
