@@ -393,7 +393,9 @@ def summarize(rounds: list[RoundResult], audit: EvalResult | None, threshold: fl
                  audit_solved=float(audit.mean >= threshold), judged_solved=float(audit.mean >= threshold))
     if job is not None:
         c = last.counts
-        reused = sum(len(r.new_data) for r in rounds) - c.get("collect", 0) if cfg.data_from_evaluations else 0
+        # the evaluations' rows that reached a fit: the last round's screens are never refitted
+        reused = (sum(len(r.new_data) for r in rounds if r.refit) - c.get("collect", 0)
+                  if cfg.data_from_evaluations else 0)
         purposes = {"model_data": c.get("collect", 0), "selection": c.get("evaluate", 0) + c.get("final", 0),
                     "judge": (audit.steps if audit is not None else 0) + len(last.fit.test),  # + the held-out set
                     "reused_as_model_data": max(reused, 0),

@@ -79,6 +79,9 @@ def test_two_round_loop_counts_every_real_step_and_keeps_the_agent(store, from_e
     r1 = outcome.rounds[1]
     expected_rows = 30 + 20 + (r1.screen.steps + (r1.final.steps if r1.final else 0) if from_evaluations else 0)
     assert len(r1.fit.data) == expected_rows
+    # the evaluations' rows that reached a fit are counted as reused, not the last round's screens
+    reused = [v for k, v in s.items() if k.endswith("reused_as_model_data")]
+    assert reused and set(reused) == {float(len(outcome.rounds[-1].fit.data) - 50 if from_evaluations else 0)}
     assert r1.fit.data.content_hash() != outcome.rounds[0].fit.data.content_hash()
     # one agent object across the rounds, trained on: its step count grows
     assert len(recorder.agents) == 3 and all(a is recorder.agents[0] for a in recorder.agents)
