@@ -155,6 +155,7 @@ def _surrogate_run(cfg, uri, cluster_run, job, variant, vcfg, library, cluster, 
                   "real_resets/reset_pool": float(c["resets/reset_pool"])})
         m.update({f"candidate/{k}": float(v) for k, v in score.candidates.items()})
         m["real_return"] = score.real_return
+        m["episodes_per_agent"] = float(job.final_episodes)  # the judge's episodes of each agent (the report says)
         m["reference_real_return"] = float(cluster.reference_real.mean())
         for k, (rets, in_surrogate) in enumerate(zip(score.returns, score.surrogate_returns, strict=True)):
             m[f"agent{k}/real_return"] = float(sum(rets) / len(rets))

@@ -57,6 +57,7 @@ def points(runs: Sequence[Mapping[str, Any]], prefix: str = STUDY_PREFIX) -> pd.
             agents.append(m[f"agent{k}/real_return"])
             k += 1
         row["agent_returns"] = agents
+        row.update(agent=t.get("agent"), n_agents=len(agents), episodes=m.get("episodes_per_agent"))
         rows.append(row)
     df = pd.DataFrame(rows)
     if not df.empty:  # a surrogate rerun after an adoption: the newest run per (study, cluster, model)
@@ -212,6 +213,18 @@ def _ci(rho: float, lo: float, hi: float) -> str:
     return f"{rho:+.2f} [{lo:+.2f}, {hi:+.2f}]" if math.isfinite(lo) else f"{rho:+.2f}"
 
 
+def _agents_phrase(df: pd.DataFrame) -> tuple[str, str]:
+    """What the runs read say of their agents: (how many per surrogate and which, how many real
+    episodes judge each), e.g. ("3 agents (ppo_jax)", " on 10 real episodes each")."""
+    def alts(values) -> str:
+        found = sorted({v for v in values if v is not None and not (isinstance(v, float) and math.isnan(v))})
+        return " or ".join(f"{v:g}" if isinstance(v, float) else str(v) for v in found)
+
+    n, agents, eps = alts(df["n_agents"]), alts(df["agent"]), alts(df["episodes"])
+    return (f"{n or '?'} agents" + (f" ({agents})" if agents else ""),
+            f" on {eps} real episodes each" if eps else "")
+
+
 def fidelity_blocks(runs: Sequence[Mapping[str, Any]], folder, link) -> list:
     """Section 6 of the report: the population, the correlation table, one scatter figure per env,
     the recommended selector and the real steps the study spent."""
@@ -232,9 +245,10 @@ def fidelity_blocks(runs: Sequence[Mapping[str, Any]], folder, link) -> list:
                      f"model data {g.groupby('cluster')['real_steps_model'].first().sum():,.0f}, on-policy "
                      f"{g['real_steps_onpolicy'].sum():,.0f}, reference {g.groupby('cluster')['real_steps_reference'].first().sum():,.0f}, "
                      f"judging {g['real_steps_judge'].sum():,.0f}")
+    who, episodes = _agents_phrase(df)
     out.append(Para("Each surrogate is fitted on one cluster's real data (a data size, collector and noise level "
-                    "chosen by the cluster's seed); 3 agents with a fixed compiled-PPO recipe and budget train in it "
-                    "and are judged on 10 real episodes each (stream `final_eval`); its real return is their mean. "
+                    f"chosen by the cluster's seed); {who} train in it, with one recipe and budget per study, and are "
+                    f"judged in the real env{episodes} (stream `final_eval`); its real return is their mean. "
                     "Spearman of minus the metric with the real return (positive: lower error, better agents), 95% CI "
                     "from 2,000 cluster-bootstrap resamples; select / confirm: a seeded random half of each env's "
                     "clusters each; pooled: ranks within env. " + "; ".join(lines) + "."))

@@ -8,7 +8,7 @@ import pandas as pd
 import pytest
 
 from helpers import compose_cfg, search
-from sdrl_bench import ConfigError
+from sdrl_bench import ConfigError, tracking
 from sdrl_bench.cli.fidelity_task import build_cluster, cluster_axes, run_fidelity_task
 from sdrl_bench.report import fidelity_study as fs
 from sdrl_bench.fidelity import ROLLOUT_CAP, normalized_error
@@ -50,6 +50,9 @@ def test_a_cluster_scores_each_surrogate_and_counts_its_real_steps(store, capsys
     # the thing to predict: the mean over agents of their real return
     assert law["metrics.real_return"] == pytest.approx((law["metrics.agent0/real_return"] + law["metrics.agent1/real_return"]) / 2)
     assert out["law"] == pytest.approx(law["metrics.real_return"])
+    assert law["metrics.episodes_per_agent"] == 1  # fidelity.final_episodes: the report says what judged them
+    pts = fs.points(tracking.find_runs(store, "sdrl-bench"))
+    assert set(pts["n_agents"]) == {2} and set(pts["agent"]) == {"ppo_fast"} and set(pts["episodes"]) == {1.0}
     # every real step by purpose: data, one on-policy episode per agent (MountainCar: 1 to 999 steps), the judging
     for s in (law, poly):
         assert s["metrics.real_steps/model_data"] == 75
@@ -154,6 +157,15 @@ def test_halves_split_each_envs_clusters_in_two_and_the_table_has_every_part():
     table = fs.correlation_table(df, n_boot=100)
     assert set(table["env"]) == {"a", "b", "pooled"} and set(table["metric"]) == {"one_step", "n_terms"}
     assert fs.best_metric(table, ["one_step", "n_terms"]) == "one_step"
+
+
+def test_the_studys_text_says_what_agents_and_episodes_its_runs_used():
+    """Section 7 describes the runs it read (it once said "3 agents ... 10 real episodes" whatever
+    the runs used)."""
+    df = pd.DataFrame({"n_agents": [2, 2, 3], "agent": ["ppo_fast", "ppo_fast", "ppo_jax"],
+                       "episodes": [2.0, 2.0, float("nan")]})
+    assert fs._agents_phrase(df) == ("2 or 3 agents (ppo_fast or ppo_jax)", " on 2 real episodes each")
+    assert fs._agents_phrase(df.assign(episodes=float("nan"))) == ("2 or 3 agents (ppo_fast or ppo_jax)", "")
 
 
 def test_the_selection_table_gives_each_picks_agents_an_iqm_and_ci():
