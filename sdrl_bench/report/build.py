@@ -268,7 +268,7 @@ def _recipe(group: Sequence[Mapping[str, Any]]) -> str:
     budgets = [f"{_int(one(f'rl.{a}_steps')):,} {a}" for a in arms if _int(one(f"rl.{a}_steps")) is not None]
     stop = one("rl.stop_when_solved") in ("True", "true")
     every, episodes, final = (_int(one(k)) for k in ("rl.eval_every", "rl.eval_episodes", "rl.final_episodes"))
-    text = f"{tags.get('env')}, {tags.get('agent')} ({len(group)} seeds): " + (
+    text = f"{tags.get('env')}, {tags.get('agent')} ({len(group)} seed{'' if len(group) == 1 else 's'}): " + (
         f"budgets {' / '.join(budgets)} steps" if budgets else "budgets not recorded")
     if every and episodes:
         rule = "stopped at the first one at the threshold" if stop else "the budgets run out (no stop)"
@@ -351,8 +351,9 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                               *((f"sindy_over_{k}", f"SINDy / {label.get(k, k)}", "g|-") for k in kinds),
                               ("n_sindy", "SINDy fits", "int", "runs_sindy"),
                               *((f"n_{k}", f"{label.get(k, k)} fits", "int", f"runs_{k}") for k in kinds)], link,
-                         "Fit runs on the same data per seed; IQM over seeds with a 95% bootstrap CI (the mean "
-                         "below 5 seeds)."))
+                         "Each kind over its own fit runs (one per seed; a seed's fits of the two kinds share its "
+                         "data, and the fits columns say how many seeds each has); IQM over seeds with a 95% "
+                         "bootstrap CI (the mean below 5 seeds)."))
     out.append(_with_notes(NN_DIFFERENCES + _nn_models(runs, [k for k in kinds if k != "nn"]),
                            _present(nn, "n_sindy", *(f"n_{k}" for k in kinds)), "nn"))
     out.append(Heading(2, "4. RL transfer (real-environment evaluation)"))

@@ -674,7 +674,7 @@ def test_what_the_runs_did_is_read_from_the_runs(store: str, tmp_path, stop: boo
     md = (res.folder / "report.md").read_text()
     rule = "stopped at the first one at the threshold" if stop else "the budgets run out (no stop)"
     rule += f" that {confirm} fresh real episodes confirm" if confirm else ""
-    assert (f"mountain_car, sac (1 seeds): budgets {budget:,} surrogate / {budget:,} real steps, a real evaluation "
+    assert (f"mountain_car, sac (1 seed): budgets {budget:,} surrogate / {budget:,} real steps, a real evaluation "
             f"of 1 episodes every 64 steps, {rule}, judged on 2 final real episodes; the surrogate's model from 60 "
             "real transitions (heuristic collector, eps 0.3); load average when the runs started") in md
 
