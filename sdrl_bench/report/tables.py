@@ -444,6 +444,27 @@ def _real_arms(dyna: Sequence[Run], real: Sequence[Run]) -> list[Run]:
     return newest_per_seed(out.values())
 
 
+def _by_loop_settings(runs: Sequence[Run]) -> list[tuple[list[Run], str]]:
+    """Dyna runs split by their loop's settings (the ``rl.dyna.*`` params): [(newest run per seed,
+    "" or "; <the settings in which this group differs>")], the most seeds first; [([], "")] for
+    none. Two loops of other settings (rounds, screens, data from evaluations) are two rows."""
+    if not runs:
+        return [([], "")]
+    groups: dict[str, list[Run]] = {}
+    for r in runs:
+        own = {k: v for k, v in (r.get("params") or {}).items() if k.startswith("rl.dyna.")}
+        groups.setdefault(json.dumps(own, sort_keys=True), []).append(r)
+    kept = {k: newest_per_seed(g) for k, g in groups.items()}
+    order = sorted(kept, key=lambda k: (-len(kept[k]), k))
+    if len(order) == 1:
+        return [(kept[order[0]], "")]
+    settings = {k: json.loads(k) for k in order}
+    differ = sorted({p for k in order for p in settings[k]
+                     if len({str(settings[o].get(p)) for o in order}) > 1})
+    return [(kept[k], "; " + ", ".join(f"{p.removeprefix('rl.dyna.')}={settings[k].get(p, '-')}" for p in differ))
+            for k in order]
+
+
 def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
     """Dyna runs (``task=dyna``) per env, surrogate kind and agent, and beside them the real
     arm of the same agent (finished transfer runs that trained it, not those that reused it): seeds solved; the median real transitions to solve (an
@@ -468,31 +489,31 @@ def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:
                             and r["tags"].get("agent") == agent}, key=lambda p: (p not in (None, f"dyna_{env}"), str(p)))
             kinds = surrogate_kinds(r for r in dyna if r["tags"].get("env") == env)
             for pack, kind in ((p, k) for p in packs for k in kinds):
-                group = newest_per_seed(r for r in dyna if r["tags"].get("env") == env and r["tags"].get("agent") == agent
-                                        and r["tags"].get("surrogate", "sindy") == kind
-                                        and r["tags"].get("sdrl.experiment") == pack)
-                if not group and (pack not in (None, f"dyna_{env}") or kind not in KINDS):
+                mine = [r for r in dyna if r["tags"].get("env") == env and r["tags"].get("agent") == agent
+                        and r["tags"].get("surrogate", "sindy") == kind and r["tags"].get("sdrl.experiment") == pack]
+                if not mine and (pack not in (None, f"dyna_{env}") or kind not in KINDS):
                     continue
-                label = f"Dyna, {kind}" + ("" if pack in (None, f"dyna_{env}") else f", {pack}")
-                m = [r["metrics"] for r in group]
-                # solved as the independent judge says (the audit), where runs record it; else the loop's own stop
-                judged = [x.get("judged_solved", x.get("solved")) == 1.0 for x in m]
-                costs = [x["real_transitions_total"] if ok else math.inf for x, ok in zip(m, judged, strict=True)]
-                costs_all = [x.get("real_steps/all", math.nan) if ok else math.inf for x, ok in zip(m, judged, strict=True)]
-                final = bootstrap_ci([x.get("final_return_mean", math.nan) for x in m], seed=seed)
-                audit = bootstrap_ci([x.get("audit_return_mean", math.nan) for x in m], seed=seed)
-                # censored: an unsolved seed counts what it spent (its budget, or a round past it)
-                spent = bootstrap_ci([x.get("real_transitions_total", math.nan) for x in m], seed=seed)
-                rows.append({"env": env, "method": label, "agent": agent, "n_seeds": len(group),
-                             "n_solved": sum(judged), "n_stopped": sum(x.get("solved") == 1.0 for x in m),
-                             "median_to_solve": _median_cost(costs), "median_all": _median_cost(costs_all), "censored": spent,
-                             "model_data": _mean(x.get("real_transitions_model") for x in m),
-                             "phase_a": _mean(x.get("real_steps_collect") for x in m),
-                             "phase_b": _mean(x.get("real_steps_evaluate") for x in m),
-                             "phase_c": _mean(x.get("real_steps_final") for x in m),
-                             "surrogate_steps": _mean(x.get("surrogate_steps") for x in m),
-                             "wall_seconds": _mean(x.get("wall_seconds") for x in m),
-                             "final": final, "audit": audit, "runs": [r["run_id"] for r in group]})
+                for group, variant in _by_loop_settings(mine):
+                    label = f"Dyna, {kind}" + ("" if pack in (None, f"dyna_{env}") else f", {pack}") + variant
+                    m = [r["metrics"] for r in group]
+                    # solved as the independent judge says (the audit), where runs record it; else the loop's own stop
+                    judged = [x.get("judged_solved", x.get("solved")) == 1.0 for x in m]
+                    costs = [x["real_transitions_total"] if ok else math.inf for x, ok in zip(m, judged, strict=True)]
+                    costs_all = [x.get("real_steps/all", math.nan) if ok else math.inf for x, ok in zip(m, judged, strict=True)]
+                    final = bootstrap_ci([x.get("final_return_mean", math.nan) for x in m], seed=seed)
+                    audit = bootstrap_ci([x.get("audit_return_mean", math.nan) for x in m], seed=seed)
+                    # censored: an unsolved seed counts what it spent (its budget, or a round past it)
+                    spent = bootstrap_ci([x.get("real_transitions_total", math.nan) for x in m], seed=seed)
+                    rows.append({"env": env, "method": label, "agent": agent, "n_seeds": len(group),
+                                 "n_solved": sum(judged), "n_stopped": sum(x.get("solved") == 1.0 for x in m),
+                                 "median_to_solve": _median_cost(costs), "median_all": _median_cost(costs_all), "censored": spent,
+                                 "model_data": _mean(x.get("real_transitions_model") for x in m),
+                                 "phase_a": _mean(x.get("real_steps_collect") for x in m),
+                                 "phase_b": _mean(x.get("real_steps_evaluate") for x in m),
+                                 "phase_c": _mean(x.get("real_steps_final") for x in m),
+                                 "surrogate_steps": _mean(x.get("surrogate_steps") for x in m),
+                                 "wall_seconds": _mean(x.get("wall_seconds") for x in m),
+                                 "final": final, "audit": audit, "runs": [r["run_id"] for r in group]})
             group = _real_arms([r for r in dyna if r["tags"].get("env") == env and r["tags"].get("agent") == agent],
                                [r for r in real if r["tags"].get("env") == env and r["tags"].get("agent") == agent])
             rows.append(_real_arm_row(env, agent, group, seed))

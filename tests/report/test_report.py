@@ -291,9 +291,12 @@ def test_a_missing_kind_links_nowhere(store: str, tmp_path) -> None:
     assert _link(row[2]).endswith("?workflowType=machine_learning") and "/runs/" in _link(row[2])
 
 
-def _dyna(uri: str, seed: int, surrogate: str, solved: bool, total: float, audit: float) -> str:
+def _dyna(uri: str, seed: int, surrogate: str, solved: bool, total: float, audit: float,
+          params: dict | None = None) -> str:
     tags = {"sdrl.kind": "dyna", "env": "lunar_lander", "agent": "ppo_fast", "surrogate": surrogate, "seed": seed}
     with tracking.start_run(uri, EXP, f"dyna-s{seed}", tags) as run:
+        if params:
+            run.log_params(params)
         run.log_metrics({"solved": float(solved), "real_transitions_total": total, "real_transitions_model": total - 5000,
                          "real_steps_collect": total - 9000, "real_steps_evaluate": 4000, "real_steps_final": 5000,
                          "surrogate_steps": 600_000 + seed, "wall_seconds": 30.0 + seed,
@@ -310,6 +313,19 @@ def _real_arm(uri: str, seed: int, solved_at: float | None) -> str:
             m["real/solved_real_steps"] = solved_at
         run.log_metrics(m)
     return run.run_id
+
+
+def test_dyna_loops_of_other_settings_get_rows_of_their_own(store: str) -> None:
+    """Dyna runs of one pack and surrogate whose loops were set differently (rl.dyna.* overrides)
+    are two rows, each naming the settings it differs in, not one average over both."""
+    three = [_dyna(store, s, "sindy", True, 20_000 + s, 250.0, {"rl.dyna.max_rounds": 3}) for s in (0, 1, 2)]
+    two = [_dyna(store, s, "sindy", False, 8_000 + s, 100.0, {"rl.dyna.max_rounds": 2}) for s in (0, 1)]
+    dy = rt.dyna_table(tracking.find_runs(store, EXP))
+    rows = dy[dy["method"].str.startswith("Dyna, sindy")].set_index("method")
+    assert list(rows.index) == ["Dyna, sindy; max_rounds=3", "Dyna, sindy; max_rounds=2"]
+    assert sorted(rows.loc["Dyna, sindy; max_rounds=3", "runs"]) == sorted(three)
+    assert sorted(rows.loc["Dyna, sindy; max_rounds=2", "runs"]) == sorted(two)
+    assert list(rows["n_solved"]) == [3, 0]
 
 
 def test_dyna_table_equals_the_runs_metrics_and_links_its_runs(store: str, tmp_path) -> None:
