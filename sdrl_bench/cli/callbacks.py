@@ -103,8 +103,9 @@ class MlflowSweepCallback(Callback):
             except Exception as exc:  # a courtesy too
                 print(f"sdrl-bench: could not note this rerun on the earlier runs of sweep {self._key}: {exc}")
             self._finish("FAILED" if failed else "FINISHED")
+            ui = [] if tracking.ui_base(uri) else ["--ui-url", "http://127.0.0.1:5000"]  # links for `mlflow ui`
             report = shlex.join(["sdrl-bench-report", "--uri", tracking.display_uri(uri), "--experiment", experiment,
-                                 "--parent-run", run_id, "--name", f"sweep-{run_id[:8]}"])
+                                 "--parent-run", run_id, "--name", f"sweep-{run_id[:8]}", *ui])
             print(f"sdrl-bench: sweep run {run_id} ended {'FAILED' if failed else 'FINISHED'}; its report: {report}\n"
                   f"{self._browse}", flush=True)
 

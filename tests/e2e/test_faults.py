@@ -154,7 +154,8 @@ def test_sigkill_mid_sweep_then_rerun_leaves_one_finished_run_per_job(tmp_path):
     assert f"sdrl-bench: sweep run {sweep_id} in " in rerun.stdout
     assert (f"sdrl-bench: sweep run {sweep_id} ended FINISHED; its report: sdrl-bench-report --uri "
             "sqlite:///mlruns/mlflow.db "  # the store as the user named it, from the folder they ran in
-            f"--experiment {EXP} --parent-run {sweep_id}") in rerun.stdout
+            f"--experiment {EXP} --parent-run {sweep_id} --name sweep-{sweep_id[:8]} --ui-url http://127.0.0.1:5000"
+            ) in rerun.stdout  # a local store: links for `mlflow ui`
     # the killed sweep's parent says where its finished jobs went, and counts what it kept
     old_parent = [r for r in _kinds(runs, "sweep") if r["status"] == "KILLED"]
     assert len(old_parent) == 1 and old_parent[0]["tags"]["sdrl.resumed_by"] == new_parent[0]["run_id"]
