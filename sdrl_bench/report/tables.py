@@ -250,8 +250,9 @@ def _state_mean(metrics: Mapping[str, float], prefix: str) -> float:
 
 
 def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
-    """Paper Table 1 bottom: per env, library and setup (``setup_of``: a sweep over optimizers,
-    collectors or transitions gives a row each), over the SINDy fit runs (one per seed): the
+    """Paper Table 1 bottom: per env, library and setup (``setup_key``: a sweep over optimizers,
+    collectors, transitions or thresholds gives a row each, ``setup`` names it), over the SINDy
+    fit runs (one per seed): the
     one-step MSE averaged over states (``mse/mean``, raw units; IQM with a 95% bootstrap CI
     over seeds, the mean below 5), the normalized one, the ``HORIZON``-step rollout MSE
     averaged over states, the fraction of rollouts that diverged and the active terms
@@ -280,8 +281,8 @@ def ablation_table(runs: Iterable[Run]) -> pd.DataFrame:
 
 
 def _by_setup(records: Sequence[Mapping[str, Any]], env: str, library: str) -> list[list[Mapping[str, Any]]]:
-    """An env's fits of one library, one group per setup (the most fits first, then by name),
-    each its newest fit per seed; [[]] when there are none (a "not run" row)."""
+    """An env's fits of one library, one group per setup (``setup_key``; the most seeds first,
+    then by key), each its newest fit per seed; [[]] when there are none (a "not run" row)."""
     groups: dict[tuple, list[Mapping[str, Any]]] = {}
     for r in records:
         if r["env"] == env and r["library"] == library:
