@@ -101,7 +101,7 @@ def note_adoptions(uri: str, parent_run_id: str, earlier: Sequence[str]) -> list
                     "which holds the finished jobs this run had, adopted through a later rerun")
             Run(uri, old).set_tags({"sdrl.resumed_by": parent_run_id, NOTE_TAG: (
                 f"**Resumed** by the sweep run **{name}** (`{parent_run_id}`), {here}: they are listed there; "
-                f"{len(kept)} run{'' if len(kept) == 1 else 's'} remain here.\n\n{note}")})
+                f"this run keeps {len(kept)} run{'' if len(kept) == 1 else 's'}.\n\n{note}")})
             noted.append(old)
         except Exception as exc:  # one earlier run that cannot be updated does not stop the others
             print(f"sdrl-bench: could not note the rerun on earlier sweep run {old}: {(str(exc).splitlines() or [type(exc).__name__])[0]}",

@@ -307,7 +307,7 @@ def test_a_chain_of_sweep_reruns_notes_every_earlier_run_whose_jobs_moved(store)
         assert "sdrl.package_version" not in runs[r]["tags"]  # no provenance stamped by another process
     assert runs[b]["tags"]["mlflow.note.content"].startswith(
         f"**Resumed** by the sweep run **sweep-c** (`{c}`), which adopted 1 of this run's finished jobs: they are "
-        "listed there; 0 runs remain here.")
+        "listed there; this run keeps 0 runs.")
     assert runs[a]["tags"]["mlflow.note.content"].startswith(
         f"**Resumed** by the sweep run **sweep-c** (`{c}`), which holds the finished jobs this run had")
     assert "sdrl.resumed_by" not in runs[same]["tags"] and "sdrl.resumed_by" not in runs[live]["tags"]
