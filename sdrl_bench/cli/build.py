@@ -24,7 +24,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import InterpolationResolutionError
 
 from sdrl_bench import ConfigError
-from sdrl_bench.cli import CONFIG_MODULE
+from sdrl_bench.cli import CONFIG_MODULE, NOT_OF_THE_RESULT
 from sdrl_bench.envs.functional import one_line
 from sdrl_bench.models.libraries import LibraryPart
 from sdrl_bench.pipeline import FitJob
@@ -305,9 +305,7 @@ def config_key(cfg: DictConfig) -> str:
     """What a job computes: its resolved config, less what does not change the result
     (progress bars, the resume switch, Hydra's own settings)."""
     body = OmegaConf.to_container(cfg, resolve=True)
-    from sdrl_bench.cli.callbacks import NOT_OF_THE_SWEEP  # noqa: PLC0415
-
-    for key in ("hydra", *NOT_OF_THE_SWEEP):
+    for key in ("hydra", *NOT_OF_THE_RESULT):
         body.pop(key, None)
     if isinstance(body.get("rl"), dict) and body["rl"].get("confirm_episodes") == 0:
         body["rl"].pop("confirm_episodes")  # the default (added later): earlier runs' keys stay as they were

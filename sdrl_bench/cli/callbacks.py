@@ -33,6 +33,7 @@ from hydra.experimental.callback import Callback
 from omegaconf import DictConfig
 
 from sdrl_bench import redact, redact_arg, run_stop_hooks, tracking
+from sdrl_bench.cli import NOT_OF_THE_RESULT
 
 PARENT_FILE = "mlflow_parent_run_id"
 KEY_FILE = "mlflow_sweep_key"
@@ -42,15 +43,10 @@ CONFIG_KEY_TAG = "sdrl.config_key"
 WORKER_GRACE_SECONDS = 5.0
 
 
-#: Keys that change no job's result (``cli.build.config_key`` leaves them out too): adding
-#: ``resume=true`` or ``progress_bar=false`` to a rerun keeps it the same sweep.
-NOT_OF_THE_SWEEP = ("resume", "progress_bar")
-
-
 def sweep_key(overrides: list[str], experiment: str) -> str:
-    """Same sweep (the same overrides, in any order, less ``NOT_OF_THE_SWEEP``) on the same
+    """Same sweep (the same overrides, in any order, less ``cli.NOT_OF_THE_RESULT``) on the same
     experiment: same key."""
-    kept = [o for o in overrides if o.partition("=")[0].lstrip("+~") not in NOT_OF_THE_SWEEP]
+    kept = [o for o in overrides if o.partition("=")[0].lstrip("+~") not in NOT_OF_THE_RESULT]
     body = json.dumps({"overrides": sorted(kept), "experiment": experiment})
     return hashlib.sha256(body.encode()).hexdigest()[:16]
 

@@ -61,7 +61,8 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         tags = _parse_tags(args.tag)
         _check_name(args.name)
-        if args.ui_url and (urlsplit(args.ui_url).scheme not in ("http", "https") or not urlsplit(args.ui_url).netloc):
+        ui_parts = urlsplit(args.ui_url or "")
+        if args.ui_url and (ui_parts.scheme not in ("http", "https") or not ui_parts.netloc):
             raise ConfigError(f"--ui-url: an http(s) URL of an MLflow UI is required (e.g. http://127.0.0.1:5000), "
                               f"got {redact_arg(args.ui_url)!r}")
         uri = tracking.resolve_uri(args.uri)

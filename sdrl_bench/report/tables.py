@@ -12,7 +12,7 @@ import json
 import math
 from collections import Counter
 from typing import Any
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from functools import cache
 
 import numpy as np
@@ -115,11 +115,16 @@ def setup(fits: Sequence[Mapping[str, Any]], others: Sequence[Sequence[Mapping[s
     if len(found) != 1:
         return "mixed: " + " | ".join(found) if found else ""
     mine = dict(fits[0].get("fit_params") or {})
-    twins = [dict(g[0].get("fit_params") or {}) for g in others if g and setup_of(g[0]) == found[0]
-             and setup_key(g[0]) != setup_key(fits[0])]
-    differ = sorted(k for k in set(mine).union(*twins) if any(t.get(k) != mine.get(k) for t in twins))
+    differ = _differing(mine, [dict(g[0].get("fit_params") or {}) for g in others if g and setup_of(g[0]) == found[0]
+                               and setup_key(g[0]) != setup_key(fits[0])])
     shown = [f"{k}={mine.get(k, '-')}" for k in differ if len(str(mine.get(k, "-"))) <= 40]
     return found[0] + ("; " + ", ".join(shown) if shown else "; other params" if differ else "")
+
+
+def _differing(mine: Mapping[str, Any], others: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The keys (sorted) in which ``mine`` differs from any of ``others``, one lacking a key
+    counting as a difference: what a row's label names to tell it from the rows beside it."""
+    return sorted(k for k in set(mine).union(*others) if any(o.get(k) != mine.get(k) for o in others))
 
 
 def one_per_seed(fits: Sequence[Mapping[str, Any]]) -> list[Mapping[str, Any]]:
@@ -176,7 +181,7 @@ def main_fits(records: Sequence[Mapping[str, Any]], env: str, surrogate: str = "
     groups: dict[tuple, list[Mapping[str, Any]]] = {}
     for r in mine:
         groups.setdefault((str(r["library"]), str(r["test_set"]), *setup_key(r)), []).append(r)
-    return _most_seeds(groups)[0]
+    return _most_seeds(groups)[0][1]
 
 
 def _mean(values: Iterable[float | None]) -> float:
@@ -287,14 +292,16 @@ def _by_setup(records: Sequence[Mapping[str, Any]], env: str, library: str) -> l
     for r in records:
         if r["env"] == env and r["library"] == library:
             groups.setdefault(setup_key(r), []).append(r)
-    return _most_seeds(groups) or [[]]
+    return [group for _, group in _most_seeds(groups)] or [[]]
 
 
-def _most_seeds(groups: Mapping[tuple, Sequence[Mapping[str, Any]]]) -> list[list[Mapping[str, Any]]]:
-    """Each group's newest fit per seed, the groups with the most seeds first (then by key): a
-    setup fitted five times on two seeds does not outrank one fitted once on each of five."""
-    kept = {k: one_per_seed(g) for k, g in groups.items()}
-    return [kept[k] for k in sorted(kept, key=lambda k: (-len(kept[k]), k))]
+def _most_seeds(groups: Mapping[Any, Sequence[Mapping[str, Any]]],
+                per_seed: Callable[[Sequence[Mapping[str, Any]]], list] = one_per_seed) -> list[tuple[Any, list]]:
+    """[(key, the group's newest fit or run per seed)], the groups with the most seeds first
+    (then by key): a setup fitted five times on two seeds does not outrank one fitted once on
+    each of five. ``per_seed``: ``one_per_seed`` for fit records, ``newest_per_seed`` for runs."""
+    kept = {k: per_seed(g) for k, g in groups.items()}
+    return [(k, kept[k]) for k in sorted(kept, key=lambda k: (-len(kept[k]), k))]
 
 
 def _ratio(a: float, b: float) -> float:
@@ -455,15 +462,13 @@ def _by_loop_settings(runs: Sequence[Run]) -> list[tuple[list[Run], str]]:
     for r in runs:
         own = {k: v for k, v in (r.get("params") or {}).items() if k.startswith("rl.dyna.")}
         groups.setdefault(json.dumps(own, sort_keys=True), []).append(r)
-    kept = {k: newest_per_seed(g) for k, g in groups.items()}
-    order = sorted(kept, key=lambda k: (-len(kept[k]), k))
-    if len(order) == 1:
-        return [(kept[order[0]], "")]
-    settings = {k: json.loads(k) for k in order}
-    differ = sorted({p for k in order for p in settings[k]
-                     if len({str(settings[o].get(p)) for o in order}) > 1})
-    return [(kept[k], "; " + ", ".join(f"{p.removeprefix('rl.dyna.')}={settings[k].get(p, '-')}" for p in differ))
-            for k in order]
+    ordered = _most_seeds(groups, newest_per_seed)
+    if len(ordered) == 1:
+        return [(ordered[0][1], "")]
+    settings = {k: json.loads(k) for k in groups}
+    differ = sorted({p for k in groups for p in _differing(settings[k], [settings[o] for o in groups if o != k])})
+    return [(group, "; " + ", ".join(f"{p.removeprefix('rl.dyna.')}={settings[k].get(p, '-')}" for p in differ))
+            for k, group in ordered]
 
 
 def dyna_table(runs: Iterable[Run], seed: int = 0) -> pd.DataFrame:

@@ -46,8 +46,10 @@ def package_commit() -> str:
     return git_commit(root)
 
 
+@functools.cache
 def package_version() -> str:
-    """The installed distribution's version (a wheel's, or an editable install's)."""
+    """The installed distribution's version (a wheel's, or an editable install's), read once per
+    process (every run's standard tags carry it)."""
     from importlib import metadata
 
     try:
