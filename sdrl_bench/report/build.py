@@ -307,11 +307,17 @@ def _total_steps_note(envs: Sequence[str]) -> str:
     return f" The paper reports {'; '.join(parts)}." if parts else ""
 
 
-def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
+def _only(df: pd.DataFrame, envs: set[str] | None) -> pd.DataFrame:
+    """A table's rows of ``envs`` (None: every row, the paper's envs without runs as "not run")."""
+    return df if envs is None or not len(df) else df[df["env"].isin(envs)].reset_index(drop=True)
+
+
+def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker, envs: set[str] | None = None) -> list[Block]:
     """Sections 1-5: fidelity, library ablation, SINDy vs NN, RL transfer, Dyna; each with the
-    paper's numbers beside ours and a "differences explained" paragraph."""
+    paper's numbers beside ours and a "differences explained" paragraph. ``envs``: only these
+    envs' rows (a selection's report leaves out the paper's envs it has no runs of)."""
     out: list[Block] = [Heading(2, "1. Fidelity per state (paper Table 1, top)")]
-    fid = rt.fidelity_table(runs)
+    fid = _only(rt.fidelity_table(runs), envs)
     out.append(_df_table(fid, [("env", "env", "text"), ("state", "state", "text"), ("library", "library", "text"),
                                ("test_set", "test set", "text"),
                                ("setup", "optimizer, collector, transitions", "text"), ("n_fits", "seeds", "int"),
@@ -327,7 +333,7 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                          "floor exists where the env is stochastic."))
     out.append(_with_notes(FIDELITY_DIFFERENCES + _collectors(runs), _present(fid, "n_fits"), "fidelity"))
     out.append(Heading(2, "2. Library ablation (paper Table 1, bottom)"))
-    abl = rt.ablation_table(runs)
+    abl = _only(rt.ablation_table(runs), envs)
     out.append(_df_table(abl, [("env", "env", "text"), ("library", "library", "text"),
                                                    ("test_set", "test set", "text"),
                                                    ("setup", "optimizer, collector, transitions", "text"),
@@ -342,7 +348,7 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                          "below 5 seeds)."))
     out.append(_with_notes(ABLATION_DIFFERENCES, _present(abl, "n_fits"), "ablation"))
     out.append(Heading(2, "3. SINDy vs NN surrogate"))
-    nn = rt.sindy_vs_nn_table(runs)
+    nn = _only(rt.sindy_vs_nn_table(runs), envs)
     kinds = rt.nn_kinds(runs)
     label = {"nn": "NN", "pe": "PE ensemble"}
     out.append(_df_table(nn, [("env", "env", "text"), ("quantity", "quantity", "text"),
@@ -357,7 +363,7 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
     out.append(_with_notes(NN_DIFFERENCES + _nn_models(runs, [k for k in kinds if k != "nn"]),
                            _present(nn, "n_sindy", *(f"n_{k}" for k in kinds)), "nn"))
     out.append(Heading(2, "4. RL transfer (real-environment evaluation)"))
-    tr = rt.transfer_table(runs)
+    tr = _only(rt.transfer_table(runs), envs)
     rows = []
     for _, r in tr.iterrows():
         ids = list(r["runs"])
@@ -391,14 +397,14 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]
                      "(the final evaluation, the held-out set) is reported apart, in the runs."))
     envs = _present(tr, "n_seeds")
     out.append(_with_notes(TRANSFER_DIFFERENCES + _total_steps_note(envs) + _recipes(runs), envs, "transfer"))
-    out += dyna_blocks(runs, link)
+    out += dyna_blocks(runs, link, envs)
     return out
 
 
-def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
+def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker, envs: set[str] | None = None) -> list[Block]:
     """Section 5: Dyna-style refits against the real arm, in real transitions to solve."""
     out: list[Block] = [Heading(2, "5. Dyna: real transitions to solve (not in the paper)")]
-    dy = rt.dyna_table(runs)
+    dy = _only(rt.dyna_table(runs), envs)
     if dy.empty:
         out.append(Para("Dyna: not run (no finished `task=dyna` runs)."))
         return out
@@ -445,7 +451,16 @@ def dyna_blocks(runs: Sequence[Mapping[str, Any]], link: Linker) -> list[Block]:
     return out
 
 
-def overview_blocks(inp: ReportInput, runs: Sequence[Mapping[str, Any]], problems: Sequence[str], command: str) -> list[Block]:
+def selected_envs(inp: ReportInput, runs: Sequence[Mapping[str, Any]]) -> set[str] | None:
+    """The envs a selection's report shows (``--parent-run`` or ``--tag``: those its runs are of);
+    None for a whole experiment, whose tables keep the paper's envs without runs as "not run"."""
+    if not (inp.parent_run or inp.tags):
+        return None
+    return {str(r["tags"]["env"]) for r in runs if r["tags"].get("env")}
+
+
+def overview_blocks(inp: ReportInput, runs: Sequence[Mapping[str, Any]], problems: Sequence[str], command: str,
+                    envs: set[str] | None = None) -> list[Block]:
     tags = tracking.standard_tags()
     commit = tags.get("git_commit", "unknown")
     out: list[Block] = [Heading(1, "sdrl-bench report: SINDy surrogates in RL, ours beside the paper's"),
@@ -464,6 +479,11 @@ def overview_blocks(inp: ReportInput, runs: Sequence[Mapping[str, Any]], problem
                         "(the tables name runs by the first 8 characters of their MLflow run id)."
                         + (_ui_sentence(inp) if inp.ui_url else "")))
         out.append(Para(_machines_sentence(runs)))
+    left = [e for e in rt.paper_envs() if envs is not None and e not in envs]
+    if left:
+        out.append(Para(f"This selection holds runs of {', '.join(sorted(envs)) or 'no env'} only, so the tables leave "
+                        f"out the paper's {', '.join(left)} (a report of the whole experiment lists {'it' if len(left) == 1 else 'them'} "
+                        "as not run)."))
     return out
 
 
@@ -528,7 +548,8 @@ def build_report(inp: ReportInput, name: str, out_dir: Path, command: str = "sdr
     folder, earlier, manifest = report_files(out_dir, name)  # again: the runs took seconds to load
     users = clear_earlier_build(folder, earlier, manifest)
     link = Linker(runs, inp.ui_url)
-    blocks = overview_blocks(inp, runs, problems, command) + made + table_blocks(runs, link)
+    envs = selected_envs(inp, runs)
+    blocks = overview_blocks(inp, runs, problems, command, envs) + made + table_blocks(runs, link, envs)
     blocks += figure_blocks(inp.uri, runs, folder, link.url)
     blocks += fidelity_blocks(runs, folder, link)
     rt.runs_frame(runs).to_csv(folder / "runs.csv", index=False)

@@ -165,6 +165,10 @@ def test_transfer_table_and_report_from_a_sweep(store: str, tmp_path) -> None:
     assert res.n_runs == 5 and res.problems == []  # parent, 3 transfers, the RUNNING one
     assert "http://ui:5000/#/experiments/" in md and f"/runs/{ids[0]}" in md
     assert "94 [" in md and "(mean)" in md and "not run" in md
+    # the sweep ran MountainCar only: the paper's LunarLander rows ("not run") are left out, and the report says so
+    assert "| lunar_lander |" not in md and "| mountain_car | sindy | surrogate | sac | 3 |" in md
+    assert ("This selection holds runs of mountain_car only, so the tables leave out the paper's lunar_lander "
+            "(a report of the whole experiment lists it as not run).") in md
     cpu = tracking.cpu_tags()  # the machine every run was made on, counted (docs/seeds.md)
     assert f"Machines: {cpu['sdrl.cpu']} [{cpu['sdrl.cpu_vectors']}]: 5 runs." in md
     assert "figures/curves_mountain_car_sac_sindy.png" in md and (res.folder / "figures/curves_mountain_car_sac_sindy.png").is_file()
