@@ -13,6 +13,10 @@ import numpy as np
 from sdrl_bench.tracking.client import Run, mlflow_client
 
 
+ACCOUNTING = ("real_steps/", "real_resets/")
+"""The prefixes of ``rl.accounting.headline``'s metrics."""
+
+
 def fit_metrics(result) -> dict[str, float]:
     """The metrics a fit run records (``result`` is a ``pipeline.FitResult``), with its real
     steps by purpose (``rl.accounting``: the model's data, the held-out set that judges it, the
@@ -37,14 +41,17 @@ def fit_metrics(result) -> dict[str, float]:
 
 
 def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: str = "", *,
-            config: Mapping[str, Any] | None = None, task: str = "fit", model: bool = True, rows=None) -> None:
+            config: Mapping[str, Any] | None = None, task: str = "fit", model: bool = True, rows=None,
+            accounting_prefix: str = "") -> None:
     """Record a fit: lean params and ``config.yaml`` (from ``config``, the resolved config as a
     plain dict; or ``params`` as given), metrics (unprefixed: the same names in fit and transfer
     runs), data and test-set hashes, the datasets (inputs with digests), the model (the saved
     ``model.json`` and an MLflow pyfunc model logged from code), the equations as the run's
     description, per-state fidelity as a table, and the predicted-vs-true figure. ``rows``: the
     transitions to store as the run's data (default: all of ``result.data``; a Dyna round
-    stores the rows it added, so the rounds' files together are the model's data)."""
+    stores the rows it added, so the rounds' files together are the model's data).
+    ``accounting_prefix``: where the fit's real-step accounting goes instead (a transfer run:
+    ``fit/real_steps/...``, so that its only headlines are its arms')."""
     from sdrl_bench.data import save_csv
     from sdrl_bench.plots import predicted_vs_true
     from sdrl_bench.tracking.meta import describe_experiment, experiment_id_of, log_config, set_description
@@ -55,7 +62,8 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
         log_config(run, config, run.uri, task)
     elif params is not None:
         run.log_params(params)
-    run.log_metrics({f"{prefix}{k}": v for k, v in fit_metrics(result).items()})
+    run.log_metrics({f"{accounting_prefix if k.startswith(ACCOUNTING) else prefix}{k}": v
+                     for k, v in fit_metrics(result).items()})
     run.set_tags({"dataset_sha256": result.dataset_hash, "test_set": result.test_name, "test_set_sha256": result.test_hash,
                   "fit_regime": spec.fit_regime or "all"})
     if result.spec.task is not None:  # the surrogate's step noise and pessimism, or why it has none

@@ -96,8 +96,10 @@ class RunRecorder:
         from sdrl_bench.tracking.fit import log_fit
 
         # the fit's metrics under the names fit runs use (``mse/x``, not ``fit/mse/x``): one
-        # column and one chart across fit and transfer runs; the arms keep their prefixes
-        log_fit(self.run, fit)
+        # column and one chart across fit and transfer runs; the arms keep their prefixes. Its
+        # real-step accounting goes under fit/: the run's headlines (``<arm>/real_steps/this_run``)
+        # are the arms', and an unprefixed ``real_steps/this_run`` of the fit alone beside them misled
+        log_fit(self.run, fit, accounting_prefix="fit/")
 
     def arm_done(self, result, metrics: Mapping[str, float]) -> None:
         log_arm(self.run, result, metrics)

@@ -6,6 +6,7 @@ seed count the same real steps."""
 from __future__ import annotations
 
 import pytest
+from mlflow.tracking import MlflowClient
 
 from helpers import compose_cfg, search
 from sdrl_bench import ConfigError
@@ -44,6 +45,10 @@ def test_the_columns_add_up_and_match_the_real_envs_own_count(store):
     assert total == counted  # every step the env took has a purpose, none twice
     row = search(store).iloc[0]
     assert row["metrics.surrogate/real_steps/all"] == summary["surrogate/real_steps/all"]
+    # the fit's own accounting is under fit/: the run's only headlines are its arms'
+    stored = MlflowClient(store).get_run(row["run_id"]).data.metrics
+    assert stored["fit/real_steps/model_data"] == stored["fit/real_steps/this_run"] == 75
+    assert not [k for k in stored if k.startswith(("real_steps/", "real_resets/"))]
 
 
 def test_a_stop_rule_makes_the_curve_a_selection(store):
