@@ -35,7 +35,7 @@ from sdrl_bench.pipeline import FitJob
 from sdrl_bench.search.refine import run_refinement
 from sdrl_bench.search.study import BuildJob, StudySettings, check_study, run_study
 from sdrl_bench.search.summary import comparison_table, load_summaries, summarize
-from sdrl_bench.search.space import GROUP_PARAMS, PARAM_KEYS, check_model_kind, parse_space
+from sdrl_bench.search.space import GROUP_PARAMS, PARAM_KEYS, Conditions, SearchSpace, check_model_kind, conditions, parse_space
 from sdrl_bench.search.location import resolve_storage
 from sdrl_bench.search.storage import check_study_name, open_storage
 
@@ -137,6 +137,7 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
         if p.name in GROUP_PARAMS:
             for choice in p.choices or ():
                 load_group(p.name, str(choice))
+    when = space_conditions(cfg, space, choices) if kind == "sindy" else {}
     searched = {p.name for p in space}
     searched_keys = {PARAM_KEYS[n] for n in searched}
     context = {
@@ -159,8 +160,23 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
         sampler=str(sc.sampler), n_trials=n_trials, k_folds=k_folds, pruner=str(sc.pruner),
         seed=study_seed, worker=worker, heartbeat_interval=heartbeat_interval,
         heartbeat_grace=heartbeat_grace, tracking_uri=cfg.tracking.uri,
-        experiment=str(cfg.tracking.experiment), context=context,
+        experiment=str(cfg.tracking.experiment), context=context, when=when,
     )
+
+
+def space_conditions(cfg: DictConfig, space: SearchSpace, choices: Mapping[str, str]) -> Conditions:
+    """``search.space.conditions`` over the fit's groups: a searched group's choices as
+    ``load_group`` gives them, a fixed one as this run composed it (a command-line
+    ``optimizer.alpha=...`` replaces the interpolation, and a searched alpha then changes nothing)."""
+    searched = {p.name: p for p in space}
+    groups = {}
+    for group in GROUP_PARAMS:
+        if group in searched:
+            groups[group] = {str(c): OmegaConf.to_container(load_group(group, str(c)), resolve=False)
+                             for c in searched[group].choices or ()}
+        else:
+            groups[group] = {str(choices.get(group, group)): OmegaConf.to_container(cfg[group], resolve=False)}
+    return conditions(space, groups)
 
 
 def _policy_probe(cfg: DictConfig, objective: str, seed: int):

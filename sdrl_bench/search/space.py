@@ -15,6 +15,7 @@ uses directly. Everything here is pure: no storage, no tracking, no fitting.
 from __future__ import annotations
 
 import math
+import re
 from dataclasses import dataclass
 from typing import Any
 from collections.abc import Mapping, Sequence
@@ -145,17 +146,73 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
-def suggest(trial: Any, space: SearchSpace) -> dict[str, Any]:
-    """Sample every parameter of ``space`` from an Optuna trial (pure sampler function)."""
-    params: dict[str, Any] = {}
+Condition = tuple[str, frozenset[str]]
+"""(a config group, the options of it that read a parameter): a parameter with conditions is
+sampled only in the trials whose choice of one of those groups is one of its options."""
+Conditions = dict[str, tuple[Condition, ...]]
+_INTERPOLATION = re.compile(r"\$\{([^${}]*)\}")
+_DOTTED = re.compile(r"[A-Za-z_][\w]*(?:\.[A-Za-z_][\w]*)*")
+
+
+def reads(node: Any, key: str) -> bool:
+    """Whether an unresolved config node (plain containers) interpolates ``key`` or a node
+    above it (``${env.sindy}`` reads ``env.sindy.alpha``), also inside a resolver's arguments."""
+    if isinstance(node, Mapping):
+        return any(reads(v, key) for v in node.values())
+    if isinstance(node, (list, tuple)):
+        return any(reads(v, key) for v in node)
+    if not isinstance(node, str):
+        return False
+    for inner in _INTERPOLATION.findall(node):
+        for ref in _DOTTED.findall(inner):
+            if key == ref or key.startswith(ref + "."):
+                return True
+    return False
+
+
+def conditions(space: SearchSpace, groups: Mapping[str, Mapping[str, Any]], key: str = "search.space") -> Conditions:
+    """Which searched values depend on a group choice. ``groups`` maps each fit group (library,
+    optimizer) to the options this study fits (a searched group's choices, else the run's own),
+    each as its unresolved config in plain data. SINDy's values (``env.sindy.*``,
+    ``env.poly_degree``) reach a fit only through these configs' interpolations, so a value
+    that some options interpolate and others do not (``env.sindy.alpha``: STLSQ's ridge weight,
+    which SR3 has no use for) is sampled only in the trials with a choice that reads it;
+    otherwise TPE models a dimension that changes nothing. A value that no option of the study
+    reads is a one-line ``ConfigError``: every trial would ignore it."""
+    out: Conditions = {}
     for p in space:
+        if p.name in GROUP_PARAMS or p.name in NN_PARAMS:
+            continue
+        target = PARAM_KEYS[p.name]
+        readers = {g: frozenset(o for o, node in options.items() if reads(node, target)) for g, options in groups.items()}
+        if any(r and r == frozenset(groups[g]) for g, r in readers.items()):
+            continue  # read whatever the trial chooses
+        conds = tuple((g, r) for g, r in readers.items() if r)
+        if not conds:
+            fitted = ", ".join(f"{g}={','.join(sorted(options))}" for g, options in groups.items())
+            raise ConfigError(f"{key}.{p.name}: no config this study fits interpolates {target} ({fitted} as composed "
+                              f"here), so no trial would use it: remove {p.name} from the space or fit a "
+                              f"{' or '.join(groups)} that reads it")
+        out[p.name] = conds
+    return out
+
+
+def suggest(trial: Any, space: SearchSpace, when: Conditions | None = None) -> dict[str, Any]:
+    """Sample every parameter of ``space`` from an Optuna trial (pure sampler function): the
+    group choices first, then each value unless ``when`` gives it conditions that no choice of
+    the trial meets."""
+    params: dict[str, Any] = {}
+    when = when or {}
+    for p in sorted(space, key=lambda p: p.name not in GROUP_PARAMS):  # stable: groups first
+        if p.name in when and not any(str(params.get(group)) in options for group, options in when[p.name]):
+            continue
         if p.kind == "categorical":
             params[p.name] = trial.suggest_categorical(p.name, list(p.choices or ()))
         elif p.kind == "int":
             params[p.name] = trial.suggest_int(p.name, int(p.low), int(p.high), log=p.log)
         else:
             params[p.name] = trial.suggest_float(p.name, float(p.low), float(p.high), log=p.log)
-    return params
+    return {p.name: params[p.name] for p in space if p.name in params}
 
 
 def grid_values(space: SearchSpace, key: str = "search.space") -> dict[str, list[Any]]:

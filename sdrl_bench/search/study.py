@@ -33,7 +33,8 @@ from sdrl_bench.envs.base import EnvSpec
 from sdrl_bench.models.libraries import build_library
 from sdrl_bench.pipeline import FitJob, build_model, check
 from sdrl_bench.fidelity import DATA_METRICS, POLICY_METRICS
-from sdrl_bench.search.space import GROUP_PARAMS, NN_PARAMS, PARAM_KEYS, SearchSpace, describe_space, grid_values, suggest
+from sdrl_bench.search.space import (GROUP_PARAMS, NN_PARAMS, PARAM_KEYS, Conditions, SearchSpace, describe_space,
+                                     grid_values, suggest)
 from sdrl_bench.search.location import resolve_storage
 from sdrl_bench.search.storage import open_storage, open_study, study_parent_run
 from sdrl_bench.search.validation import Fold, aggregate, cross_validate, fit_model, make_folds, resolution_floor
@@ -94,6 +95,9 @@ class StudySettings:
     context: Mapping[str, Any] = field(default_factory=dict)
     """Fixed settings the objective depends on (group choices, config values): recorded with
     the study and compared on resume, and written into the exported best config."""
+    when: Conditions = field(default_factory=dict)
+    """Values sampled only under some group choices (``search.space.conditions``: alpha only
+    in the trials whose optimizer reads it)."""
 
 
 @dataclass(frozen=True)
@@ -150,6 +154,11 @@ def check_settings(s: StudySettings) -> None:
         raise ConfigError(f"search.sampler: one of {list(SAMPLERS)}, got {s.sampler!r}")
     if s.sampler == "grid":
         grid_values(s.space)
+        for name, conds in s.when.items():
+            group, options = conds[0]
+            raise ConfigError(f"search.space.{name}: only {group}={','.join(sorted(options))} reads it, so the grid "
+                              f"would fit the other {group} choices once per {name} value; use search.sampler=tpe "
+                              f"or random, or one grid study per {group}")
     if s.pruner not in ("median", "none"):
         raise ConfigError(f"search.pruner: 'median' or 'none', got {s.pruner!r}")
     if s.pruner != "none" and len(s.objectives) > 1:
@@ -398,7 +407,7 @@ def _objective(s: StudySettings, build_job: BuildJob, sd: StudyData, uri: str, p
     prune = s.pruner != "none" and len(s.objectives) == 1
 
     def objective(trial: optuna.Trial) -> float | tuple[float, float]:
-        params = suggest(trial, s.space)
+        params = suggest(trial, s.space, s.when)
         trial.set_user_attr("worker", s.worker)
         choices = {**dict(s.context.get("choices", {})), **{k: v for k, v in params.items() if k in GROUP_PARAMS}}
         tags = {"sdrl.study": s.name, "optuna.trial": trial.number, "sdrl.worker": s.worker, "env": sd.spec.name,

@@ -78,6 +78,40 @@ def test_bad_search_space_is_a_one_line_config_error(space, match):
     assert "\n" not in str(err.value)
 
 
+def test_a_value_is_sampled_only_under_the_group_choices_whose_configs_interpolate_it():
+    """Conditions come from the group configs' interpolations: a value read by some options of a
+    group and not others is conditional on them (either of two groups reading it suffices), one
+    read by every option of the study is not, and one no option reads is refused."""
+    from sdrl_bench.search.space import conditions, reads, suggest
+
+    assert reads({"opt": {"alpha": "${env.sindy.alpha}"}}, "env.sindy.alpha")
+    assert reads(["${oc.select:env.sindy.alpha,0.1}"], "env.sindy.alpha")  # inside a resolver's arguments
+    assert reads("${env.sindy}", "env.sindy.alpha")  # a node above it
+    assert not reads("${env.sindy.alpha_max}", "env.sindy.alpha") and not reads("env.sindy.alpha", "env.sindy.alpha")
+    space = parse_space({"optimizer": {"type": "categorical", "choices": ["a", "b", "c"]},
+                         "library": {"type": "categorical", "choices": ["p", "q"]},
+                         "alpha": {"type": "float", "low": 1e-3, "high": 1.0},
+                         "threshold": {"type": "float", "low": 1e-3, "high": 1.0}})
+    groups = {"optimizer": {"a": {"alpha": "${env.sindy.alpha}", "threshold": "${env.sindy.threshold}"},
+                            "b": {"threshold": "${env.sindy.threshold}"}, "c": {"threshold": 0.1}},
+              "library": {"p": {"x": "${env.sindy.alpha}"}, "q": {}}}
+    when = conditions(space, groups)
+    assert when == {"alpha": (("optimizer", frozenset({"a"})), ("library", frozenset({"p"}))),
+                    "threshold": (("optimizer", frozenset({"a", "b"})),)}
+    seen = set()
+    for n in range(40):
+        trial = optuna.trial.FixedTrial({"optimizer": "abc"[n % 3], "library": "pq"[n // 3 % 2], "alpha": 0.5, "threshold": 0.5})
+        params = suggest(trial, space, when)
+        assert list(params) == [k for k in ("optimizer", "library", "alpha", "threshold") if k in params]  # the space's order
+        assert ("alpha" in params) == (params["optimizer"] == "a" or params["library"] == "p")
+        assert ("threshold" in params) == (params["optimizer"] != "c")
+        seen.add(tuple(params))
+    assert len(seen) == 4
+    with pytest.raises(ConfigError, match=r"^search.space.alpha: no config this study fits interpolates env.sindy.alpha "
+                                          r"\(optimizer=b,c, library=q as composed here\)"):
+        conditions(space, {"optimizer": {k: groups["optimizer"][k] for k in "bc"}, "library": {"q": {}}})
+
+
 def test_bad_storage_choice_or_mode_fail_before_any_trial(tmp_path, uri):
     blocker = tmp_path / "file"
     blocker.write_text("not a folder")
@@ -129,6 +163,8 @@ def test_every_trial_is_a_child_run_with_params_objective_and_terms(mc_study, ur
         from sdrl_bench.search.study import FIT_PARAM_NAMES
 
         assert {k: r["params"][FIT_PARAM_NAMES[k]] for k in t.params} == {k: str(v) for k, v in t.params.items()}
+        # alpha is STLSQ's ridge weight: a trial fitting SR3, which has none, samples and logs none
+        assert ("alpha" in t.params) == ("optimizer.alpha" in r["params"]) == (t.params["optimizer"] == "stlsq")
         assert r["params"]["seed"] == "0" and r["tags"]["env"] == "mountain_car" and r["tags"]["seed"] == "0"
         assert r["tags"]["mlflow.source.name"] == "sdrl-bench-search" and r["tags"]["mlflow.user"]
         assert r["tags"]["library"] == r["params"]["library.name"]
@@ -136,6 +172,7 @@ def test_every_trial_is_a_child_run_with_params_objective_and_terms(mc_study, ur
             assert r["metrics"]["error"] == pytest.approx(t.value, rel=1e-12)
             assert r["metrics"]["n_terms"] == t.user_attrs["n_terms"]
             assert r["metrics"]["n_fits"] == 4  # 3 folds + the fit on all the data
+    assert {t.params["optimizer"] for t in trials} == {"stlsq", "sr3"}
     assert summary.n_trials == 14 and summary.fits_total == sum(int(r["metrics"]["n_fits"]) for r in runs.values())
 
 

@@ -100,3 +100,21 @@ def test_a_space_value_the_env_or_its_domain_refuses_is_named_before_any_trial(t
     proc = _search(tmp_path, "search.n_trials=2", "study.name=space", *overrides)
     _refused(proc, tmp_path, line)
     assert not (tmp_path / "optuna.db").exists()
+
+
+@pytest.mark.parametrize("overrides, line", [
+    (["search=grid", "optimizer=sr3"],
+     "search.space.alpha: no config this study fits interpolates env.sindy.alpha (library=poly_trig, optimizer=sr3 as "
+     "composed here), so no trial would use it: remove alpha from the space or fit a library or optimizer that reads it"),
+    (["search=grid", "optimizer.alpha=0.01"],  # the command line replaced the interpolation the searched alpha goes through
+     "search.space.alpha: no config this study fits interpolates env.sindy.alpha (library=poly_trig, optimizer=stlsq as "
+     "composed here), so no trial would use it: remove alpha from the space or fit a library or optimizer that reads it"),
+    (["search.sampler=grid", "+search.space.threshold.grid=[0.001,0.01]", "+search.space.alpha.grid=[0.01]"],
+     "search.space.alpha: only optimizer=stlsq reads it, so the grid would fit the other optimizer choices once per "
+     "alpha value; use search.sampler=tpe or random, or one grid study per optimizer"),
+])
+def test_a_searched_value_no_trial_would_use_is_refused_before_any_trial(tmp_path, overrides, line):
+    # before: SR3 fits ignored the sampled alpha, so a grid fitted each point once per alpha value
+    proc = _search(tmp_path, "study.name=dead", *overrides)
+    _refused(proc, tmp_path, line)
+    assert not (tmp_path / "optuna.db").exists()
