@@ -153,9 +153,11 @@ def test_ppo_in_a_vectorized_surrogate_logs_sb3_metrics_through_the_kvwriter(sto
 def test_surrogate_steps_count_what_sac_took_and_the_fit_shares_names_with_fit_runs(store):
     """SAC with train_freq 32 and a budget of 100 steps takes 128 (whole rounds of 32): the
     accounting counts 128. The fit inside the transfer run is logged under the names (and
-    values) a fit run of the same config logs: ``mse/x``, not ``fit/mse/x``."""
+    values) a fit run of the same config logs: ``mse/x``, not ``fit/mse/x``; only its real-step
+    accounting goes under ``fit/`` (the run's headlines are its arms')."""
     from sdrl_bench.cli.main import run_fit
     from sdrl_bench.tracking import fit_metrics
+    from sdrl_bench.tracking.fit import ACCOUNTING
 
     summary = train(store, "rl.arms=[surrogate]", "rl.surrogate_steps=100", "agent.algo.train_freq=32",
                     "rl.eval_every=100")
@@ -165,10 +167,13 @@ def test_surrogate_steps_count_what_sac_took_and_the_fit_shares_names_with_fit_r
     transfer, fitrun = runs.loc["transfer"], runs.loc["fit"]
     assert transfer["metrics.surrogate/surrogate_steps"] == 128
     names = fit_metrics(fit)
-    assert not [c for c in runs.columns if c.startswith("metrics.fit/")]
+    accounting = [k for k in names if k.startswith(ACCOUNTING)]
+    assert "real_steps/this_run" in accounting
+    assert sorted(c for c in runs.columns if c.startswith("metrics.fit/")) == sorted(f"metrics.fit/{k}" for k in accounting)
     for k, v in names.items():
         if not k.endswith("_seconds"):
-            assert transfer[f"metrics.{k}"] == fitrun[f"metrics.{k}"] == pytest.approx(v, rel=1e-12, abs=0), k
+            there = f"metrics.fit/{k}" if k in accounting else f"metrics.{k}"
+            assert transfer[there] == fitrun[f"metrics.{k}"] == pytest.approx(v, rel=1e-12, abs=0), k
     client = MlflowClient(store)
     run = client.get_run(transfer["run_id"])
     assert {i.tags[0].value for i in run.inputs.dataset_inputs} == {"training", "testing", "prior:knowledge"}
