@@ -395,8 +395,8 @@ def table_blocks(runs: Sequence[Mapping[str, Any]], link: Linker, envs: set[str]
                      "training and the evaluations that stop it; all real steps = that plus the real steps behind "
                      "the env's fitted priors, a trained collector's training and the recipe's tuning. Judging "
                      "(the final evaluation, the held-out set) is reported apart, in the runs."))
-    envs = _present(tr, "n_seeds")
-    out.append(_with_notes(TRANSFER_DIFFERENCES + _total_steps_note(envs) + _recipes(runs), envs, "transfer"))
+    run_envs = _present(tr, "n_seeds")
+    out.append(_with_notes(TRANSFER_DIFFERENCES + _total_steps_note(run_envs) + _recipes(runs), run_envs, "transfer"))
     out += dyna_blocks(runs, link, envs)
     return out
 

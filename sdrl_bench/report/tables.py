@@ -75,10 +75,10 @@ def fit_records(runs: Iterable[Run]) -> list[dict[str, Any]]:
             continue
         if kind == "fit":
             metrics = dict(r["metrics"])
-        elif kind == "transfer":  # the fit under the names fit runs use (older runs: under ``fit/``)
-            old = {k[4:]: v for k, v in r["metrics"].items() if k.startswith("fit/")}
-            metrics = old or {k: v for k, v in r["metrics"].items()
-                              if not k.startswith(("surrogate/", "real/")) and k != "policy_map_agreement"}
+        elif kind == "transfer":  # the fit under the names fit runs use, its accounting under ``fit/``
+            metrics = {k: v for k, v in r["metrics"].items()  # (older runs: every fit metric under ``fit/``)
+                       if not k.startswith(("surrogate/", "real/", "fit/")) and k != "policy_map_agreement"}
+            metrics.update({k[4:]: v for k, v in r["metrics"].items() if k.startswith("fit/")})
             if "surrogate" not in tags.get("arms", "surrogate") or not any(k.startswith("mse/") for k in metrics):
                 continue  # a real arm trained alone fits nothing
         else:

@@ -31,7 +31,12 @@ def _fit(uri: str, env: str, library: str, surrogate: str, seed: int, mse: dict[
 
 
 def _transfer(uri: str, seed: int, surrogate_return: float, real_return: float, parent: str | None = None,
-              agent: str = "sac") -> str:
+              agent: str = "sac", older: bool = False) -> str:
+    """A transfer run as ``task=train`` logs it: the fit's metrics under a fit run's names and its
+    accounting under ``fit/`` (``older``: every fit metric under ``fit/``, as runs before 2026-11-26 did)."""
+    fit = {"mse/x": 1e-16, "mse/v": 2e-19, "corr/x": 1.0, "corr/v": 1.0}
+    fit = ({f"fit/{k}": v for k, v in fit.items()} if older else
+           {**fit, "fit/real_steps/model_data": 75, "fit/real_steps/this_run": 75})
     tags = {"sdrl.kind": "transfer", "env": "mountain_car", "agent": agent, "surrogate": "sindy",
             "library": "poly_trig", "seed": seed, "test_set": "mountain_car-heldout-v1"}
     with tracking.start_run(uri, EXP, f"train-s{seed}", tags, parent) as run:
@@ -41,8 +46,7 @@ def _transfer(uri: str, seed: int, surrogate_return: float, real_return: float, 
                          "real/real_transitions_model": 0, "real/real_transitions_train": 100_000,
                          "real/surrogate_steps": 0, "real/total_steps": 100_000, "surrogate/success_rate": 1.0,
                          "real/success_rate": 0.5, "surrogate/train_wall_seconds": 10.0 + seed,
-                         "real/train_wall_seconds": 20.0, "real/solved_real_steps": 25_000.0,
-                         "fit/mse/x": 1e-16, "fit/mse/v": 2e-19, "fit/corr/x": 1.0, "fit/corr/v": 1.0})
+                         "real/train_wall_seconds": 20.0, "real/solved_real_steps": 25_000.0, **fit})
         for arm, ret in (("surrogate", surrogate_return), ("real", real_return)):
             run.log_text(f"train_steps,return_mean,return_std\n0,-10,1\n1000,{ret},1\n", f"curves/{arm}.csv")
         run.log_text("x[k+1] = 1 x +1 v +0.0015 u -0.0025 cos(3 x)\nv[k+1] = 1 v +0.0015 u -0.0025 cos(3 x)\n",
@@ -128,6 +132,19 @@ def test_bootstrap_ci_matches_a_hand_computation() -> None:
     one = rt.bootstrap_ci([5.0])
     assert one[0] == 5.0 and math.isnan(one[1]) and math.isnan(one[2])  # no CI from one seed
     assert math.isnan(rt.bootstrap_ci([])[0])
+
+
+@pytest.mark.parametrize("older", [False, True])
+def test_the_fit_inside_a_transfer_run_is_a_fit_record_under_either_naming(store: str, older: bool) -> None:
+    """Today's transfer runs log the fit under a fit run's names (its accounting under ``fit/``),
+    older ones all of it under ``fit/``: either way the fit is one record, with unprefixed metrics."""
+    rid = _transfer(store, 0, 94.0, 95.0, older=older)
+    records = [f for f in rt.fit_records(tracking.find_runs(store, EXP)) if f["run_id"] == rid]
+    assert len(records) == 1 and records[0]["source"] == "transfer"
+    m = records[0]["metrics"]
+    assert (m["mse/x"], m["mse/v"]) == (1e-16, 2e-19) and not [k for k in m if k.startswith(("fit/", "surrogate/", "real/"))]
+    assert m.get("real_steps/this_run") == (None if older else 75)
+    assert rt.fidelity_table(tracking.find_runs(store, EXP)).set_index(["env", "state"]).loc[("mountain_car", "x"), "n_fits"] == 1
 
 
 def test_runs_of_two_agents_get_rows_of_their_own(store: str) -> None:
@@ -330,6 +347,17 @@ def test_dyna_loops_of_other_settings_get_rows_of_their_own(store: str) -> None:
     assert sorted(rows.loc["Dyna, sindy; max_rounds=3", "runs"]) == sorted(three)
     assert sorted(rows.loc["Dyna, sindy; max_rounds=2", "runs"]) == sorted(two)
     assert list(rows["n_solved"]) == [3, 0]
+
+
+def test_dyna_rows_show_without_any_transfer_run_in_the_store(store: str, tmp_path) -> None:
+    """Section 5 stands on the Dyna runs alone (an env with no transfer runs keeps its rows), in
+    a report of the whole experiment and in one of a selection (--tag)."""
+    for seed in (0, 1):
+        _dyna(store, seed, "sindy", True, 20_000 + seed, 250.0)
+    for tags in ({}, {"env": "lunar_lander"}):
+        md = (build_report(ReportInput(store, EXP, tags=tags), f"dyna-{len(tags)}", tmp_path, log_run=False).folder
+              / "report.md").read_text()
+        assert "Dyna: not run" not in md and "| lunar_lander | Dyna, sindy | ppo_fast | 2/2 |" in md
 
 
 def test_dyna_table_equals_the_runs_metrics_and_links_its_runs(store: str, tmp_path) -> None:
