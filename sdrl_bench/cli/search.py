@@ -138,6 +138,8 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
             for choice in p.choices or ():
                 load_group(p.name, str(choice))
     when = space_conditions(cfg, space, choices) if kind == "sindy" else {}
+    if str(sc.sampler) == "nsga2":  # NSGA-II evolves only the params every trial has: a value sampled
+        when = {}                   # under some choices would be drawn at random in every trial
     searched = {p.name for p in space}
     searched_keys = {PARAM_KEYS[n] for n in searched}
     context = {
@@ -175,7 +177,8 @@ def space_conditions(cfg: DictConfig, space: SearchSpace, choices: Mapping[str, 
             groups[group] = {str(c): OmegaConf.to_container(load_group(group, str(c)), resolve=False)
                              for c in searched[group].choices or ()}
         else:
-            groups[group] = {str(choices.get(group, group)): OmegaConf.to_container(cfg[group], resolve=False)}
+            name = choices.get(group) or cfg[group].get("name") or group  # a sweep's precheck has no choices
+            groups[group] = {str(name): OmegaConf.to_container(cfg[group], resolve=False)}
     return conditions(space, groups)
 
 

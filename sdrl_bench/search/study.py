@@ -153,8 +153,10 @@ def check_settings(s: StudySettings) -> None:
     if s.sampler not in SAMPLERS:
         raise ConfigError(f"search.sampler: one of {list(SAMPLERS)}, got {s.sampler!r}")
     if s.sampler == "grid":
-        grid_values(s.space)
+        grid = grid_values(s.space)
         for name, conds in s.when.items():
+            if len(grid[name]) < 2:
+                continue  # one value: each point of the other choices is fitted once anyway
             group, options = conds[0]
             raise ConfigError(f"search.space.{name}: only {group}={','.join(sorted(options))} reads it, so the grid "
                               f"would fit the other {group} choices once per {name} value; use search.sampler=tpe "
@@ -279,7 +281,8 @@ def make_sampler(s: StudySettings, resumed_at: int = 0) -> optuna.samplers.BaseS
     if s.sampler == "nsga2":
         return optuna.samplers.NSGAIISampler(seed=seed)
     # multivariate + group: one model over the joint space (the library choice and the
-    # thresholds interact); constant_liar keeps parallel workers from sampling the same point
+    # thresholds interact), a value sampled only under some choices (alpha) modelled over the
+    # trials that have it; constant_liar keeps parallel workers from sampling the same point
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
         return optuna.samplers.TPESampler(seed=seed, multivariate=True, group=True, constant_liar=True)

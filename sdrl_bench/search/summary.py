@@ -187,7 +187,13 @@ def _log_figures(run: tracking.Run, study, complete, points, summary: StudySumma
         front = {p[0] for p in summary.pareto}
         run.log_figure(pareto_figure([p[1] for p in points], [p[2] for p in points], [p[0] in front for p in points],
                                      title), "figures/pareto_front.png")
-    searched = [k for k in summary.best_params if len({repr(t.params.get(k)) for t in complete}) > 1]
+    # over the params every trial has (a value sampled only under some choices, alpha with STLSQ,
+    # would restrict the importances to those trials and leave its choice no importance)
+    names = list(dict.fromkeys(k for t in complete for k in t.params))
+    shared = [k for k in names if all(k in t.params for t in complete)]
+    searched = [k for k in shared if len({repr(t.params[k]) for t in complete}) > 1]
+    if set(names) - set(shared):
+        run.set_tags({"importance.left_out": ",".join(k for k in names if k not in shared)})
     if len(complete) >= 2 and searched:
         try:
             with warnings.catch_warnings():

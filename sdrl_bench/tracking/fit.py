@@ -42,7 +42,7 @@ def fit_metrics(result) -> dict[str, float]:
 
 def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: str = "", *,
             config: Mapping[str, Any] | None = None, task: str = "fit", model: bool = True, rows=None,
-            accounting_prefix: str = "") -> None:
+            accounting_prefix: str | None = None) -> None:
     """Record a fit: lean params and ``config.yaml`` (from ``config``, the resolved config as a
     plain dict; or ``params`` as given), metrics (unprefixed: the same names in fit and transfer
     runs), data and test-set hashes, the datasets (inputs with digests), the model (the saved
@@ -50,8 +50,8 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
     description, per-state fidelity as a table, and the predicted-vs-true figure. ``rows``: the
     transitions to store as the run's data (default: all of ``result.data``; a Dyna round
     stores the rows it added, so the rounds' files together are the model's data).
-    ``accounting_prefix``: where the fit's real-step accounting goes instead (a transfer run:
-    ``fit/real_steps/...``, so that its only headlines are its arms')."""
+    ``accounting_prefix``: where the fit's real-step accounting goes, if not under ``prefix`` (a
+    transfer run: ``fit/real_steps/...``, so that its only headlines are its arms')."""
     from sdrl_bench.data import save_csv
     from sdrl_bench.plots import predicted_vs_true
     from sdrl_bench.tracking.meta import describe_experiment, experiment_id_of, log_config, set_description
@@ -62,8 +62,8 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
         log_config(run, config, run.uri, task)
     elif params is not None:
         run.log_params(params)
-    run.log_metrics({f"{accounting_prefix if k.startswith(ACCOUNTING) else prefix}{k}": v
-                     for k, v in fit_metrics(result).items()})
+    counted = prefix if accounting_prefix is None else accounting_prefix
+    run.log_metrics({f"{counted if k.startswith(ACCOUNTING) else prefix}{k}": v for k, v in fit_metrics(result).items()})
     run.set_tags({"dataset_sha256": result.dataset_hash, "test_set": result.test_name, "test_set_sha256": result.test_hash,
                   "fit_regime": spec.fit_regime or "all"})
     if result.spec.task is not None:  # the surrogate's step noise and pessimism, or why it has none

@@ -107,6 +107,12 @@ def test_a_value_is_sampled_only_under_the_group_choices_whose_configs_interpola
         assert ("threshold" in params) == (params["optimizer"] != "c")
         seen.add(tuple(params))
     assert len(seen) == 4
+    # the groups are drawn first whatever the space's order, and the params come back in that order
+    late = parse_space({"alpha": {"type": "float", "low": 1e-3, "high": 1.0},
+                        "optimizer": {"type": "categorical", "choices": ["a", "b"]}})
+    for opt in "ab":
+        params = suggest(optuna.trial.FixedTrial({"optimizer": opt, "alpha": 0.5}), late, {"alpha": (("optimizer", frozenset("a")),)})
+        assert list(params) == (["alpha", "optimizer"] if opt == "a" else ["optimizer"])
     with pytest.raises(ConfigError, match=r"^search.space.alpha: no config this study fits interpolates env.sindy.alpha "
                                           r"\(optimizer=b,c, library=q as composed here\)"):
         conditions(space, {"optimizer": {k: groups["optimizer"][k] for k in "bc"}, "library": {"q": {}}})
@@ -186,6 +192,7 @@ def test_parent_holds_best_params_value_and_figures(mc_study, uri):
     names = {a.path for a in MlflowClient(uri).list_artifacts(result.parent_run_id, "figures")}
     assert names == {"figures/optimization_history.png", "figures/param_importances.png", "figures/pareto_front.png"}
     assert parent.data.metrics["test/mse_norm/mean"] == pytest.approx(summary.test_error, rel=1e-12)
+    assert parent.data.tags["importance.left_out"] == "alpha"  # sampled in STLSQ's trials only
 
 
 def test_objective_is_k_fold_on_the_collected_data_and_reproducible(mc_study):

@@ -109,7 +109,7 @@ def test_a_space_value_the_env_or_its_domain_refuses_is_named_before_any_trial(t
     (["search=grid", "optimizer.alpha=0.01"],  # the command line replaced the interpolation the searched alpha goes through
      "search.space.alpha: no config this study fits interpolates env.sindy.alpha (library=poly_trig, optimizer=stlsq as "
      "composed here), so no trial would use it: remove alpha from the space or fit a library or optimizer that reads it"),
-    (["search.sampler=grid", "+search.space.threshold.grid=[0.001,0.01]", "+search.space.alpha.grid=[0.01]"],
+    (["search.sampler=grid", "+search.space.threshold.grid=[0.001,0.01]", "+search.space.alpha.grid=[0.01,0.1]"],
      "search.space.alpha: only optimizer=stlsq reads it, so the grid would fit the other optimizer choices once per "
      "alpha value; use search.sampler=tpe or random, or one grid study per optimizer"),
 ])
@@ -118,3 +118,28 @@ def test_a_searched_value_no_trial_would_use_is_refused_before_any_trial(tmp_pat
     proc = _search(tmp_path, "study.name=dead", *overrides)
     _refused(proc, tmp_path, line)
     assert not (tmp_path / "optuna.db").exists()
+
+
+def test_a_sweeps_check_names_the_groups_a_dead_value_would_be_fitted_with(tmp_path):
+    """``-m``: the driver's check of each worker (which has no runtime choices) names the options."""
+    proc = run_cli("-m", f"study.storage='sqlite:///{tmp_path}/optuna.db'", f"tracking.uri='sqlite:///{tmp_path}/mlflow.db'",
+                   "study.worker=0,1", "search=grid", "optimizer=sr3", cwd=tmp_path, timeout=120, module="sdrl_bench.cli.search")
+    _refused(proc, tmp_path, "search.space.alpha: no config this study fits interpolates env.sindy.alpha (library=poly_trig, "
+                             "optimizer=sr3 as composed here), so no trial would use it: remove alpha from the space or fit "
+                             "a library or optimizer that reads it")
+
+
+@pytest.mark.parametrize("overrides, when", [
+    ([], {"alpha": (("optimizer", frozenset({"stlsq"})),)}),
+    (["search.sampler=nsga2"], {}),  # NSGA-II evolves only what every trial has: alpha stays in every trial
+    (["search.space.optimizer.choices=[stlsq,ensemble]"], {}),  # both read it
+    (["search.sampler=grid", "+search.space.threshold.grid=[0.01]", "+search.space.alpha.grid=[0.01]",
+      "search.space.optimizer.choices=[stlsq,sr3]"], {"alpha": (("optimizer", frozenset({"stlsq"})),)}),  # one value: allowed
+])
+def test_which_values_a_study_samples_only_under_some_choices(overrides, when):
+    from sdrl_bench.search.study import check_settings
+
+    cfg = compose(overrides, config_name="search_app", return_hydra_config=True)
+    settings = study_settings(cfg, runtime_choices(cfg))
+    check_settings(settings)
+    assert settings.when == when
