@@ -113,14 +113,13 @@ class MlflowSweepCallback(Callback):
 
     def _abort(self) -> None:
         """The driver exits before the sweep ended (a job raised): stop the other workers, end
-        the runs they left RUNNING KILLED and the parent FAILED."""
+        the runs they left RUNNING (and the runs under those) KILLED and the parent FAILED."""
         if self._parent is None:
             return
         stop_children(WORKER_GRACE_SECONDS)
         uri, run_id, experiment = self._parent
-        filt = f"tags.`{tracking.PARENT_TAG}` = '{run_id}' and attributes.status = 'RUNNING'"
-        for r in tracking.find_runs(uri, experiment, filt):
-            tracking.end_run(uri, r["run_id"], "KILLED")
+        for rid in tracking.running_below(uri, experiment, run_id):
+            tracking.end_run(uri, rid, "KILLED")
         self._finish("FAILED")
 
     def _on_stop_signal(self, signum: int, frame: Any) -> None:
@@ -132,10 +131,9 @@ class MlflowSweepCallback(Callback):
         n_runs, unanswered = 0, None
         if self._parent is not None:
             uri, run_id, experiment = self._parent
-            filt = f"tags.`{tracking.PARENT_TAG}` = '{run_id}' and attributes.status = 'RUNNING'"
-            try:
-                for r in tracking.find_runs(uri, experiment, filt):
-                    tracking.end_run(uri, r["run_id"], "KILLED")
+            try:  # the jobs' runs and the runs under them (Dyna rounds, fidelity surrogates)
+                for rid in tracking.running_below(uri, experiment, run_id):
+                    tracking.end_run(uri, rid, "KILLED")
                     n_runs += 1
                 self._finish("KILLED")
             except Exception:  # the store is gone: say so, and exit all the same

@@ -48,6 +48,7 @@ from sdrl_bench.tracking.read import (
     list_experiments,
     owner_alive,
     run_exists,
+    running_below,
 )
 from sdrl_bench.tracking.meta import (
     browse_hint,
@@ -71,7 +72,7 @@ __all__ = [
     "DEFAULT_DB", "PARENT_TAG", "RUN_NAME_TAG", "Run", "check_integrity", "check_store", "uri_key", "check_writable", "child_statuses", "create_parent_run",
     "cpu_tags", "delete_run", "display_uri", "download_artifact", "end_run", "end_runs_of_dead_processes", "end_runs_of_this_process", "runs_of_this_process", "end_stale_runs", "owner_alive", "process_tags", "ensure_experiment", "find_real_arm", "find_runs",
     "fit_metrics", "flatten", "git_commit", "list_artifacts", "list_experiments", "log_arm", "log_curve_point",
-    "log_fit", "log_report", "machine_label", "mlflow_client", "resolve_uri", "reuse_real_arm", "run_exists", "sb3_logger", "sqlite_path",
+    "log_fit", "log_report", "machine_label", "mlflow_client", "resolve_uri", "reuse_real_arm", "run_exists", "running_below", "sb3_logger", "sqlite_path",
     "start_run", "tracked_run", "uncertainty_table", "use_wal",
     "browse_hint", "compare_url", "describe_experiment", "log_config", "run_url", "runs_url", "set_description",
     "standard_tags", "summarize_sweep", "note_adoptions", "ADOPTED_BY_TAG", "ADOPTED_FROM_TAG", "system_metrics", "ui_base", "used_params", "without_credentials",

@@ -34,6 +34,19 @@ def child_statuses(uri: str, experiment: str, parent_run_id: str) -> list[str]:
     return [r.info.status for r in runs]
 
 
+def running_below(uri: str, experiment: str, root: str) -> list[str]:
+    """The RUNNING runs under ``root``: its children, and the runs under them (a Dyna job's
+    round runs, a fidelity cluster's surrogate runs), whatever their parents' status."""
+    running = {r["run_id"]: r["tags"].get(PARENT_TAG) for r in find_runs(uri, experiment, "attributes.status = 'RUNNING'")}
+    below = {root} | {r["run_id"] for r in find_runs(uri, experiment, f"tags.`{PARENT_TAG}` = '{root}'")}
+    grew = True
+    while grew:
+        new = {rid for rid, parent in running.items() if parent in below and rid not in below}
+        below |= new
+        grew = bool(new)
+    return [rid for rid in running if rid in below and rid != root]
+
+
 def list_experiments(uri: str) -> list[str]:
     """Names of the store's active experiments (an empty or missing store: [])."""
     client = mlflow_client(uri)  # a damaged store raises a ConfigError naming it

@@ -311,3 +311,27 @@ def test_a_chain_of_sweep_reruns_notes_every_earlier_run_whose_jobs_moved(store)
     assert runs[a]["tags"]["mlflow.note.content"].startswith(
         f"**Resumed** by the sweep run **sweep-c** (`{c}`), which holds the finished jobs this run had")
     assert "sdrl.resumed_by" not in runs[same]["tags"] and "sdrl.resumed_by" not in runs[live]["tags"]
+
+
+def test_the_runs_running_below_a_sweep_are_its_jobs_and_theirs_whatever_their_parents_status(store):
+    """A stopped sweep ends what its workers left RUNNING: a job's run, and the runs under a job
+    (Dyna's rounds, a fidelity cluster's surrogates) also when the job's own run has ended; a
+    RUNNING run of another sweep is left alone."""
+    from sdrl_bench import tracking
+
+    def run(name: str, parent: str, status: str) -> str:
+        with tracking.start_run(store, "sdrl-bench", name, {"sdrl.kind": "fit"}, parent_run_id=parent) as r:
+            pass
+        tracking.Run(store, r.run_id).end(status)
+        return r.run_id
+
+    sweep, other = (tracking.create_parent_run(store, "sdrl-bench", n, {"sdrl.kind": "sweep"}) for n in ("s", "o"))
+    done = run("job-0", sweep, "KILLED")
+    rounds = [run("job-0-round0", done, "RUNNING")]
+    rounds.append(run("job-0-round0-part", rounds[0], "RUNNING"))
+    live = run("job-1", sweep, "RUNNING")
+    run("job-1-round0", live, "FINISHED")
+    theirs = run("other-job", other, "RUNNING")
+    below = tracking.running_below(store, "sdrl-bench", sweep)
+    assert sorted(below) == sorted([*rounds, live]) and theirs not in below
+    assert tracking.running_below(store, "sdrl-bench", other) == [theirs]
