@@ -57,7 +57,7 @@ from pysindy.feature_library.base import BaseFeatureLibrary, x_sequence_or_item
 from sdrl_bench import ConfigError
 from sdrl_bench.models.base import read_model_json, residual_noise, seeded_global_numpy, write_model_json
 from sdrl_bench.models.blas import matmul_rows
-from sdrl_bench.models.snap import snap_equation
+from sdrl_bench.models.snap import ALPHA, snap_equation
 from sdrl_bench.models.terms import TABLE, Term, evaluate_terms
 
 FORMAT = "sdrl-bench/per-equation-v1"
@@ -232,7 +232,7 @@ class PerEquationModel:
     summary_file = "equations.txt"
 
     def __init__(self, library: Any = None, optimizer: Any = None, seed: int = 0,
-                 snap_alpha: float | None = 0.01, snap_rtol: float = 1e-6):
+                 snap_alpha: float | None = ALPHA, snap_rtol: float = 1e-6):
         lib = _find_library(library) if library is not None else None
         if library is not None and lib is None:
             raise ConfigError("library: the per-equation model needs a per-equation library "

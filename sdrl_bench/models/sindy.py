@@ -25,7 +25,7 @@ from sdrl_bench import ConfigError
 from sdrl_bench.models.base import read_model_json, seeded_global_numpy, write_model_json
 from sdrl_bench.models.blas import matmul_rows
 from sdrl_bench.models.libraries import compile_terms
-from sdrl_bench.models.snap import prune_exact, snap_equation
+from sdrl_bench.models.snap import ALPHA, prune_exact, snap_equation
 from sdrl_bench.models.terms import evaluate_terms, validate_terms
 
 FORMAT = "sdrl-bench/sindy-model-v1"
@@ -63,7 +63,7 @@ class SindyModel:
     summary_file = "equations.txt"
 
     def __init__(self, library: BaseFeatureLibrary | None, optimizer=None, seed: int = 0,
-                 snap_alpha: float | None = 0.01, snap_rtol: float = 1e-6):
+                 snap_alpha: float | None = ALPHA, snap_rtol: float = 1e-6):
         if snap_alpha is not None and not 0.0 < float(snap_alpha) < 1.0:
             raise ConfigError(f"surrogate.model.snap_alpha must be in (0, 1) or null, got {snap_alpha!r}")
         if not isinstance(snap_rtol, (int, float)) or not snap_rtol > 0.0:
