@@ -5,9 +5,9 @@ hash and seed (``sdrl_bench.report.compare``) and prints both models' one-step M
 SINDy / NN ratios. ``--log`` also records the ratios as metrics (``sindy_over_nn/*``) on each
 pair's NN run, so they sit beside the run's own metrics in the MLflow UI.
 
-    cd /tmp/nn_cmp && /work/main/.venv/bin/sdrl-bench -m env=mountain_car,lunar_lander \\
-        surrogate=sindy,nn tracking.uri=sqlite:////tmp/nn_cmp/mlflow.db
-    .venv/bin/python studies/compare_surrogates.py --uri sqlite:////tmp/nn_cmp/mlflow.db --log
+    .venv/bin/sdrl-bench -m env=mountain_car,lunar_lander surrogate=sindy,nn \\
+        tracking.uri=sqlite:///runs/nn_cmp/mlflow.db
+    .venv/bin/python studies/compare_surrogates.py --uri sqlite:///runs/nn_cmp/mlflow.db --log
 """
 
 from __future__ import annotations
