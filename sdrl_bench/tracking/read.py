@@ -35,16 +35,31 @@ def child_statuses(uri: str, experiment: str, parent_run_id: str) -> list[str]:
 
 
 def running_below(uri: str, experiment: str, root: str) -> list[str]:
-    """The RUNNING runs under ``root``: its children, and the runs under them (a Dyna job's
-    round runs, a fidelity cluster's surrogate runs), whatever their parents' status."""
+    """The RUNNING runs under ``root``, at any depth and whatever their ancestors' status: the
+    jobs' runs and the runs under them (a Dyna job's round runs, a fidelity cluster's surrogate
+    runs). Each RUNNING run's ancestry is followed up to a run without a parent; only the
+    ancestors that are not RUNNING are read one by one (a sweep's finished jobs are not loaded)."""
     running = {r["run_id"]: r["tags"].get(PARENT_TAG) for r in find_runs(uri, experiment, "attributes.status = 'RUNNING'")}
-    below = {root} | {r["run_id"] for r in find_runs(uri, experiment, f"tags.`{PARENT_TAG}` = '{root}'")}
-    grew = True
-    while grew:
-        new = {rid for rid, parent in running.items() if parent in below and rid not in below}
-        below |= new
-        grew = bool(new)
-    return [rid for rid in running if rid in below and rid != root]
+    parent_of: dict[str, str | None] = dict(running)
+    client = mlflow_client(uri)
+
+    def parent(run_id: str) -> str | None:
+        if run_id not in parent_of:
+            try:
+                parent_of[run_id] = client.get_run(run_id).data.tags.get(PARENT_TAG)
+            except Exception:  # a deleted or unknown ancestor: the chain ends there
+                parent_of[run_id] = None
+        return parent_of[run_id]
+
+    out = []
+    for rid in running:
+        seen, up = {rid}, parent(rid)
+        while up is not None and up != root and up not in seen:
+            seen.add(up)
+            up = parent(up)
+        if up == root and rid != root:
+            out.append(rid)
+    return out
 
 
 def list_experiments(uri: str) -> list[str]:

@@ -331,6 +331,8 @@ def test_the_runs_running_below_a_sweep_are_its_jobs_and_theirs_whatever_their_p
     rounds.append(run("job-0-round0-part", rounds[0], "RUNNING"))
     live = run("job-1", sweep, "RUNNING")
     run("job-1-round0", live, "FINISHED")
+    middle = run("job-2-cluster", run("job-2", sweep, "FINISHED"), "FINISHED")
+    rounds.append(run("job-2-cluster-surrogate", middle, "RUNNING"))  # three levels down, its parents ended
     theirs = run("other-job", other, "RUNNING")
     below = tracking.running_below(store, "sdrl-bench", sweep)
     assert sorted(below) == sorted([*rounds, live]) and theirs not in below
