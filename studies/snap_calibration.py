@@ -64,6 +64,9 @@ def main() -> None:
         for seed in range(args.seeds):
             calls.clear()
             model = fit_dynamics(build_fit_job(compose([f"seed={seed}"]))).model
+            if len(calls) != len(model.state_names_):
+                raise SystemExit(f"seed {seed}: the fit called the snapping test {len(calls)} times for "
+                                 f"{len(model.state_names_)} equations (not a SindyModel with snapping on?)")
             for state, value in zip(model.state_names_, calls, strict=True):
                 if set(model.coefficients_by_name()[state]) == set(TRUE_SUPPORT[state]):
                     pvalues.append((seed, state, value))

@@ -480,6 +480,12 @@ class PerEquationModel:
     def describe(self) -> str:
         return "\n".join(self.equations()) + "\n"
 
+    def coefficients_by_name(self) -> dict[str, dict[str, float]]:
+        """{state: {term: coefficient}} for the nonzero coefficients, in the per-equation form
+        (a delta equation's own state is implied, as in ``equations``; the bias is "1")."""
+        return {s: {term_text(term) or "1": float(c) for c, term in zip(self.eq_coef_[s], self.library.parsed[s], strict=True)
+                    if c != 0.0} for s in self.state_names_}
+
     def summary_metrics(self) -> dict[str, float]:
         return {
             "n_library_terms": float(self.library.n_terms),

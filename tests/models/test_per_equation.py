@@ -117,3 +117,13 @@ def test_a_fit_with_pysindys_ensemble_optimizer_is_deterministic_under_its_seed(
     assert all(np.array_equal(m, n) for m, n in zip(a.members_, b.members_, strict=True))
     c = fit(4)
     assert any(not np.array_equal(a.eq_coef_[k], c.eq_coef_[k]) for k in TOY)
+
+
+def test_pendulums_shipped_fit_names_its_law_term_by_term():
+    """Pendulum-v1 fits per equation (library=pendulum_law): its nonzero coefficients by term, in
+    the per-equation form, are the env's law exactly (snapped), as studies/byo_env_laws.py checks."""
+    from sdrl_bench.pipeline import fit_dynamics
+
+    model = fit_dynamics(build_fit_job(compose_cfg("env=pendulum", "collector=random", "seed=0"))).model
+    assert isinstance(model, PerEquationModel)
+    assert model.coefficients_by_name() == {"th": {"thdot'": 0.05}, "thdot": {"sin(th)": 0.75, "torque": 0.15}}
