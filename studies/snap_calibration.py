@@ -21,7 +21,7 @@ import numpy as np
 from scipy import stats
 
 import sdrl_bench.models.sindy as sindy_model
-from sdrl_bench.models.snap import round_significant
+from sdrl_bench.models.snap import robust_covariance, round_significant
 
 TRUE_SUPPORT = {"x": ("x", "v", "u", "cos(3 x)"), "v": ("v", "u", "cos(3 x)")}
 """MountainCar's law, term by term (its coefficients have two significant digits: 1, 0.0015, -0.0025)."""
@@ -31,11 +31,9 @@ def true_law_pvalue(theta: np.ndarray, y: np.ndarray, coef: np.ndarray) -> float
     """The HC3 Wald test's p-value for the coefficients rounded to two significant digits
     (the law's own), against the fitted ones: the statistic ``snap_equation`` computes."""
     theta, y, coef = (np.asarray(a, dtype=float) for a in (theta, y, coef))
-    resid = y - theta @ coef
-    xtx_inv = np.linalg.inv(theta.T @ theta)
-    leverage = np.einsum("ij,jk,ik->i", theta, xtx_inv, theta)
-    meat = theta.T @ (theta * (resid**2 / (1.0 - leverage) ** 2)[:, None])
-    cov = xtx_inv @ meat @ xtx_inv
+    cov = robust_covariance(theta, y - theta @ coef)
+    if cov is None:
+        return float("nan")
     step = round_significant(coef, 2) - coef
     return float(stats.chi2.sf(float(step @ np.linalg.solve(cov, step)), len(coef)))
 

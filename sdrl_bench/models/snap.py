@@ -77,6 +77,21 @@ def prune_exact(theta: np.ndarray, y: np.ndarray, rtol: float = 1e-6) -> tuple[n
     return np.asarray(keep, dtype=int), coef
 
 
+def robust_covariance(theta: np.ndarray, resid: np.ndarray) -> np.ndarray | None:
+    """The HC3 (heteroscedasticity-robust) covariance of least-squares coefficients over the
+    columns of ``theta`` with residuals ``resid``; None for a degenerate design (a singular
+    normal matrix, or a row of leverage 1)."""
+    try:
+        xtx_inv = np.linalg.inv(theta.T @ theta)
+    except np.linalg.LinAlgError:
+        return None
+    leverage = np.einsum("ij,jk,ik->i", theta, xtx_inv, theta)
+    if not np.all(np.isfinite(leverage)) or np.any(leverage >= 1.0 - 1e-12):
+        return None
+    meat = theta.T @ (theta * (resid**2 / (1.0 - leverage) ** 2)[:, None])
+    return xtx_inv @ meat @ xtx_inv
+
+
 def snap_equation(theta: np.ndarray, y: np.ndarray, coef: np.ndarray, alpha: float = ALPHA,
                   rtol: float = 1e-6) -> tuple[np.ndarray, int]:
     """(coefficients, digits) for ``y ~ theta @ coef`` over the active terms (columns of theta).
@@ -92,15 +107,9 @@ def snap_equation(theta: np.ndarray, y: np.ndarray, coef: np.ndarray, alpha: flo
     resid = y - theta @ coef
     if float(resid @ resid) > rtol**2 * float(y @ y):
         return coef, 0
-    try:
-        xtx_inv = np.linalg.inv(theta.T @ theta)
-    except np.linalg.LinAlgError:
+    cov = robust_covariance(theta, resid)
+    if cov is None:
         return coef, 0
-    leverage = np.einsum("ij,jk,ik->i", theta, xtx_inv, theta)
-    if not np.all(np.isfinite(leverage)) or np.any(leverage >= 1.0 - 1e-12):
-        return coef, 0
-    meat = theta.T @ (theta * (resid**2 / (1.0 - leverage) ** 2)[:, None])
-    cov = xtx_inv @ meat @ xtx_inv
     critical = float(stats.chi2.ppf(1.0 - alpha, p))
     previous = None
     for digits in range(1, MAX_DIGITS + 1):

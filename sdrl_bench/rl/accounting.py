@@ -30,6 +30,8 @@ from typing import Any
 from sdrl_bench.envs.task import Prior, expert_budget
 
 OWN = ("model_data", "train", "selection")
+PREFIXES = ("real_steps/", "real_resets/")
+"""The prefixes of ``headline``'s metrics (a transfer run logs its fit's under ``fit/``)."""
 APART = ("monitor", "judge")
 
 

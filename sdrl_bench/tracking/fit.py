@@ -13,10 +13,6 @@ import numpy as np
 from sdrl_bench.tracking.client import Run, mlflow_client
 
 
-ACCOUNTING = ("real_steps/", "real_resets/")
-"""The prefixes of ``rl.accounting.headline``'s metrics."""
-
-
 def fit_metrics(result) -> dict[str, float]:
     """The metrics a fit run records (``result`` is a ``pipeline.FitResult``), with its real
     steps by purpose (``rl.accounting``: the model's data, the held-out set that judges it, the
@@ -54,6 +50,7 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
     transfer run: ``fit/real_steps/...``, so that its only headlines are its arms')."""
     from sdrl_bench.data import save_csv
     from sdrl_bench.plots import predicted_vs_true
+    from sdrl_bench.rl.accounting import PREFIXES
     from sdrl_bench.tracking.meta import describe_experiment, experiment_id_of, log_config, set_description
     from sdrl_bench.tracking.model import log_datasets, log_priors, log_surrogate_model
 
@@ -63,7 +60,7 @@ def log_fit(run: Run, result, params: Mapping[str, Any] | None = None, prefix: s
     elif params is not None:
         run.log_params(params)
     counted = prefix if accounting_prefix is None else accounting_prefix
-    run.log_metrics({f"{counted if k.startswith(ACCOUNTING) else prefix}{k}": v for k, v in fit_metrics(result).items()})
+    run.log_metrics({f"{counted if k.startswith(PREFIXES) else prefix}{k}": v for k, v in fit_metrics(result).items()})
     run.set_tags({"dataset_sha256": result.dataset_hash, "test_set": result.test_name, "test_set_sha256": result.test_hash,
                   "fit_regime": spec.fit_regime or "all"})
     if result.spec.task is not None:  # the surrogate's step noise and pessimism, or why it has none

@@ -157,7 +157,7 @@ def test_surrogate_steps_count_what_sac_took_and_the_fit_shares_names_with_fit_r
     accounting goes under ``fit/`` (the run's headlines are its arms')."""
     from sdrl_bench.cli.main import run_fit
     from sdrl_bench.tracking import fit_metrics
-    from sdrl_bench.tracking.fit import ACCOUNTING
+    from sdrl_bench.rl.accounting import PREFIXES
 
     summary = train(store, "rl.arms=[surrogate]", "rl.surrogate_steps=100", "agent.algo.train_freq=32",
                     "rl.eval_every=100")
@@ -167,7 +167,7 @@ def test_surrogate_steps_count_what_sac_took_and_the_fit_shares_names_with_fit_r
     transfer, fitrun = runs.loc["transfer"], runs.loc["fit"]
     assert transfer["metrics.surrogate/surrogate_steps"] == 128
     names = fit_metrics(fit)
-    accounting = [k for k in names if k.startswith(ACCOUNTING)]
+    accounting = [k for k in names if k.startswith(PREFIXES)]
     assert "real_steps/this_run" in accounting
     assert sorted(c for c in runs.columns if c.startswith("metrics.fit/")) == sorted(f"metrics.fit/{k}" for k in accounting)
     for k, v in names.items():
