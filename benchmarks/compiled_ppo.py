@@ -49,7 +49,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from sdrl_bench.cli.build import build_fit_job, compose, instantiate_key
 from sdrl_bench.pipeline import fit_dynamics
-from sdrl_bench.rl import jax_agent, jax_ppo
+from sdrl_bench.rl import jax_compile, jax_ppo
 from sdrl_bench.rl.agents import make_agent
 from sdrl_bench.rl.transfer import surrogate_vec_env
 from sdrl_bench.surrogate.model_env import ModelEnv
@@ -290,7 +290,7 @@ def main() -> None:
     fit_overrides = [*env["fit"], *([] if args.surrogate == "sindy" else [f"surrogate={args.surrogate}"])]
     cfg = compose(fit_overrides)
     torch.set_num_threads(int(cfg.torch_threads))  # as the harness trains SB3 (cli.train.prepare)
-    pool = jax_agent.size_cpu_pool(int(cfg.jax_threads) if args.jax_threads is None else args.jax_threads)  # ditto
+    pool = jax_compile.size_cpu_pool(int(cfg.jax_threads) if args.jax_threads is None else args.jax_threads)  # ditto
     t = time.perf_counter()
     fit = fit_dynamics(build_fit_job(cfg))
     print(f"fit: {args.env} {fit.model.kind} model from {len(fit.data.states):,} transitions ({' '.join(fit_overrides)}) "

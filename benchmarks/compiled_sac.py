@@ -9,7 +9,7 @@ then 32 gradient steps, a fixed entropy coefficient 0.1), built as the harness b
 times with the two interleaved and a fresh seed each time:
 
   (a) SB3's SAC training ``--steps`` steps in the surrogate vector env (torch networks);
-  (b) the compiled SAC (``rl.jax_agent.JaxSAC``): the same collection in Python, the gradient
+  (b) the compiled SAC (``rl.jax_sac_agent.JaxSAC``): the same collection in Python, the gradient
       steps one jax call per collection (its first call compiles: timed apart);
 
 the median training steps per second (collection + gradient steps), the ratio (b)/(a), the share
@@ -33,7 +33,7 @@ from compiled_ppo import sb3_run, sb3_surrogate_returns  # this folder's: the sc
 
 from sdrl_bench.cli.build import build_fit_job, compose, instantiate_key
 from sdrl_bench.pipeline import fit_dynamics
-from sdrl_bench.rl import jax_agent
+from sdrl_bench.rl import jax_compile, jax_sac_agent
 
 FIT = ["experiment=quick_mountain_car"]
 """The main job's surrogate (its fit: the pack's collector, library and optimizer)."""
@@ -52,7 +52,7 @@ def run_arm(agent, model, spec, steps: int, seed: int, eval_episodes: int) -> di
 def gradient_step_seconds(algo, repeats: int = 20) -> float:
     """Median seconds per gradient step of one train call (``gradient_steps`` steps on batches of
     ``batch_size``), warm, on the agent's own replay buffer; the agent trains on."""
-    if isinstance(algo, jax_agent.JaxSAC):
+    if isinstance(algo, jax_sac_agent.JaxSAC):
         call = algo._train
         n = algo.cfg.gradient_steps
     else:
@@ -66,7 +66,7 @@ def gradient_step_seconds(algo, repeats: int = 20) -> float:
     for _ in range(repeats):
         t = time.perf_counter()
         call()
-        if isinstance(algo, jax_agent.JaxSAC):
+        if isinstance(algo, jax_sac_agent.JaxSAC):
             import jax
 
             jax.block_until_ready(algo.state)
@@ -93,7 +93,7 @@ def main() -> None:
 
     cfg = compose(FIT)
     torch.set_num_threads(int(cfg.torch_threads))  # as the harness trains SB3 (cli.train.prepare)
-    pool = jax_agent.size_cpu_pool(int(cfg.jax_threads))  # ditto
+    pool = jax_compile.size_cpu_pool(int(cfg.jax_threads))  # ditto
     fit = fit_dynamics(build_fit_job(cfg))
     agents = {k: instantiate_key(compose([*FIT, over]).agent, "agent") for k, (over, _) in ARMS.items()}
     runs: dict[str, list[dict]] = {k: [] for k in ARMS}

@@ -27,7 +27,7 @@ warm-up finds them all; a second surrogate arm's finds the update): the latest s
 one-time cost, as the expert's training is), with the judged ratios as they would be had every run of
 the surrogate arm compiled cold (the real arms as measured: a conservative comparison); each run records
 how many of its programs came from the cache (``compile_cache_hits`` of ``compile_programs``; and
-``lowering_cache_hits``: whose lowerings came from the lowering cache, ``rl.jax_agent.compile_program``).
+``lowering_cache_hits``: whose lowerings came from the lowering cache, ``rl.jax_compile.compile_program``).
 ``--no-warm-up`` skips it (the first run of each compiled arm then compiles cold).
 
 For each: training wall and CPU seconds to the first solved evaluation (the surrogate arms'

@@ -34,11 +34,11 @@ def fit_pack(experiment: str, transitions: int | None) -> tuple:
     sized by the config's ``jax_threads`` first (also used by ``benchmarks/eval_interlude.py``)."""
     from sdrl_bench.cli.build import build_fit_job, compose
     from sdrl_bench.pipeline import fit_dynamics
-    from sdrl_bench.rl import jax_agent
+    from sdrl_bench.rl import jax_compile
 
     over = [f"experiment={experiment}", "agent=ppo_jax", "collector=heuristic"]
     cfg = compose([*over, *([f"n_transitions={transitions}"] if transitions else [])])
-    pool = jax_agent.size_cpu_pool(int(cfg.jax_threads))
+    pool = jax_compile.size_cpu_pool(int(cfg.jax_threads))
     return cfg, pool, fit_dynamics(build_fit_job(cfg))
 
 

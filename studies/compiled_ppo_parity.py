@@ -48,7 +48,7 @@ from scipy import stats
 
 from sdrl_bench.cli.build import build_fit_job, compose, instantiate_key
 from sdrl_bench.pipeline import fit_dynamics
-from sdrl_bench.rl import jax_agent
+from sdrl_bench.rl import jax_compile
 from sdrl_bench.rl.agents import make_agent
 from sdrl_bench.rl.transfer import surrogate_vec_env
 from sdrl_bench.surrogate.model_env import ModelEnv
@@ -90,7 +90,7 @@ def one_seed(env: str, steps: int, episodes: int, seed: int) -> dict[str, float]
     compiled = COMPILED.get(env, "ppo_jax")
     cfg = compose(fit_overrides)
     torch.set_num_threads(int(cfg.torch_threads))  # as the harness trains SB3 (cli.train.prepare)
-    jax_agent.size_cpu_pool(int(cfg.jax_threads))  # and the compiled agents
+    jax_compile.size_cpu_pool(int(cfg.jax_threads))  # and the compiled agents
     fit = fit_dynamics(build_fit_job(cfg))
     menv = ModelEnv(fit.model, fit.spec, seed=0)
     out = {}

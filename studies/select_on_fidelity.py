@@ -29,7 +29,7 @@ from sdrl_bench.cli.build import compose
 from sdrl_bench.cli.fidelity_task import run_fidelity_task
 from sdrl_bench.cli.search import run_search
 from sdrl_bench.report.tables import bootstrap_ci
-from sdrl_bench.rl.jax_agent import use_compilation_cache
+from sdrl_bench.rl.jax_compile import use_compilation_cache
 from sdrl_bench.search.space import GROUP_PARAMS, PARAM_KEYS
 
 DATA = {  # the fidelity pack's middle cluster: data size and collector

@@ -50,9 +50,9 @@ def prepare(cfg: DictConfig, job):
     torch_threads, jax_threads = check_run_keys(cfg)  # checked whatever the agent
     torch.set_num_threads(torch_threads)
     algo = getattr(job.agent.algo, "func", None)
-    compiled = bool(getattr(algo, "USES_JAX", False))  # rl.jax_agent's agents
+    compiled = bool(getattr(algo, "USES_JAX", False))  # the compiled agents (rl.jax_agent.CompiledAgent)
     if compiled:  # before anything creates JAX's backend (the job's check may)
-        from sdrl_bench.rl.jax_agent import size_cpu_pool
+        from sdrl_bench.rl.jax_compile import size_cpu_pool
 
         try:
             size_cpu_pool(jax_threads, getattr(algo, "LABEL", getattr(algo, "__qualname__", "the agent")))
@@ -60,7 +60,7 @@ def prepare(cfg: DictConfig, job):
             raise ConfigError(f"agent.algo: {exc}") from None
     checked = job.check()
     if cfg.get("jax_cache_dir") and compiled:
-        from sdrl_bench.rl.jax_agent import use_compilation_cache
+        from sdrl_bench.rl.jax_compile import use_compilation_cache
 
         use_compilation_cache(cfg.jax_cache_dir)
     uri = tracking.resolve_uri(cfg.tracking.uri)

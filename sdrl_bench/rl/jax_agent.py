@@ -1,7 +1,8 @@
-"""The compiled agents behind stable-baselines3's interface: the compiled PPO (``rl.jax_ppo``,
-``agent=ppo_jax``, ``JaxPPO``, described below) and SAC with its gradient steps compiled
-(``rl.jax_sac``, ``agent=sac_jax``, ``JaxSAC``: see its docstring); with what they share (the
-compiles' caches and counts, XLA's CPU pool).
+"""The compiled PPO behind stable-baselines3's interface (``rl.jax_ppo``, ``agent=ppo_jax``,
+``JaxPPO``, described below), and what it shares with the compiled SAC (``rl.jax_sac_agent.JaxSAC``):
+``CompiledAgent`` (the compile counters, callbacks, the timed compile) and the agents' file
+format (``write_agent``, ``read_agent``). The compiles' caches and XLA's CPU pool are
+``rl.jax_compile``'s.
 
 ``JaxPPO(policy="MlpPolicy", env=..., seed=..., **ppo_kwargs)`` takes SB3's PPO keyword arguments
 (``n_steps``, ``batch_size``, ``n_epochs``, ``gamma``, ``use_sde``, ``policy_kwargs.log_std_init``,
@@ -47,14 +48,12 @@ the rollout inside the compiled program (``jax_ppo``) behind the interface its r
 is this class; SB3's callback classes are used as they are.
 """
 
+
 from __future__ import annotations
 
-import contextlib
-import hashlib
 import io
 import json
 import os
-import re
 import time
 import warnings
 import zipfile
@@ -66,232 +65,10 @@ import numpy as np
 
 from sdrl_bench import ConfigError
 from sdrl_bench.rl import jax_ppo
+from sdrl_bench.rl.jax_compile import cache_hits, compile_program, cpu_pool_threads
 from sdrl_bench.rl.jax_ppo import PPOConfig
 
 FORMAT = "sdrl-bench-jax-ppo-v1"
-
-
-def use_compilation_cache(path: str | Path) -> None:
-    """JAX's persistent compilation cache in ``path`` (config ``jax_cache_dir``), for every
-    compiled program however short its compile: a program compiled before (the update of the same
-    recipe; a rollout over the same model, e.g. a rerun) loads from disk instead of compiling.
-    Measured on MountainCar's fast pack: 3.3 s cold, 0.4 s cached. ``compile_wall_seconds`` is
-    what a run spent, cached or not.
-
-    The XLA caches that JAX would otherwise keep under ``path`` as well (GPU kernels and
-    autotuning: ``jax_persistent_cache_enable_xla_caches``) are off, because their paths enter
-    every program's cache key: a cache copied or moved with its store then missed every program.
-    Measured: LunarLander's terrain programs loaded from the same folder in 0.82 s, and compiled
-    cold (7.0 s) from a copy of it elsewhere. These programs run on the CPU, where those caches
-    do nothing. The lowering cache (``compile_program``) lives in its ``lowered`` folder."""
-    jax, _, _ = jax_ppo._modules()
-    Path(path).mkdir(parents=True, exist_ok=True)
-    jax.config.update("jax_compilation_cache_dir", str(Path(path).resolve()))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
-    jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
-    jax.config.update("jax_persistent_cache_enable_xla_caches", "none")
-
-
-_CACHE_HIT = "/jax/compilation_cache/cache_hits"
-_cache = {"hits": 0, "listening": False}
-"""Programs this process loaded from JAX's persistent compilation cache, and whether the listener
-that counts them is registered (``cache_hits``)."""
-
-
-def _count_cache_hit(event: str, **_: Any) -> None:
-    if event == _CACHE_HIT:
-        _cache["hits"] += 1
-
-
-def cache_hits() -> int:
-    """Programs this process has loaded from the persistent compilation cache so far (JAX's
-    ``/jax/compilation_cache/cache_hits`` monitoring event; its listener is registered on the
-    first call)."""
-    if not _cache["listening"]:
-        import jax.monitoring  # noqa: PLC0415
-
-        jax.monitoring.register_event_listener(_count_cache_hit)
-        _cache["listening"] = True
-    return int(_cache["hits"])
-
-
-LOWERED = "lowered"
-"""The folder, inside JAX's persistent compilation cache, of the lowering cache
-(``compile_program``): one serialized ``jax.export.Exported`` per program."""
-_ADDRESS = re.compile(r" at 0x[0-9a-fA-F]+")
-_lowering = {"off": False}
-"""Whether this process found jax.export's serialization missing and turned the lowering cache
-off, with one warning (``compile_program``)."""
-
-
-def _constants(jaxpr: Any, out: list) -> list:
-    """Every constant a (closed) jaxpr holds, its nested ones included, in a fixed order: a
-    constant captured inside a nested ``jit``, ``scan`` or ``cond`` stays in that inner closed
-    jaxpr, and the printed jaxpr names it without its value."""
-    if hasattr(jaxpr, "consts") and hasattr(jaxpr, "jaxpr"):
-        out.extend(jaxpr.consts)
-        jaxpr = jaxpr.jaxpr
-    for eqn in jaxpr.eqns:
-        for value in eqn.params.values():
-            for x in value if isinstance(value, (tuple, list)) else (value,):
-                if hasattr(x, "eqns") or (hasattr(x, "consts") and hasattr(x, "jaxpr")):
-                    _constants(x, out)
-    return out
-
-
-def lowering_key(traced: Any, options: dict[str, Any]) -> str:
-    """The lowering cache's key of a traced program (``jax.jit(f).trace(*args)``): a SHA-256 of
-    what its lowering depends on: the program's jaxpr as text (every equation with its shapes,
-    dtypes, parameters and literals; memory addresses in callables' names taken out: they differ
-    from process to process and lowering does not read those callables), the values of its
-    captured constants (those of nested jaxprs too, ``_constants``), the layout of its arguments, jax's and jaxlib's versions, the backend,
-    every jax configuration value (some change a lowering without showing in the jaxpr, e.g. the
-    PRNG's implementation) but the cache folder's path, and the compiler options."""
-    import jax  # noqa: PLC0415
-    import jaxlib  # noqa: PLC0415
-
-    h = hashlib.sha256(_ADDRESS.sub("", str(traced.jaxpr)).encode())
-    for c in _constants(traced.jaxpr, []):
-        dtype = getattr(c, "dtype", None)
-        a = np.asarray(jax.random.key_data(c) if dtype is not None and jax.dtypes.issubdtype(dtype, jax.dtypes.prng_key) else c)
-        h.update(repr((a.dtype.str, a.shape)).encode())
-        h.update(np.ascontiguousarray(a).tobytes())
-    config = sorted((k, repr(v)) for k, v in jax.config.values.items() if k != "jax_compilation_cache_dir")
-    h.update(repr((str(traced.in_tree), jax.__version__, jaxlib.__version__, jax.default_backend(), config,
-                   sorted(options.items()))).encode())
-    return h.hexdigest()
-
-
-def compile_program(fn: Any, args: tuple, options: dict[str, Any]) -> tuple[Any, bool]:
-    """``fn`` (a ``jax.jit`` function) compiled for ``args`` with XLA ``options``: (a callable
-    taking and returning what ``fn`` does, whether its lowering came from the lowering cache).
-
-    With JAX's persistent compilation cache on (``use_compilation_cache``), a program's lowering
-    is kept beside it: the program is traced, and its lowering is loaded from
-    ``<cache>/lowered/<lowering_key>`` when there, else exported (``jax.export``) and saved
-    there; the exported program is then compiled, from JAX's cache when compiled before. Without
-    the persistent cache, ``fn`` is lowered and compiled as usual.
-
-    Hand-written, and why: JAX's persistent cache keys a program on its lowered module, so a
-    fresh process traces and lowers every program before it can load the compiled code; JAX keeps
-    its lowerings within a process only. ``jax.export`` serializes a lowering; what this adds is
-    the key, made from the traced program (``lowering_key``). Measured on LunarLander's terrain
-    pack in a fresh process, this 2-core machine (2026-11-27): the three programs (the episodes'
-    start, the rollout, the update) took 0.69 s to trace, lower and load from JAX's cache, and
-    0.50 s with their lowerings from this cache (of it, tracing 0.21 s and JAX's cache 0.21 s).
-    A program ``jax.export`` cannot hold (a host callback) is lowered and compiled as usual, and
-    so is every program, with one warning, where jax.export's serialization is missing
-    (``flatbuffers``, which the ``jax`` extra installs)."""
-    import jax  # noqa: PLC0415
-    from jax import export  # noqa: PLC0415
-
-    traced = fn.trace(*args)
-
-    def direct() -> tuple[Any, bool]:
-        return traced.lower().compile(compiler_options=options), False
-
-    folder = jax.config.jax_compilation_cache_dir
-    if not folder or _lowering["off"]:  # no persistent cache, or no serialization (warned once)
-        return direct()
-    leaves, in_tree = jax.tree_util.tree_flatten(args)
-    out_tree = jax.tree_util.tree_structure(traced.out_info)
-    path = Path(folder) / LOWERED / lowering_key(traced, options)
-    exported = None
-    if path.is_file():
-        try:
-            exported = export.deserialize(bytearray(path.read_bytes()))
-        except Exception:  # noqa: BLE001 - unreadable (cut short, another jax): lowered again and replaced
-            exported = None
-    hit = exported is not None
-    if exported is None:
-        def flat(*xs: Any) -> list:
-            return jax.tree_util.tree_leaves(fn(*jax.tree_util.tree_unflatten(in_tree, xs)))
-
-        try:
-            exported = export.export(jax.jit(flat))(*leaves)
-            blob = exported.serialize()
-        except ImportError as exc:  # jax.export's serialization needs flatbuffers (the jax extra has it)
-            warnings.warn(f"the lowering cache is off: {exc}", stacklevel=3)
-            _lowering["off"] = True  # the later programs go straight to the direct path
-            return direct()
-        except Exception:  # noqa: BLE001 - a program export cannot hold: compiled as it is
-            return direct()
-        tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp.write_bytes(blob)
-            os.replace(tmp, path)  # whole or absent, for a concurrent reader
-        except OSError as exc:  # a full or read-only cache: this run compiles all the same
-            warnings.warn(f"the lowering cache could not keep {path.name[:12]}...: {exc}", stacklevel=3)
-            with contextlib.suppress(OSError):
-                tmp.unlink(missing_ok=True)
-    exe = jax.jit(exported.call).lower(*leaves).compile(compiler_options=options)
-
-    def run(*a: Any) -> Any:
-        return jax.tree_util.tree_unflatten(out_tree, exe(*jax.tree_util.tree_leaves(a)))
-
-    return run, hit
-
-
-POOL_THREAD_NAME = "tf_XLAEigen"
-"""The name XLA's CPU client gives the threads of its pool (Linux's ``/proc/self/task/*/comm``)."""
-
-
-def cpu_pool_threads() -> int | None:
-    """Threads in XLA's CPU pool now: 0 before JAX's CPU backend exists, None where they cannot be
-    read (no ``/proc``)."""
-    try:
-        tasks = os.listdir("/proc/self/task")
-    except OSError:
-        return None
-    n = 0
-    for tid in tasks:
-        try:
-            with open(f"/proc/self/task/{tid}/comm") as f:
-                n += f.read().strip() == POOL_THREAD_NAME
-        except OSError:  # a thread that ended meanwhile
-            continue
-    return n
-
-
-def size_cpu_pool(threads: int, who: str = "sdrl_bench.rl.jax_agent") -> int | None:
-    """Create JAX's CPU backend with ``threads`` threads in XLA's CPU pool (config ``jax_threads``;
-    0: XLA's default, one per CPU the process may run on), as ``torch_threads`` sets torch's.
-    Returns the pool's size (``cpu_pool_threads``); ``who`` names the caller in the install hint
-    when jax is missing (an agent's ``LABEL``).
-
-    Hand-written, and why: jax (0.10) has no setting for the pool (``make_cpu_client`` takes no
-    thread count); XLA sizes it to the CPUs the creating thread may run on. So the creating
-    thread's CPU affinity is narrowed to ``threads`` CPUs while the backend is created, then every
-    thread of the process gets back the affinity it had, and the pool's new threads the process's:
-    the pool has ``threads`` threads, none of them pinned. Measured on this 2-core machine, terrain
-    LunarLander's fast pack (64 envs x 128 steps, minibatches of 256): one compiled iteration,
-    rollout and update, took 53-56 ms with XLA's two threads and 41-43 ms with one. The programs'
-    products and fusions are small; handing them between two threads costs more than the second
-    core gives. Only on Linux (``os.sched_setaffinity``); elsewhere, or once the backend exists
-    (a sweep's later jobs), the pool stays as it is, with a warning if it differs."""
-    jax, _, _ = jax_ppo._modules(who)
-    have = cpu_pool_threads()
-    if threads == 0 or have is None or not hasattr(os, "sched_setaffinity"):
-        jax.devices("cpu")
-        return cpu_pool_threads()
-    if have:  # the backend exists: its pool is fixed for the process's life
-        if have != threads:
-            warnings.warn(f"jax_threads={threads}: JAX's CPU backend already exists in this process with "
-                          f"{have} pool threads; they stay", stacklevel=2)
-        return have
-    full = os.sched_getaffinity(0)
-    before = {int(t): os.sched_getaffinity(int(t)) for t in os.listdir("/proc/self/task")}
-    try:
-        os.sched_setaffinity(0, set(sorted(full)[:threads]))
-        jax.devices("cpu")
-    finally:
-        for tid in os.listdir("/proc/self/task"):
-            try:
-                os.sched_setaffinity(int(tid), before.get(int(tid), full))
-            except OSError:  # a thread that ended meanwhile
-                continue
-    return cpu_pool_threads()
 
 
 def _surrogate_of(env: Any) -> tuple[Any, Any]:
@@ -312,7 +89,7 @@ def _compiled_rollout(kwargs: dict[str, Any]) -> bool:
     return value
 
 
-def _write_agent(path: str | Path, meta: dict[str, Any], leaves: list, optimizer: list) -> None:
+def write_agent(path: str | Path, meta: dict[str, Any], leaves: list, optimizer: list) -> None:
     """A compiled agent's file: a zip of ``config.json`` (``meta``), ``params.npz`` (the
     parameters' arrays in pytree order) and ``optimizer.npz`` (the optimisers' states, Adam's
     moments and step counts, in pytree order: as SB3's ``save`` keeps its optimisers', so that a
@@ -332,8 +109,8 @@ def _write_agent(path: str | Path, meta: dict[str, Any], leaves: list, optimizer
         tmp.unlink(missing_ok=True)
 
 
-def _read_agent(path: str | Path, fmt: str, name: str) -> tuple[dict[str, Any], list[np.ndarray], list[np.ndarray] | None]:
-    """(meta, parameters, optimiser states or None) of a file ``_write_agent`` wrote (None: a
+def read_agent(path: str | Path, fmt: str, name: str) -> tuple[dict[str, Any], list[np.ndarray], list[np.ndarray] | None]:
+    """(meta, parameters, optimiser states or None) of a file ``write_agent`` wrote (None: a
     file from before the optimisers were kept); another format, or a file that is not a whole
     agent (cut short, or without its parameters), is one error naming the file."""
     try:
@@ -353,7 +130,7 @@ def _read_agent(path: str | Path, fmt: str, name: str) -> tuple[dict[str, Any], 
     return meta, leaves, opt
 
 
-def _restore(jax: Any, fresh: Any, saved: list[np.ndarray] | None) -> Any:
+def restore_leaves(jax: Any, fresh: Any, saved: list[np.ndarray] | None) -> Any:
     """``fresh``'s pytree with ``saved``'s arrays (jax arrays), or ``fresh`` where nothing was saved;
     a file whose arrays do not fit it is one error."""
     if saved is None:
@@ -364,7 +141,7 @@ def _restore(jax: Any, fresh: Any, saved: list[np.ndarray] | None) -> Any:
     return jax.tree_util.tree_unflatten(treedef, [jax.numpy.asarray(x) for x in saved])
 
 
-def _check_loaded_env(who: str, path: Any, env: Any, n_envs: int, n_obs: int, n_act: int,
+def check_loaded_env(who: str, path: Any, env: Any, n_envs: int, n_obs: int, n_act: int,
                       bounds: tuple[np.ndarray | None, np.ndarray | None], normalize_reward: bool) -> None:
     """The env a saved agent is loaded to train on fits the file, each mismatch one line naming
     it: the copy count, the observation's size, the action space (a categorical agent's count, a
@@ -392,7 +169,7 @@ def _check_loaded_env(who: str, path: Any, env: Any, n_envs: int, n_obs: int, n_
                           f"(agent.normalize_reward), the env is {'wrapped in' if scaled else 'not in'} VecNormalize's")
 
 
-class _CompiledAgent:
+class CompiledAgent:
     """What the compiled agents (``JaxPPO``, ``JaxSAC``) share behind SB3's interface: the
     compile counters the runners record, ``get_env``, ``set_logger``, the callback's set-up, and
     the ahead-of-time, timed compile of a program (``compile_program``)."""
@@ -492,7 +269,7 @@ class _CompiledAgent:
         return callback
 
 
-class JaxPPO(_CompiledAgent):
+class JaxPPO(CompiledAgent):
     """PPO with the rollout and the update compiled by jax, behind SB3's interface (module
     docstring)."""
 
@@ -553,7 +330,7 @@ class JaxPPO(_CompiledAgent):
         return k
 
     def _exploration(self, rng: np.random.Generator, n: int) -> np.ndarray | None:
-        """As ``jax_ppo.exploration_matrices``, drawn by numpy (``_CompiledAgent.reset_noise``)."""
+        """As ``jax_ppo.exploration_matrices``, drawn by numpy (``CompiledAgent.reset_noise``)."""
         log_std = None if self.net is None else self.net.get("log_std")
         if log_std is None or log_std.ndim == 1:
             return None
@@ -771,7 +548,7 @@ class JaxPPO(_CompiledAgent):
             if self._host is None or self._host[0] is not self.net:
                 self._host = (self.net, jax_ppo.HostPolicy(self.net, *self._bounds))
             out = self._host[1](batch)
-        else:  # from the predict stream, never the training's (_CompiledAgent.reset_noise)
+        else:  # from the predict stream, never the training's (CompiledAgent.reset_noise)
             explore = self._sde_matrices(len(batch))
             noise = None
             if explore is None:
@@ -783,273 +560,28 @@ class JaxPPO(_CompiledAgent):
 
     # ------------------------------------------------------------------ files
     def save(self, path: str | Path) -> None:
-        """A zip (``_write_agent``): ``config.json`` (the PPO config, sizes, action bounds, steps),
+        """A zip (``write_agent``): ``config.json`` (the PPO config, sizes, action bounds, steps),
         the networks' arrays and Adam's state."""
         leaves = self._jax.tree_util.tree_leaves(self.net)
         low, high = self._bounds
         meta = {"format": FORMAT, "config": asdict(self.cfg), "n_obs": self._n_obs, "n_act": self._n_act,
                 "action_low": None if low is None else low.tolist(), "action_high": None if high is None else high.tolist(),
                 "num_timesteps": int(self.num_timesteps), "seed": self.seed, "compiled_rollout": self.compiled_rollout}
-        _write_agent(path, meta, leaves, self._jax.tree_util.tree_leaves(self._opt))
+        write_agent(path, meta, leaves, self._jax.tree_util.tree_leaves(self._opt))
 
     @classmethod
     def load(cls, path: str | Path, env: Any = None, device: Any = None, **_: Any) -> JaxPPO:
         """An agent ``save`` wrote (``env``: to train on; its copy count must be the saved one)."""
-        meta, leaves, opt = _read_agent(path, FORMAT, "JaxPPO")
+        meta, leaves, opt = read_agent(path, FORMAT, "JaxPPO")
         agent = cls(seed=meta["seed"], compiled_rollout=bool(meta.get("compiled_rollout", True)))
         cfg = PPOConfig(**meta["config"])
         bounds = [None if meta[k] is None else np.asarray(meta[k], np.float32) for k in ("action_low", "action_high")]
         agent._init(cfg, meta["n_obs"], meta["n_act"], *bounds)
-        agent.net = _restore(agent._jax, agent.net, leaves)
-        agent._opt = _restore(agent._jax, jax_ppo.optimizer(cfg).init(agent.net), opt)
+        agent.net = restore_leaves(agent._jax, agent.net, leaves)
+        agent._opt = restore_leaves(agent._jax, jax_ppo.optimizer(cfg).init(agent.net), opt)
         agent.num_timesteps = int(meta["num_timesteps"])
         if env is not None:
-            _check_loaded_env("JaxPPO", path, env, cfg.n_envs, agent._n_obs, agent._n_act, agent._bounds,
+            check_loaded_env("JaxPPO", path, env, cfg.n_envs, agent._n_obs, agent._n_act, agent._bounds,
                               cfg.normalize_reward)
-            agent.env = env
-        return agent
-
-
-SAC_FORMAT = "sdrl-bench-jax-sac-v1"
-NO_REWARD_SCALING = ("agent.normalize_reward: the compiled SAC (agent=sac_jax) trains on the env's own rewards; "
-                     "set agent.normalize_reward=false")
-
-
-class JaxSAC(_CompiledAgent):
-    """SAC with its update compiled by jax (``rl.jax_sac``), behind SB3's interface:
-    ``agent=sac_jax``. ``JaxSAC(policy="MlpPolicy", env=..., seed=..., **sac_kwargs)`` takes SB3's
-    SAC keyword arguments (``jax_sac.SACConfig.from_kwargs`` refuses the rest in one line).
-
-    ``learn`` is SB3's off-policy loop: ``train_freq`` vector steps collected in Python (the
-    actor's actions by numpy, ``jax_sac.HostActor``; callbacks' ``on_step`` after every vector
-    step, ``on_rollout_start`` / ``on_rollout_end`` around each collection), then
-    ``gradient_steps`` gradient steps in one compiled call on batches drawn on the host from the
-    replay buffer (``jax_sac.Replay``). The same path serves the surrogate (its vector env, a Dyna
-    refit included) and the real env (the control). The update is compiled once, ahead of time
-    and timed (``compile_seconds``); ``rollout_compiles`` stays 0. ``predict`` is SB3's: tanh of
-    the (clipped) mean, or a sample, scaled to the action space. Rewards are the env's: a
-    ``VecNormalize`` around it (``agent.normalize_reward``) is refused, as is any space but Box.
-
-    ``save`` keeps the networks, the targets, the entropy coefficient and the three Adam states,
-    as SB3's does; not the replay buffer (SB3 keeps it apart, ``save_replay_buffer``, which this
-    class does not have)."""
-
-    LABEL = "the compiled SAC (agent=sac_jax, sdrl_bench.rl.jax_agent.JaxSAC)"
-    """What a missing extra's message names."""
-
-    def __init__(self, policy: str = "MlpPolicy", env: Any = None, seed: int | None = None, verbose: int = 0,
-                 device: Any = None, **kwargs: Any):
-        from sdrl_bench.rl import jax_sac  # noqa: PLC0415
-
-        if policy != "MlpPolicy":
-            raise ConfigError(f"agent.algo.policy: JaxSAC has MlpPolicy only, got {policy!r}")
-        self._kwargs = dict(kwargs)
-        self._sac = jax_sac
-        self.env = env
-        self.seed = int(seed or 0)
-        self.verbose = verbose
-        self._init_counters()
-        self.gradient_steps_done = 0
-        """Gradient steps taken over this agent's life (SB3's ``_n_updates``)."""
-        self.rollout_backend = "python"
-        self._jax, self._jnp, _ = jax_ppo._modules()
-        self._host_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 53]))
-        """Collection's draws (gSDE matrices, Gaussian noise, warm-up actions), replay samples and
-        the update's keys: one stream, from the seed."""
-        self.cfg = None
-        self.state = None
-        self._train_exe = None
-        self._host: Any = None
-        self._replay = None
-        self._last_obs = None
-        self._episodes = 0
-        self._ep_returns: list[float] = []
-        if env is not None:
-            self._setup(env)
-            env.seed(self.seed)
-
-    @staticmethod
-    def check_config(kwargs: dict[str, Any], n_envs: int, normalize_reward: bool = False) -> None:
-        """Config-time validation (``rl.agents.AgentConfig.check``): the optional extra is
-        installed, the keyword arguments are ones this SAC has and rewards are not scaled, each
-        failure one line."""
-        if normalize_reward:
-            raise ConfigError(NO_REWARD_SCALING)
-        try:
-            jax_ppo._modules(JaxSAC.LABEL)
-        except ImportError as exc:
-            raise ConfigError(f"agent.algo: {exc}") from None
-        from sdrl_bench.rl.jax_sac import SACConfig  # noqa: PLC0415
-
-        SACConfig.from_kwargs(dict(kwargs), n_envs, "agent.algo")
-
-    def _setup(self, env: Any) -> None:
-        from stable_baselines3.common.vec_env import VecNormalize  # noqa: PLC0415
-
-        if isinstance(env, VecNormalize):
-            raise ConfigError(NO_REWARD_SCALING)
-        space = env.action_space
-        if not hasattr(space, "low"):
-            raise ConfigError(f"agent=sac_jax: SAC acts in Box spaces, not {type(space).__name__}")
-        cfg = self._sac.SACConfig.from_kwargs(self._kwargs, env.num_envs, "agent.algo")
-        self._init(cfg, int(np.prod(env.observation_space.shape)), int(np.prod(space.shape)),
-                   np.asarray(space.low, np.float32), np.asarray(space.high, np.float32))
-
-    def _init(self, cfg: Any, n_obs: int, n_act: int, low: np.ndarray, high: np.ndarray, nets: Any = None) -> None:
-        """The networks (fresh from the seed, or ``nets``), Adam's states, the replay buffer and
-        the update's jitted function (compiled on first use)."""
-        sac = self._sac
-        self.cfg, self._n_obs, self._n_act, self._bounds = cfg, n_obs, n_act, (low, high)
-        self.state = sac.init_state(cfg, nets if nets is not None else sac.init_nets(self.seed, cfg, n_obs, n_act))
-        self.pool_threads = cpu_pool_threads()
-        self._replay = sac.Replay(cfg.rows, cfg.n_envs, n_obs, n_act)
-        self._train_fn = self._jax.jit(sac.make_train(cfg, n_act))
-        self._train_exe = None
-        self._host = None
-
-    def _exploration(self, rng: np.random.Generator, n: int) -> np.ndarray | None:
-        return self._actor().exploration(rng, n)  # the draw collection makes (jax_sac.HostActor)
-
-    def _actor(self) -> Any:
-        """The host's copy of the actor, made again after each update."""
-        if self._host is None:
-            self._host = self._sac.HostActor(self.cfg, self.state.nets.actor, *self._bounds)
-        return self._host
-
-    def _host_key(self) -> np.ndarray:
-        return self._host_rng.integers(0, 2**32, size=2, dtype=np.uint32)
-
-    # ------------------------------------------------------------------ SB3's interface
-    def learn(self, total_timesteps: int, callback: Any = None, log_interval: int = 4, tb_log_name: str = "JaxSAC",
-              reset_num_timesteps: bool = True, progress_bar: bool = False) -> JaxSAC:
-        """Train for at least ``total_timesteps`` more env steps (whole collections of
-        ``train_freq`` vector steps), as SB3's off-policy ``learn``: a callback returning False
-        from ``on_step`` ends it."""
-        if self.env is None:
-            raise ValueError("JaxSAC.learn: no env (load(path, env=...) to train on)")
-        if reset_num_timesteps:  # as SB3's _setup_learn: the episode count and the returns' window too
-            self.num_timesteps, self._episodes, self._ep_returns = 0, 0, []
-            self._last_obs = None
-        callback = self._callback(callback, progress_bar)
-        total_timesteps = target = self.num_timesteps + int(total_timesteps)  # SB3's locals: the target, not the increment
-        callback.on_training_start(locals(), globals())
-        cfg = self.cfg
-        while self.num_timesteps < target:
-            if not self._collect(callback, log_interval):
-                break
-            if self.num_timesteps > cfg.learning_starts and cfg.gradient_steps > 0:
-                self._train()
-        self._dump()  # the last losses, also where no episode ended (SB3 logs at episode ends only)
-        self._noise = None  # stochastic predict's next gSDE draw uses the trained log_std
-        callback.on_training_end()
-        return self
-
-    def _collect(self, callback: Any, log_interval: int) -> bool:
-        """``train_freq`` vector steps into the replay buffer, as SB3's ``collect_rollouts``;
-        False when a callback stops training."""
-        env, cfg, n = self.env, self.cfg, self.env.num_envs
-        if self._last_obs is None:
-            self._last_obs = env.reset()
-        actor, rng = self._actor(), self._host_rng
-        explore = actor.exploration(rng, n)
-        callback.on_rollout_start()
-        for _ in range(cfg.train_freq):
-            obs = np.asarray(self._last_obs, np.float32).reshape(n, -1)
-            if self.num_timesteps < cfg.learning_starts and not (cfg.use_sde and cfg.use_sde_at_warmup):
-                buffer_actions = rng.uniform(-1.0, 1.0, (n, self._n_act)).astype(np.float32)
-            else:
-                buffer_actions = actor.sample(obs, rng, explore).astype(np.float32)
-            actions = actor.unscale(buffer_actions)
-            new_obs, rewards, dones, infos = env.step(actions)
-            self.num_timesteps += n
-            callback.update_locals(locals())  # SB3's names: actions, buffer_actions, new_obs, rewards, dones, infos
-            if not callback.on_step():
-                return False
-            next_obs = np.array(new_obs, np.float32).reshape(n, -1)
-            stored_dones = np.asarray(dones, np.float32).copy()
-            for i, done in enumerate(dones):
-                info = infos[i]
-                if not done:
-                    continue
-                if info.get("terminal_observation") is not None:
-                    next_obs[i] = np.asarray(info["terminal_observation"], np.float32).reshape(-1)
-                if info.get("TimeLimit.truncated", False):
-                    stored_dones[i] = 0.0
-                if "episode" in info:
-                    self._ep_returns = [*self._ep_returns[-99:], float(info["episode"]["r"])]
-                self._episodes += 1
-                if log_interval and self._episodes % log_interval == 0:
-                    self._dump()
-            self._replay.add(obs, next_obs, buffer_actions, np.asarray(rewards, np.float32), stored_dones)
-            self._last_obs = new_obs
-        callback.on_rollout_end()
-        return True
-
-    def _train(self) -> None:
-        """``gradient_steps`` gradient steps in one compiled call (compiled ahead of time on the
-        first, and timed)."""
-        cfg = self.cfg
-        batches = self._replay.sample(self._host_rng, cfg.gradient_steps, cfg.batch_size)
-        args = (self.state, batches, self._host_key())
-        if self._train_exe is None:
-            self._train_exe = self._timed_compile(self._train_fn, *args)
-        self.state, stats = self._train_exe(*args)
-        self._host = None
-        self.gradient_steps_done += cfg.gradient_steps
-        log = self._logger()
-        log.record("train/n_updates", self.gradient_steps_done, exclude="tensorboard")
-        for k, v in stats.items():
-            log.record(f"train/{k}", float(v))
-
-    def _dump(self) -> None:
-        log = self._logger()
-        if self._ep_returns:
-            log.record("rollout/ep_rew_mean", float(np.mean(self._ep_returns)))
-        log.record("time/episodes", self._episodes, exclude="tensorboard")
-        log.dump(step=self.num_timesteps)
-
-    def predict(self, observation: Any, state: Any = None, episode_start: Any = None,
-                deterministic: bool = False) -> tuple[np.ndarray, None]:
-        """The action for one observation or a batch, in the action space's bounds: tanh of the
-        (clipped) mean when ``deterministic``, else a sample (gSDE: the held matrices, ``reset_noise``)."""
-        obs = np.asarray(observation, np.float32)
-        single = obs.ndim == 1
-        batch = obs.reshape(1 if single else obs.shape[0], -1)
-        actor = self._actor()
-        scaled = (actor.deterministic(batch) if deterministic  # else the predict stream (reset_noise)
-                  else actor.sample(batch, self._predict_rng, self._sde_matrices(len(batch))))
-        out = actor.unscale(scaled).astype(np.float32)
-        return (out[0] if single else out), None
-
-    # ------------------------------------------------------------------ files
-    def save(self, path: str | Path) -> None:
-        """A zip (``_write_agent``): ``config.json`` (the SAC config, sizes, action bounds, steps),
-        the networks, targets and log-alpha, and the three Adam states."""
-        leaves = self._jax.tree_util.tree_leaves(self.state.nets)
-        low, high = self._bounds
-        meta = {"format": SAC_FORMAT, "config": asdict(self.cfg), "n_obs": self._n_obs, "n_act": self._n_act,
-                "action_low": low.tolist(), "action_high": high.tolist(), "num_timesteps": int(self.num_timesteps),
-                "gradient_steps_done": int(self.gradient_steps_done), "seed": self.seed}
-        _write_agent(path, meta, leaves, self._jax.tree_util.tree_leaves(self.state[1:]))
-
-    @classmethod
-    def load(cls, path: str | Path, env: Any = None, device: Any = None, **_: Any) -> JaxSAC:
-        """An agent ``save`` wrote (``env``: to train on; its copy count must be the saved one)."""
-        from sdrl_bench.rl import jax_sac  # noqa: PLC0415
-
-        meta, leaves, opt = _read_agent(path, SAC_FORMAT, "JaxSAC")
-        config = dict(meta["config"])
-        for k in ("net_arch", "qf_arch"):
-            config[k] = tuple(config[k])
-        cfg = jax_sac.SACConfig(**config)
-        agent = cls(seed=meta["seed"])
-        low, high = (np.asarray(meta[k], np.float32) for k in ("action_low", "action_high"))
-        nets = _restore(agent._jax, jax_sac.init_nets(agent.seed, cfg, meta["n_obs"], meta["n_act"]), leaves)
-        agent._init(cfg, meta["n_obs"], meta["n_act"], low, high, nets)
-        agent.state = jax_sac.State(agent.state.nets, *_restore(agent._jax, tuple(agent.state[1:]), opt))
-        agent.num_timesteps = int(meta["num_timesteps"])
-        agent.gradient_steps_done = int(meta.get("gradient_steps_done", 0))
-        if env is not None:
-            _check_loaded_env("JaxSAC", path, env, cfg.n_envs, agent._n_obs, agent._n_act, agent._bounds, False)
             agent.env = env
         return agent

@@ -1,5 +1,5 @@
 """SAC's update compiled by jax (issue 31, "and SAC if it fits"): ``gradient_steps`` gradient steps
-in one ``jax.jit`` of a ``lax.scan``; ``rl.jax_agent.JaxSAC`` puts it behind stable-baselines3's
+in one ``jax.jit`` of a ``lax.scan``; ``rl.jax_sac_agent.JaxSAC`` puts it behind stable-baselines3's
 interface (``agent=sac_jax``).
 
 Why only the update: SAC takes one gradient step per env step (the package's recipe: 32 steps
@@ -33,7 +33,7 @@ SB3's own ``train`` from the same weights, batch and noise: ``tests/rl/test_jax_
 * float32 networks initialised as torch's ``nn.Linear`` (weights and biases uniform in
   +-1/sqrt(fan_in)), the targets copies of the critics.
 
-The collection (``rl.jax_agent.JaxSAC``) is SB3's ``collect_rollouts``: ``train_freq`` vector steps,
+The collection (``rl.jax_sac_agent.JaxSAC``) is SB3's ``collect_rollouts``: ``train_freq`` vector steps,
 uniform random actions before ``learning_starts`` (unless ``use_sde_at_warmup``), transitions in a
 replay buffer of ``buffer_size // n_envs`` rows per copy whose done flag drops timeouts
 (``TimeLimit.truncated``: SB3's ``handle_timeout_termination``), ``gradient_steps`` gradient steps

@@ -105,7 +105,7 @@ class ArmResult:
     """A compiled agent's: ``compile_programs`` (programs it compiled), ``compile_cache_hits``
     (those loaded from JAX's persistent compilation cache: 0 is a cold compile),
     ``lowering_cache_hits`` (those whose lowering came from the lowering cache,
-    ``rl.jax_agent.compile_program``) and
+    ``rl.jax_compile.compile_program``) and
     ``rollout_compiles`` (rollouts compiled with the surrogate's step: 0 where the rollout stepped
     in Python, in real envs or in a surrogate the compiled step does not cover)."""
 

@@ -1,4 +1,4 @@
-"""agent=sac_jax (rl/jax_sac.py, rl/jax_agent.JaxSAC): SAC with its gradient steps compiled by jax.
+"""agent=sac_jax (rl/jax_sac.py, rl/jax_sac_agent.JaxSAC): SAC with its gradient steps compiled by jax.
 Its gradient steps are SB3's: from the same weights, batches and noise, three steps of SB3's own
 ``SAC.train`` and of ``jax_sac.gradient_step`` give the same networks (gSDE with a fixed entropy
 coefficient, as the package's recipe; plain Gaussian with a learned one, as SB3's default). The
@@ -29,7 +29,7 @@ from sdrl_bench.cli.build import build_fit_job, instantiate_key  # noqa: E402
 from sdrl_bench.pipeline import fit_dynamics  # noqa: E402
 from sdrl_bench.rl import jax_sac  # noqa: E402
 from sdrl_bench.rl.agents import RealEvalCallback, make_agent, real_vec_env, train  # noqa: E402
-from sdrl_bench.rl.jax_agent import JaxSAC  # noqa: E402
+from sdrl_bench.rl.jax_sac_agent import JaxSAC  # noqa: E402
 from sdrl_bench.rl.transfer import surrogate_vec_env  # noqa: E402
 
 SMALL = ["experiment=quick_mountain_car", "agent=sac_jax", "agent.algo.batch_size=64"]
