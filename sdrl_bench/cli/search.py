@@ -34,7 +34,7 @@ from sdrl_bench.cli.build import bool_key, build_fit_job, compose, exit_after_st
 from sdrl_bench.pipeline import FitJob
 from sdrl_bench.search.refine import run_refinement
 from sdrl_bench.search.study import BuildJob, StudySettings, check_study, run_study
-from sdrl_bench.search.summary import comparison_table, load_summaries, summarize
+from sdrl_bench.search.summary import check_export, comparison_table, load_summaries, summarize
 from sdrl_bench.search.space import GROUP_PARAMS, PARAM_KEYS, Conditions, SearchSpace, check_model_kind, conditions, parse_space
 from sdrl_bench.search.location import resolve_storage
 from sdrl_bench.search.storage import check_study_name, open_storage
@@ -128,6 +128,9 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
     study_seed, worker = int_key(cfg, "study.seed", minimum=0), int_key(cfg, "study.worker", minimum=0)
     heartbeat_interval = int_key(cfg, "study.heartbeat_interval", minimum=1)
     heartbeat_grace = int_key(cfg, "study.heartbeat_grace", minimum=1)
+    if heartbeat_grace < heartbeat_interval:  # every live trial would look stale between two beats
+        raise ConfigError(f"study.heartbeat_grace: {heartbeat_grace} s is shorter than study.heartbeat_interval "
+                          f"({heartbeat_interval} s), so other workers would fail live trials as stale; set it >= the interval")
     space = parse_space(OmegaConf.to_container(sc.space, resolve=True))
     kind = str(cfg.surrogate.get("kind", "sindy"))
     check_model_kind(space, kind)
@@ -156,6 +159,7 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
             n_trials *= len(values)
     objective = str(sc.get("objective", "one_step"))
     name = st.name or f"{choices.get('env', 'env')}-{sc.name}-s{seed}" + ("" if objective == "one_step" else f"-{objective}")
+    check_export(st.get("export_dir"), check_study_name(str(name)))
     return StudySettings(
         name=str(name), space=space, storage=st.storage, objectives=tuple(sc.objectives), objective=objective,
         policy=_policy_probe(cfg, objective, seed),

@@ -9,12 +9,13 @@ died (SIGKILL, a lost node) is marked FAIL after the grace period, and its MLflo
 
 from __future__ import annotations
 
+import contextlib
 import re
 import time
 import warnings
 from pathlib import Path
 from typing import Any
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 
 import optuna
 
@@ -71,6 +72,30 @@ def open_storage(
     except Exception as exc:
         reason = str(getattr(exc, "orig", None) or exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise ConfigError(f"study.storage: cannot open {redact(url)} ({type(exc).__name__}: {reason})") from None
+
+
+def local_file(url: str) -> Path | None:
+    """The file of a local storage URL (``sqlite:///<path>``, ``journal:<path>``), else None."""
+    local = next((url[len(p):] for p in ("sqlite:///", "journal:") if url.startswith(p)), None)
+    return None if local is None else Path(local.split("?")[0])
+
+
+@contextlib.contextmanager
+def summary_lock(url: str, study: str) -> Iterator[None]:
+    """Held while a worker summarizes study ``study`` (``search.summary.summarize``), so that the
+    workers of one study that finish together summarize one after the other: the second reads
+    the first's refit of the best trial and refits nothing, and they do not write the parent
+    run's params at the same moment. A lock file beside a local storage (``<file>.<study>.summary.lock``,
+    ``flock``), which covers workers on one host (Hydra's joblib and submitit_local launchers);
+    a server storage has none, and workers on several hosts that finish in the same seconds may
+    each refit the best trial (an extra refit run; the parent's params are safe either way,
+    ``tracking.Run.log_params``)."""
+    path = local_file(url)
+    if path is None:
+        yield
+        return
+    with tracking.store_lock(path.with_name(f"{path.name}.{study}.summary")):
+        yield
 
 
 def _sqlite_pragmas(dbapi_connection: Any, _record: Any) -> None:

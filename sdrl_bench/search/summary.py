@@ -8,6 +8,7 @@ leaves the final picture in the parent run (and in the study's ``sdrl.summary`` 
 from __future__ import annotations
 
 import json
+import os
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -16,13 +17,13 @@ from collections.abc import Mapping
 
 import optuna
 
-from sdrl_bench import redact, tracking
+from sdrl_bench import ConfigError, redact, stop_signal_received, tracking
 from sdrl_bench.pipeline import fit_dynamics
 from sdrl_bench.search.study import BuildJob, WorkerResult, counted, fit_params
 from sdrl_bench.search.plots import history_figure, importance_figure, pareto_figure
 from sdrl_bench.search.space import describe_space, experiment_pack, to_overrides
 from sdrl_bench.search.location import resolve_storage
-from sdrl_bench.search.storage import open_storage
+from sdrl_bench.search.storage import local_file, open_storage, summary_lock
 
 SUMMARY_ATTR = "sdrl.summary"
 REFITS_ATTR = "sdrl.refit_scores"
@@ -85,7 +86,52 @@ def summarize(
 ) -> StudySummary:
     """Record the study's current state: best trial (refitted and scored on the fixed test set
     when ``final_score``), counts and fits, figures, and the best config (as ``sdrl-bench``
-    overrides and an experiment pack, also written under ``export_dir/experiment/``)."""
+    overrides and an experiment pack, also written under ``export_dir/experiment/``). Workers of
+    one study on one host summarize one at a time (``storage.summary_lock``)."""
+    try:
+        with summary_lock(result.storage, result.settings.name):
+            return _summarize(result, build_job, final_score, export_dir)
+    except BaseException as exc:  # the parent shows it (a rerun summarizes again and finishes it)
+        stopped = isinstance(exc, KeyboardInterrupt) or stop_signal_received()
+        tracking.end_run(result.tracking_uri, result.parent_run_id, "KILLED" if stopped else "FAILED")
+        raise
+
+
+EXPORT_MARK = "# Best trial "
+"""The second line of a best config this harness exported (``experiment_pack``'s header)."""
+
+
+def export_path(export_dir: str | Path, study: str) -> Path:
+    """Where study ``study`` writes its best config under ``export_dir``."""
+    return Path(export_dir) / "experiment" / f"{study}.yaml"
+
+
+def check_export(export_dir: str | Path | None, study: str) -> None:
+    """Before any data or trial: the best config can be written under ``export_dir`` (no file
+    where a folder must be, a writable folder), and the file it would replace, if any, is a best
+    config of this study exported before (a rerun refreshes it), never a file of the user's:
+    that is a one-line ``ConfigError`` naming ``study.export_dir``."""
+    if export_dir is None:
+        return
+    path = export_path(export_dir, study)
+    there = path.parent
+    while not there.exists() and there != there.parent:
+        there = there.parent
+    if not there.is_dir():
+        raise ConfigError(f"study.export_dir: {there} is a file, not a folder (the best config goes to {path})")
+    if not os.access(there, os.W_OK):
+        raise ConfigError(f"study.export_dir: {there} is not writable (the best config goes to {path})")
+    if path.exists():
+        try:
+            second = (path.read_text(errors="replace").splitlines()[1:2] or [""])[0]
+        except OSError as exc:  # a folder by that name, unreadable
+            raise ConfigError(f"study.export_dir: {path} cannot be replaced ({type(exc).__name__})") from None
+        if not (second.startswith(EXPORT_MARK) and f"of study '{study}'" in second):
+            raise ConfigError(f"study.export_dir: {path} exists and is not a best config this study exported; "
+                              "move it, or set study.export_dir to another folder")
+
+
+def _summarize(result: WorkerResult, build_job: BuildJob, final_score: bool, export_dir: str | Path | None) -> StudySummary:
     s, study, uri, parent = result.settings, result.study, result.tracking_uri, result.parent_run_id
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
@@ -121,7 +167,7 @@ def summarize(
         _log_figures(parent_run, study, complete, points, summary)
     _log_parent(parent_run, result, summary)
     if export_dir is not None and summary.experiment_yaml:
-        path = Path(export_dir) / "experiment" / f"{s.name}.yaml"
+        path = export_path(export_dir, s.name)
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text(summary.experiment_yaml)
     study.set_user_attr(SUMMARY_ATTR, json.loads(json.dumps(asdict(summary), default=str)))
@@ -150,7 +196,7 @@ def _describe_best(summary: StudySummary, best, done, context: Mapping[str, Any]
     choices = {k: str(v) for k, v in context.get("choices", {}).items()}
     values = dict(context.get("values", {}))
     summary.overrides = to_overrides(best.params, choices) + [f"{k}={v}" for k, v in values.items()]
-    header = (f"Best trial {best.number} of study '{summary.name}' ({summary.sampler}): held-out "
+    header = (f"{EXPORT_MARK[2:]}{best.number} of study '{summary.name}' ({summary.sampler}): held-out "
               f"error {summary.best_error:.4g}" + ("" if summary.best_n_terms is None else
                                                    f", {summary.best_n_terms} active terms") + ".\n"
               f"Use: sdrl-bench 'hydra.searchpath=[file://<the folder holding experiment/>]' "
@@ -234,8 +280,8 @@ def load_summaries(storage: str | None, names: list[str]) -> list[dict[str, Any]
     from sdrl_bench import ConfigError
 
     url = resolve_storage(storage)
-    local = next((url[len(p):] for p in ("sqlite:///", "journal:") if url.startswith(p)), None)
-    if local is not None and not Path(local.split("?")[0]).exists():
+    local = local_file(url)
+    if local is not None and not local.exists():
         raise ConfigError(f"study.storage: {redact(url)} does not exist (no study to compare in it)")
     st = open_storage(url)
     out = []

@@ -33,6 +33,7 @@ from sdrl_bench.tracking.client import (
     resolve_uri,
     sqlite_path,
     start_run,
+    store_lock,
     use_wal,
 )
 from sdrl_bench.tracking.fit import fit_metrics, log_fit, uncertainty_table
@@ -73,7 +74,7 @@ __all__ = [
     "cpu_tags", "delete_run", "display_uri", "download_artifact", "end_run", "end_runs_of_dead_processes", "end_runs_of_this_process", "runs_of_this_process", "end_stale_runs", "owner_alive", "process_tags", "ensure_experiment", "find_real_arm", "find_runs",
     "fit_metrics", "flatten", "git_commit", "list_artifacts", "list_experiments", "log_arm", "log_curve_point",
     "log_fit", "log_report", "machine_label", "mlflow_client", "resolve_uri", "reuse_real_arm", "run_exists", "running_below", "sb3_logger", "sqlite_path",
-    "start_run", "tracked_run", "uncertainty_table", "use_wal",
+    "start_run", "store_lock", "tracked_run", "uncertainty_table", "use_wal",
     "browse_hint", "compare_url", "describe_experiment", "log_config", "run_url", "runs_url", "set_description",
     "standard_tags", "summarize_sweep", "note_adoptions", "ADOPTED_BY_TAG", "ADOPTED_FROM_TAG", "system_metrics", "ui_base", "used_params", "without_credentials",
 ]

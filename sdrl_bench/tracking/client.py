@@ -362,11 +362,35 @@ class Run:
         self._client = mlflow_client(uri)
 
     def log_params(self, params: Mapping[str, Any]) -> None:
+        """Log ``params``; logging a value the run already has is a no-op, as in MLflow, also
+        when another process logs the same params at the same moment (``_log_param_batch``)."""
         from mlflow.entities import Param
 
         items = [Param(k[:250], str(v)[:6000]) for k, v in params.items()]
         for i in range(0, len(items), 100):
-            self._client.log_batch(self.run_id, params=items[i : i + 100])
+            self._log_param_batch(items[i : i + 100])
+
+    def _log_param_batch(self, items: list, tries: int = 5) -> None:
+        """One ``log_batch`` of params. MLflow skips a param the run already holds with the same
+        value, but checks before it inserts: two processes logging the same params to one run at
+        once (the workers of a study summarizing its parent run together) both pass the check and
+        the second insert fails, seen as ``UNIQUE constraint failed: params.key`` on SQLite. Then
+        the run's params are read again and only the missing ones are logged; a param the run holds
+        with another value is MLflow's error, raised as it is. Hand-written: MLflow has no upsert
+        of params."""
+        from mlflow.exceptions import MlflowException
+
+        for attempt in range(tries):
+            try:
+                self._client.log_batch(self.run_id, params=items)
+                return
+            except MlflowException:
+                have = self._client.get_run(self.run_id).data.params
+                if attempt == tries - 1 or any(p.key in have and have[p.key] != p.value for p in items):
+                    raise
+                items = [p for p in items if p.key not in have]
+                if not items:
+                    return
 
     def log_metrics(self, metrics: Mapping[str, float], step: int = 0) -> None:
         self.log_metric_rows([(metrics, step)])

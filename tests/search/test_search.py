@@ -430,6 +430,65 @@ def _check_workers(tmp: Path, uri: str, name: str, n_workers: int) -> None:
     assert {w: sum(x["tags"]["sdrl.worker"] == str(w) for x in runs) for w in per_worker} == per_worker
 
 
+def test_a_summary_that_fails_leaves_the_parent_failed_and_a_later_one_finishes_it(tmp_path, uri):
+    """A worker whose summary raises (here an export folder that is a file, which the CLI refuses
+    up front) ends the study's parent run FAILED, not RUNNING; the next summary finishes it."""
+    from sdrl_bench.cli.search import runtime_choices, study_settings
+    from sdrl_bench.search.study import run_study
+    from sdrl_bench.search.summary import summarize
+
+    cfg = search_cfg(tmp_path, uri, "study.name=unsummarized", "search.n_trials=2", "study.final_score=false")
+    result = run_study(study_settings(cfg, runtime_choices(cfg)), make_build_job(cfg))  # its trials, no summary
+    (tmp_path / "f").write_text("mine")
+    with pytest.raises(NotADirectoryError):
+        summarize(result, make_build_job(cfg), False, tmp_path / "f")
+    status = lambda: tracking.find_runs(uri, EXPERIMENT, f"attributes.run_id = '{result.parent_run_id}'")[0]["status"]  # noqa: E731
+    assert status() == "FAILED" and (tmp_path / "f").read_text() == "mine"
+    summarize(result, make_build_job(cfg), False, tmp_path / "export")
+    assert status() == "FINISHED"
+
+
+def _flock_waiters(path: Path) -> int:
+    """Processes blocked in ``flock`` on ``path`` (the ``->`` lines of /proc/locks on its inode)."""
+    if not path.exists():
+        return 0
+    inode = str(path.stat().st_ino)
+    return sum(1 for line in Path("/proc/locks").read_text().splitlines()
+               if "->" in line and "FLOCK" in line and line.split()[6].rsplit(":", 1)[-1] == inode)
+
+
+def test_workers_that_summarize_together_refit_the_best_once(tmp_path, uri):
+    """Workers of one study that finish together summarize one at a time (``summary_lock``): three
+    processes summarizing a done study at the same moment (the test holds the lock until all three
+    wait on it) add one refit run of its best trial, and each ends with the parent FINISHED and its
+    params logged once. Before, each worker refitted the best, and two logging the parent's
+    params at once failed the sweep (a UNIQUE constraint)."""
+    from sdrl_bench.search.storage import summary_lock
+
+    first, _ = run_search(search_cfg(tmp_path, uri, "study.name=together", "search.n_trials=2",
+                                     "study.final_score=false"), quiet=True)
+    args = [a for a in _cli(tmp_path, uri, "study.name=together", "search.n_trials=2") if a != "study.final_score=false"]
+    storage = f"sqlite:///{tmp_path}/optuna.db"
+    lock = tmp_path / "optuna.db.together.summary.lock"
+    with summary_lock(storage, "together"):
+        procs = [subprocess.Popen(args, cwd=tmp_path, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                 for _ in range(3)]
+        deadline = time.monotonic() + 300
+        while _flock_waiters(lock) < 3:  # all three at the summary, none past it
+            assert all(p.poll() is None for p in procs), [p.communicate()[1][-2000:] for p in procs if p.poll() is not None]
+            assert time.monotonic() < deadline, "the workers never waited on the summary lock"
+            time.sleep(0.2)
+    for p in procs:
+        out, err = p.communicate(timeout=300)
+        assert p.returncode == 0, err[-3000:]
+    refits = tracking.find_runs(uri, EXPERIMENT, f"tags.`mlflow.parentRunId` = '{first.parent_run_id}' "
+                                                 "and tags.`sdrl.role` = 'best-refit'")
+    assert len(refits) == 1 and refits[0]["status"] == "FINISHED"
+    parent = tracking.find_runs(uri, EXPERIMENT, f"attributes.run_id = '{first.parent_run_id}'")[0]
+    assert parent["status"] == "FINISHED" and parent["params"]["n_transitions"] == "75"
+    assert parent["metrics"]["test/mse_norm/mean"] > 0
+
+
 @pytest.mark.slow
 def test_four_parallel_workers_share_one_study(tmp_path, uri):
     args = _cli(tmp_path, uri, "study.worker=0,1,2,3", "hydra.launcher.n_jobs=4",

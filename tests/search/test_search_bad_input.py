@@ -143,3 +143,34 @@ def test_which_values_a_study_samples_only_under_some_choices(overrides, when):
     settings = study_settings(cfg, runtime_choices(cfg))
     check_settings(settings)
     assert settings.when == when
+
+
+def test_an_export_dir_that_is_a_file_is_refused_before_any_data(tmp_path):
+    """Before, every trial and the final refit ran, then a NotADirectoryError traceback left the
+    study's parent run RUNNING."""
+    (tmp_path / "f").write_text("mine")
+    proc = _search(tmp_path, f"study.export_dir='{tmp_path}/f'", "search.n_trials=2")
+    _refused(proc, tmp_path, f"study.export_dir: {tmp_path}/f is a file, not a folder "
+                             f"(the best config goes to {tmp_path}/f/experiment/mountain_car-tpe-s0.yaml)")
+    assert (tmp_path / "f").read_text() == "mine"
+
+
+def test_a_users_file_where_the_best_config_would_go_is_never_replaced(tmp_path):
+    """Before, a file of the user's named like the study's export was overwritten, exit 0. A
+    best config this study exported before is replaced by a rerun (test_search's rerun test)."""
+    mine = tmp_path / "e" / "experiment" / "mountain_car-tpe-s0.yaml"
+    mine.parent.mkdir(parents=True)
+    mine.write_text("# MY OWN PACK\n")
+    proc = _search(tmp_path, f"study.export_dir='{tmp_path}/e'", "search.n_trials=2")
+    _refused(proc, tmp_path, f"study.export_dir: {mine} exists and is not a best config this study exported; "
+                             "move it, or set study.export_dir to another folder")
+    assert mine.read_text() == "# MY OWN PACK\n"
+
+
+def test_a_heartbeat_grace_shorter_than_its_interval_is_refused():
+    cfg = compose(["study.heartbeat_interval=10", "study.heartbeat_grace=5"], config_name="search_app",
+                  return_hydra_config=True)
+    with pytest.raises(ConfigError) as err:
+        study_settings(cfg, runtime_choices(cfg))
+    assert str(err.value) == ("study.heartbeat_grace: 5 s is shorter than study.heartbeat_interval (10 s), so other "
+                              "workers would fail live trials as stale; set it >= the interval")

@@ -337,3 +337,43 @@ def test_the_runs_running_below_a_sweep_are_its_jobs_and_theirs_whatever_their_p
     below = tracking.running_below(store, "sdrl-bench", sweep)
     assert sorted(below) == sorted([*rounds, live]) and theirs not in below
     assert tracking.running_below(store, "sdrl-bench", other) == [theirs]
+
+
+def _log_the_same_params(uri: str, run_id: str, barrier, out) -> None:
+    from sdrl_bench import tracking
+
+    run = tracking.Run(uri, run_id)
+    barrier.wait()  # every process logs at once: MLflow's check-then-insert races
+    try:
+        run.log_params({f"p{i}": i for i in range(40)})
+        out.put("ok")
+    except Exception as exc:  # noqa: BLE001 - reported to the test
+        out.put(f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}")
+
+
+def test_processes_logging_the_same_params_to_one_run_at_once_all_succeed(store):
+    """The workers of a study summarize its parent run together: before, 4 processes logging the
+    same 40 params to one run at once failed 10 times in 10 (UNIQUE constraint failed:
+    params.key). A value the run holds with another value is still MLflow's error."""
+    import multiprocessing as mp
+
+    from mlflow.exceptions import MlflowException
+
+    from sdrl_bench import tracking
+
+    ctx = mp.get_context("spawn")
+    for attempt in range(2):
+        run_id = tracking.create_parent_run(store, "params-race", f"race-{attempt}", {})
+        barrier, out = ctx.Barrier(4), ctx.Queue()
+        procs = [ctx.Process(target=_log_the_same_params, args=(store, run_id, barrier, out)) for _ in range(4)]
+        for p in procs:
+            p.start()
+        got = [out.get(timeout=120) for _ in procs]
+        for p in procs:
+            p.join(timeout=60)
+        assert got == ["ok"] * 4
+        params = MlflowClient(store).get_run(run_id).data.params
+        assert params == {f"p{i}": str(i) for i in range(40)}
+    with pytest.raises(MlflowException, match="p3"):
+        tracking.Run(store, run_id).log_params({"p3": 4, "q": 1})
+    assert "q" not in MlflowClient(store).get_run(run_id).data.params
