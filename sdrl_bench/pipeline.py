@@ -102,7 +102,15 @@ def check(job: FitJob) -> tuple[Any, Transitions | None]:
     if threshold is not None and threshold < 0:
         raise ConfigError(f"optimizer.threshold must be >= 0, got {threshold}")
     library = build_library(job.library_parts, spec.target_names, spec.control_names)
-    n_terms = count_features(library, len(spec.input_names)) if job.surrogate == "sindy" else 0
+    n_terms = 0
+    if job.surrogate == "sindy":
+        try:  # the library fitted on a few zero rows: a setting it refuses only when fitted (degree=-2)
+            n_terms = count_features(library, len(spec.input_names))
+        except ConfigError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - the library's own message, in one line
+            why = " ".join(str(exc).split()) or type(exc).__name__
+            raise ConfigError(f"library ({job.names.get('library', 'library')}): {why}") from None
     model = build_model(job, library)  # model hyperparameters are validated in its __init__
     if hasattr(model, "check_inputs"):  # a per-equation library names its inputs: checked before any data
         model.check_inputs(spec.target_names, spec.control_names)

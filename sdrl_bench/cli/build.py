@@ -10,6 +10,7 @@ notebooks.
 from __future__ import annotations
 
 import hashlib
+import inspect
 import json
 import math
 from pathlib import Path
@@ -44,6 +45,71 @@ def compose(overrides: Sequence[str] = (), config_name: str = "config", return_h
         return hydra_compose(config_name=config_name, overrides=list(overrides), return_hydra_config=return_hydra_config)
     with initialize_config_module(config_module=CONFIG_MODULE, version_base="1.3"):
         return hydra_compose(config_name=config_name, overrides=list(overrides), return_hydra_config=return_hydra_config)
+
+
+def _origin(source: Any) -> str:
+    """`` (from env.poly_degree)`` when the value came through an interpolation, else ''."""
+    if isinstance(source, str) and source.startswith("${") and source.endswith("}") and "${" not in source[2:]:
+        return f" (from {source[2:-1]})"
+    return ""
+
+
+def check_value_types(node: Any, key: str, source: Any = None) -> None:
+    """Each value under a ``_target_`` whose parameter defaults to a bool must be a bool, and one
+    whose parameter defaults to a number must not be a string or a bool: the targets themselves
+    read ``maybe`` as true (pysindy's ``normalize_columns``, an env spec's ``terrain``) or fail
+    deep inside with ``'<' not supported between 'str' and 'int'``. One line naming the key, and
+    the key it was interpolated from. Parameters without a default, or defaulting to None or a
+    string, are left to the target. ``source`` is the node before interpolation."""
+    if isinstance(node, list):
+        for i, value in enumerate(node):
+            check_value_types(value, f"{key}[{i}]", source[i] if isinstance(source, list) and i < len(source) else None)
+        return
+    if not isinstance(node, dict):
+        return
+    params: Any = {}
+    if isinstance(node.get("_target_"), str):
+        try:
+            from hydra.utils import get_object
+
+            params = inspect.signature(get_object(node["_target_"])).parameters
+        except Exception:  # noqa: BLE001 - an import error or a builtin without a signature: instantiate's to report
+            params = {}
+    for name, value in node.items():
+        if not isinstance(name, str) or name.startswith("_"):
+            continue
+        src = source.get(name) if isinstance(source, dict) else None
+        where = f"{key}.{name}"
+        if isinstance(value, (dict, list)):
+            check_value_types(value, where, src)
+            continue
+        param = params.get(name)
+        default = None if param is None else param.default
+        if default is None or default is inspect.Parameter.empty:
+            continue
+        if isinstance(default, bool) and not isinstance(value, bool):
+            raise ConfigError(f"{where}{_origin(src)}: true or false is required, got {value!r}")
+        if isinstance(default, (int, float)) and not isinstance(default, bool) and isinstance(value, (str, bool)):
+            raise ConfigError(f"{where}{_origin(src)}: a number is required, got {value!r}")
+
+
+def instantiate_typed(node: Any, key: str, source: Any = None) -> Any:
+    """``instantiate_key`` with the values' types checked first against the targets' defaults
+    (``check_value_types``; ``source``: the node before interpolation, when ``node`` is a plain
+    container). For the fit's parts (env spec, collector, library, optimizer, surrogate model); an
+    agent's settings have checks of their own, with their domains (``rl.agents``)."""
+    try:
+        if isinstance(node, DictConfig):
+            resolved, source = OmegaConf.to_container(node, resolve=True), OmegaConf.to_container(node, resolve=False)
+        else:
+            resolved = node
+            if isinstance(source, DictConfig):
+                source = OmegaConf.to_container(source, resolve=False)
+    except Exception:  # noqa: BLE001 - an interpolation that does not resolve: instantiate says which
+        resolved = None
+    if resolved is not None:
+        check_value_types(resolved, key, source)
+    return instantiate_key(node, key)
 
 
 def instantiate_key(node: Any, key: str) -> Any:
@@ -148,12 +214,12 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
     for group in ("env", "collector", "library", "optimizer", "surrogate"):
         if group not in cfg or cfg[group] is None:
             raise ConfigError(f"{group}: missing config group")
-    spec = instantiate_key(cfg.env.spec, "env.spec")
+    spec = instantiate_typed(cfg.env.spec, "env.spec")
     spec.check_registered()  # the real env (a user module that registers it): collection and test set use it
     _check_resolvable(cfg, "collector")
-    policy = instantiate_key(cfg.collector.policy, "collector.policy")
+    policy = instantiate_typed(cfg.collector.policy, "collector.policy")
     parts = tuple(
-        LibraryPart(instantiate_key(p.library, f"library.parts[{i}].library"), _inputs(p.get("inputs", "all")))
+        LibraryPart(instantiate_typed(p.library, f"library.parts[{i}].library"), _inputs(p.get("inputs", "all")))
         for i, p in enumerate(cfg.library.parts)
     )
     seed = seed_key(cfg)
@@ -162,8 +228,8 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
     opt_cfg = OmegaConf.to_container(cfg.optimizer, resolve=True)
     opt_cfg.pop("name", None)
     _check_finite(opt_cfg, "optimizer")
-    optimizer = instantiate_key(opt_cfg, "optimizer")
-    model_factory = instantiate_key(cfg.surrogate.model, "surrogate.model")
+    optimizer = instantiate_typed(opt_cfg, "optimizer", source=cfg.optimizer)
+    model_factory = instantiate_typed(cfg.surrogate.model, "surrogate.model")
     return FitJob(
         spec=spec,
         library_parts=parts,

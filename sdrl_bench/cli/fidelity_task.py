@@ -57,7 +57,8 @@ def build_cluster(cfg: DictConfig, given: list[str] | None = None) -> tuple[Clus
     base = base_overrides(cfg, given) + [f"n_transitions={axes['n_transitions']}", f"collector={axes['collector']}"]
     data_cfg = _compose(base, "fidelity.axes")
     data_job = build_fit_job(data_cfg)
-    models = OmegaConf.to_container(f.models, resolve=True) if f.models is not None else {"default": []}
+    models = f.models if f.models is None or not OmegaConf.is_config(f.models) else OmegaConf.to_container(f.models, resolve=True)
+    models = {"default": []} if models is None else models
     if not isinstance(models, dict) or not models:
         raise ConfigError("fidelity.models: a mapping label -> list of overrides is required")
     variants, cfgs = [], []
@@ -68,6 +69,8 @@ def build_cluster(cfg: DictConfig, given: list[str] | None = None) -> tuple[Clus
         job = build_fit_job(vcfg)
         variants.append(Variant(str(label), str(vcfg.surrogate.kind), job))
         cfgs.append(vcfg)
+    if f.get("study") is not None and (not isinstance(f.study, str) or not f.study.strip()):
+        raise ConfigError(f"fidelity.study: a name is required (or null for fidelity-<env>), got {f.study!r}")
     ref = str(f.reference)
     reference = None if ref == "random" else instantiate_key(
         _compose(base[:-1] + [f"collector={ref}"], "fidelity.reference").collector.policy, "fidelity.reference")

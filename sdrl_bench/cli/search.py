@@ -202,7 +202,9 @@ def _policy_probe(cfg: DictConfig, objective: str, seed: int):
     ref = str(node.get("reference", "random"))
     reference = None if ref == "random" else instantiate_key(
         load_group("collector", ref, "search.policy.reference").policy, "search.policy.reference")
-    return PolicyProbe(objective, instantiate_key(cfg.agent, "agent"), int_key(cfg, "search.policy.train_steps", 1),
+    agent = instantiate_key(cfg.agent, "agent")
+    agent.check(instantiate_key(cfg.env.spec, "env.spec"))  # it can act in the env: before any data or trial
+    return PolicyProbe(objective, agent, int_key(cfg, "search.policy.train_steps", 1),
                        int_key(cfg, "search.policy.episodes", 1), reference, seed, ref)
 
 

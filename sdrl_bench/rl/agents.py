@@ -68,6 +68,7 @@ class AgentConfig:
                     if k not in params:
                         raise ConfigError(f"{key}.algo.{k}: not a setting of {algo.__name__} (its settings: "
                                           f"{', '.join(p for p in params if p not in ('self', 'env', 'seed') and not p.startswith('_'))})")
+        check_policy(algo, settings, f"{key}.algo")
         if (self.action_space == "continuous" and discrete) or (self.action_space == "discrete" and not discrete):
             other = "agent=ppo or agent=dqn" if discrete else "agent=sac, agent=td3 or agent=ppo"
             raise ConfigError(
@@ -91,6 +92,36 @@ _DOMAINS: dict[str, tuple[str, float, float, bool]] = {
     "buffer_size": ("int", 1, math.inf, True), "learning_starts": ("count", 0, math.inf, True),
     "target_update_interval": ("count", 1, math.inf, True), "policy_delay": ("int", 1, math.inf, True),
 }
+
+
+def check_policy(algo: Any, settings: dict[str, Any], key: str = "agent.algo") -> None:
+    """``policy`` is one the algorithm has (its ``policy_aliases``), ``policy_kwargs.net_arch`` a
+    list of layer sizes or a mapping of such lists (SB3's ``pi`` / ``vf`` / ``qf``), and an SB3
+    class's ``device`` one torch knows: SB3 refused each only once the agent was built, after the
+    run's data and fit, with a traceback. One ConfigError naming the key."""
+    policy = settings.get("policy", "MlpPolicy")
+    aliases = getattr(algo, "policy_aliases", None)
+    if isinstance(policy, str) and isinstance(aliases, dict) and aliases and policy not in aliases:
+        raise ConfigError(f"{key}.policy: {policy!r} is not a policy of {getattr(algo, '__name__', algo)} "
+                          f"(its policies: {', '.join(aliases)})")
+    kwargs = settings.get("policy_kwargs")
+    if kwargs is not None and not isinstance(kwargs, dict):
+        raise ConfigError(f"{key}.policy_kwargs: a mapping is required, got {kwargs!r}")
+    arch = (kwargs or {}).get("net_arch")
+
+    def layers(v: Any) -> bool:
+        return isinstance(v, list) and all(isinstance(n, int) and not isinstance(n, bool) and n > 0 for n in v)
+
+    if arch is not None and not (layers(arch) or (isinstance(arch, dict) and arch and all(layers(v) for v in arch.values()))):
+        raise ConfigError(f"{key}.policy_kwargs.net_arch: a list of layer sizes ([64, 64]) or a mapping of them "
+                          f"({{pi: [64, 64], vf: [64, 64]}}) is required, got {arch!r}")
+    if isinstance(algo, type) and issubclass(algo, BaseAlgorithm) and "device" in settings:
+        from stable_baselines3.common.utils import get_device  # noqa: PLC0415
+
+        try:
+            get_device(settings["device"])
+        except (RuntimeError, ValueError, TypeError) as exc:
+            raise ConfigError(f"{key}.device: {' '.join(str(exc).split())}") from None
 
 
 def check_settings(settings: dict[str, Any], key: str = "agent.algo") -> None:

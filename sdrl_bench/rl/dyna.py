@@ -123,6 +123,9 @@ class DynaJob:
         self.agent.check(spec)
         if self.fit.dataset_path:
             raise ConfigError("dataset.path: task=dyna collects its own data (the loop counts every real step)")
+        if self.dyna.max_real_transitions < self.fit.n_transitions:  # the first collection alone is over it
+            raise ConfigError(f"rl.dyna.max_real_transitions: {self.dyna.max_real_transitions:,} is below the first "
+                              f"collection's n_transitions={self.fit.n_transitions:,}")
         return check(self.fit)
 
 

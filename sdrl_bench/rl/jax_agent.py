@@ -179,6 +179,8 @@ class CompiledAgent:
     on before anything creates JAX's backend."""
     LABEL = "a compiled agent (sdrl_bench.rl.jax_agent)"
     """What a missing extra's message names."""
+    policy_aliases = {"MlpPolicy": "MlpPolicy"}
+    """The policies it has, under SB3's attribute name (``rl.agents.check_policy`` reads it)."""
 
     def _init_counters(self) -> None:
         self.num_timesteps = 0

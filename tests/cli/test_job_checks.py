@@ -43,6 +43,25 @@ QUICK = ("experiment=quick_mountain_car", "rl.arms=[surrogate]")
                             "'surrogate'"),
     (("agent=ppo", "env=lunar_lander", "experiment=paper_lunar_lander", "agent.algo.n_epochs=0"),
      "agent.algo.n_epochs: an integer >= 1 is required, got 0"),
+    # a bad-input audit (2026-11-30): SB3 refused these once the agent was built, after the fit
+    (("agent.algo.policy=FooPolicy",),
+     "agent.algo.policy: 'FooPolicy' is not a policy of SAC (its policies: MlpPolicy, CnnPolicy, MultiInputPolicy)"),
+    (("agent.algo.policy_kwargs.net_arch=big",), "agent.algo.policy_kwargs.net_arch: a list of layer sizes ([64, 64]) "
+                                                 "or a mapping of them ({pi: [64, 64], vf: [64, 64]}) is required, got 'big'"),
+    (("agent.algo.policy_kwargs.net_arch=[64,0]",), "agent.algo.policy_kwargs.net_arch: a list of layer sizes"),
+    (("~agent.algo.policy_kwargs.net_arch", "+agent.algo.policy_kwargs.net_arch={pi:[32],qf:[64,64]}"), None),
+    (("agent.algo.device=cuda99",), "agent.algo.device: Invalid device string: 'cuda99'"),
+    # values a target's defaults type (check_value_types): read as true, or a traceback deep inside
+    (("env.sindy.normalize_columns=maybe",),
+     "optimizer.normalize_columns (from env.sindy.normalize_columns): true or false is required, got 'maybe'"),
+    (("env.sindy.threshold=small",), "optimizer.threshold (from env.sindy.threshold): a number is required, got 'small'"),
+    (("optimizer.max_iter=lots",), "optimizer.max_iter: a number is required, got 'lots'"),
+    (("optimizer=ensemble", "optimizer.bagging=perhaps"), "optimizer.bagging: true or false is required, got 'perhaps'"),
+    (("env.poly_degree=two",),
+     "library.parts[0].library.degree (from env.poly_degree): a number is required, got 'two'"),
+    (("env.poly_degree=-2",), "library (poly_trig): degree must be a nonnegative integer"),  # pysindy's, at fit time
+    (("env=lunar_lander", "experiment=paper_lunar_lander", "env.spec.terrain=maybe"),
+     "env.spec.terrain: true or false is required, got 'maybe'"),  # was terrain on
 ])
 def test_a_bad_setting_is_one_line_naming_its_key(overrides, line):
     if line is None:  # a value SB3 trains with: accepted

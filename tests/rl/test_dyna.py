@@ -263,3 +263,11 @@ def test_the_event_score_is_the_learned_models_and_differs_with_the_data():
         scores.append(score_events(event, model, held))
     assert scores[0]["prior_accuracy"] == scores[1]["prior_accuracy"]
     assert scores[0]["log_loss"] != scores[1]["log_loss"] and scores[0]["accuracy"] > scores[1]["accuracy"]
+
+
+def test_a_real_step_budget_below_the_first_collection_is_refused():
+    """Before, the header promised 'at most 10 real steps', then collected 75 and trained round 1."""
+    cfg = compose_cfg(*TINY, "rl.dyna.max_real_transitions=10")
+    with pytest.raises(ConfigError) as err:
+        build_dyna_job(cfg, build_fit_job(cfg)).check()
+    assert str(err.value) == "rl.dyna.max_real_transitions: 10 is below the first collection's n_transitions=30"

@@ -88,6 +88,11 @@ def test_bad_models_and_axes_fail_before_any_run(store):
     assert "\n" not in str(err.value)
     with pytest.raises(ConfigError, match="fidelity.axes.collector"):
         build_cluster(compose_cfg(*TINY, "fidelity.axes.collector=[]"), given=[])
+    # a bad-input audit: a string for the models was a traceback, a list for the study's name trained on
+    with pytest.raises(ConfigError, match=r"^fidelity.models: a mapping label -> list of overrides is required$"):
+        build_cluster(compose_cfg(*TINY, "fidelity.models=abc"), given=[])
+    with pytest.raises(ConfigError, match=r"^fidelity.study: a name is required .*got \['a', 'b'\]$"):
+        build_cluster(compose_cfg(*TINY, "fidelity.study=[a,b]"), given=[])
     assert search(store).empty
 
 

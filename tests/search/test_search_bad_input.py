@@ -174,3 +174,11 @@ def test_a_heartbeat_grace_shorter_than_its_interval_is_refused():
         study_settings(cfg, runtime_choices(cfg))
     assert str(err.value) == ("study.heartbeat_grace: 5 s is shorter than study.heartbeat_interval (10 s), so other "
                               "workers would fail live trials as stale; set it >= the interval")
+
+
+def test_a_policy_objective_whose_agent_cannot_act_in_the_env_is_refused_before_any_data(tmp_path):
+    """Before, trial 0 collected and fitted, then SB3's assertion failed it with a traceback."""
+    proc = _search(tmp_path, "search.objective=onpolicy_one_step", "agent=dqn", "search.n_trials=2")
+    _refused(proc, tmp_path, "agent=dqn: DQN needs discrete actions but env 'mountain_car' has continuous (Box) "
+                             "actions; use agent=sac, agent=td3 or agent=ppo")
+    assert not (tmp_path / "optuna.db").exists()
