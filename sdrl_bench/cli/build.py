@@ -13,6 +13,7 @@ import hashlib
 import inspect
 import json
 import math
+import re
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 from collections.abc import Sequence
@@ -94,9 +95,9 @@ def check_value_types(node: Any, key: str, source: Any = None) -> None:
 
 
 def instantiate_typed(node: Any, key: str, source: Any = None) -> Any:
-    """``instantiate_key`` with the values' types checked first against the targets' defaults
+    """``instantiate_key`` with the values' types checked against the targets' defaults
     (``check_value_types``; ``source``: the node before interpolation, when ``node`` is a plain
-    container). For the fit's parts (env spec, collector, library, optimizer, surrogate model); an
+    container), after the target's own checks, whose messages are more precise. For the fit's parts (env spec, collector, library, optimizer, surrogate model); an
     agent's settings have checks of their own, with their domains (``rl.agents``)."""
     try:
         if isinstance(node, DictConfig):
@@ -107,9 +108,19 @@ def instantiate_typed(node: Any, key: str, source: Any = None) -> Any:
                 source = OmegaConf.to_container(source, resolve=False)
     except Exception:  # noqa: BLE001 - an interpolation that does not resolve: instantiate says which
         resolved = None
-    if resolved is not None:
+    try:
+        built = instantiate_key(node, key)
+    except ConfigError as exc:  # the target's own check stands; another failure may be a type's
+        if not getattr(exc, "targets_own", False) and resolved is not None:
+            check_value_types(resolved, key, source)
+        raise
+    if resolved is not None:  # built, but would read "maybe" as true, or fail on "two" when fitted
         check_value_types(resolved, key, source)
-    return instantiate_key(node, key)
+    return built
+
+
+_FULL_KEY = re.compile(r"^[a-z_]+(\.[A-Za-z_][\w\[\]]*)+: ")
+"""A message that starts with a dotted config key (``env.expert.budget: ...``)."""
 
 
 def instantiate_key(node: Any, key: str) -> Any:
@@ -123,7 +134,10 @@ def instantiate_key(node: Any, key: str) -> Any:
             root = root.__cause__
         if isinstance(root, ConfigError):
             text = " ".join(str(root).split())
-            raise ConfigError(text if text.startswith(key) else f"{key}: {text}") from None
+            named = text.startswith(key) or _FULL_KEY.match(text)  # it names the key the user sets
+            own = ConfigError(text if named else f"{key}: {text}")
+            own.targets_own = True  # the target's own validation (instantiate_typed keeps it)
+            raise own from None
         target = node.get("_target_") if isinstance(node, (dict, DictConfig)) else None
         if target and (isinstance(exc.__cause__, ImportError) or isinstance(root, (ImportError, SyntaxError))):
             raise ConfigError(f"{key}: cannot import {target!r}: {one_line(root)}") from None

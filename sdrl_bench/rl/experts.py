@@ -21,7 +21,7 @@ import numpy as np
 
 from sdrl_bench import ConfigError, seeds
 from sdrl_bench.envs.base import EnvSpec, Policy
-from sdrl_bench.rl.agents import AgentConfig, check_budget, real_vec_env, train
+from sdrl_bench.rl.agents import AgentConfig, real_vec_env, train
 
 log = logging.getLogger(__name__)
 
@@ -41,11 +41,19 @@ class ExpertPolicy:
     _model: Any = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
-        check_budget("collector.expert.budget", self.budget)
+        if isinstance(self.budget, bool) or not isinstance(self.budget, int) or self.budget <= 0:
+            raise ConfigError(f"env.expert.budget: a positive integer is required, got {self.budget!r}")
 
     def validate(self, spec: EnvSpec) -> None:
-        """Config-time check (no training): the expert's algorithm can act in the env."""
+        """Config-time check (no training): the expert's algorithm can act in the env, and its
+        cache folder can be one (a file there failed only after the expert's training)."""
         self.agent.check(spec, "env.expert.agent")
+        there = Path(self.cache_dir)
+        while not there.exists() and there != there.parent:
+            there = there.parent
+        if not there.is_dir():
+            raise ConfigError(f"collector.policy.cache_dir: {there} is a file, not a folder (the expert would be "
+                              f"cached in {self.path(spec)})")
 
     def path(self, spec: EnvSpec) -> Path:
         return Path(self.cache_dir) / f"{spec.name}-{self.agent.name}-s{self.seed}-n{int(self.budget)}.zip"

@@ -62,6 +62,8 @@ QUICK = ("experiment=quick_mountain_car", "rl.arms=[surrogate]")
     (("env.poly_degree=-2",), "library (poly_trig): degree must be a nonnegative integer"),  # pysindy's, at fit time
     (("env=lunar_lander", "experiment=paper_lunar_lander", "env.spec.terrain=maybe"),
      "env.spec.terrain: true or false is required, got 'maybe'"),  # was terrain on
+    (("collector=expert", "env.expert.budget=lots"), "env.expert.budget: a positive integer is required, got 'lots'"),
+    (("collector=expert", "env.expert.budget=0"), "env.expert.budget: a positive integer is required, got 0"),
 ])
 def test_a_bad_setting_is_one_line_naming_its_key(overrides, line):
     if line is None:  # a value SB3 trains with: accepted
@@ -168,3 +170,12 @@ def test_a_searchs_pack_named_without_its_folder_gets_the_search_paths_hint(tmp_
     assert str(err.value).endswith("; a search wrote mlruns/search/experiment/mountain_car-tpe-s0.yaml: add "
                                    "'hydra.searchpath=[file://mlruns/search]'")
     check_command_line(["experiment=mountain_car-tpe-s0", "hydra.searchpath=[file://mlruns/search]", uri], "config")
+
+
+def test_an_expert_cache_dir_that_is_a_file_is_refused_before_its_training(tmp_path):
+    """Before, the expert trained (minutes), then its save failed."""
+    (tmp_path / "f").write_text("mine")
+    with pytest.raises(ConfigError) as err:
+        check_job(compose_cfg(*QUICK, "collector=expert", f"collector.policy.cache_dir={tmp_path}/f/experts"))
+    assert str(err.value) == (f"collector.policy.cache_dir: {tmp_path}/f is a file, not a folder (the expert would be "
+                              f"cached in {tmp_path}/f/experts/mountain_car-sac-s0-n50000.zip)")
