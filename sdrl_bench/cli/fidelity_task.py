@@ -36,6 +36,11 @@ def cluster_axes(cfg: DictConfig) -> dict[str, object]:
         values = list(OmegaConf.to_container(axes[key], resolve=True)) if key in axes else []
         if not values:
             raise ConfigError(f"fidelity.axes.{key}: a non-empty list is required")
+        for v in values:  # named here: a cluster's composed config would name only n_transitions or data_noise
+            if key == "n_transitions" and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+                raise ConfigError(f"fidelity.axes.n_transitions: integers >= 1 are required, got {v!r}")
+            if key == "data_noise" and (isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 <= v < float("inf")):
+                raise ConfigError(f"fidelity.axes.data_noise: finite numbers >= 0 are required, got {v!r}")
         out[key] = values[(seed // div) % len(values)]
         div *= len(values)
     out["n_clusters"] = div

@@ -93,6 +93,10 @@ def test_bad_models_and_axes_fail_before_any_run(store):
         build_cluster(compose_cfg(*TINY, "fidelity.models=abc"), given=[])
     with pytest.raises(ConfigError, match=r"^fidelity.study: a name is required .*got \['a', 'b'\]$"):
         build_cluster(compose_cfg(*TINY, "fidelity.study=[a,b]"), given=[])
+    with pytest.raises(ConfigError, match=r"^fidelity.axes.n_transitions: integers >= 1 are required, got 0$"):
+        build_cluster(compose_cfg(*TINY, "fidelity.axes.n_transitions=[0]"), given=[])
+    with pytest.raises(ConfigError, match=r"^fidelity.axes.data_noise: finite numbers >= 0 are required, got -0.1$"):
+        build_cluster(compose_cfg(*TINY, "fidelity.axes.data_noise=[-0.1]"), given=[])
     assert search(store).empty
 
 
