@@ -48,11 +48,24 @@ def compose(overrides: Sequence[str] = (), config_name: str = "config", return_h
         return hydra_compose(config_name=config_name, overrides=list(overrides), return_hydra_config=return_hydra_config)
 
 
+_PLAIN_KEY = re.compile(r"^\$\{([A-Za-z_][\w.\[\]]*)\}$")
+"""An interpolation of one config key (``${env.poly_degree}``), not a resolver's call."""
+
+
 def _origin(source: Any) -> str:
-    """`` (from env.poly_degree)`` when the value came through an interpolation, else ''."""
-    if isinstance(source, str) and source.startswith("${") and source.endswith("}") and "${" not in source[2:]:
-        return f" (from {source[2:-1]})"
-    return ""
+    """`` (from env.poly_degree)`` when the value came through an interpolation of a key, else ''."""
+    found = _PLAIN_KEY.match(source) if isinstance(source, str) else None
+    return f" (from {found.group(1)})" if found else ""
+
+
+def _admits(annotation: Any, value: Any) -> bool:
+    """Whether a parameter's annotation (a string under ``from __future__ import annotations``)
+    names the value's type, ``Any`` or nothing at all: then the default's type does not bind."""
+    if annotation is inspect.Parameter.empty:
+        return False
+    text = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", None) or str(annotation)
+    words = set(re.findall(r"[A-Za-z_]+", text))
+    return bool(words & {"Any", type(value).__name__})
 
 
 def check_value_types(node: Any, key: str, source: Any = None) -> None:
@@ -60,8 +73,9 @@ def check_value_types(node: Any, key: str, source: Any = None) -> None:
     whose parameter defaults to a number must not be a string or a bool: the targets themselves
     read ``maybe`` as true (pysindy's ``normalize_columns``, an env spec's ``terrain``) or fail
     deep inside with ``'<' not supported between 'str' and 'int'``. One line naming the key, and
-    the key it was interpolated from. Parameters without a default, or defaulting to None or a
-    string, are left to the target. ``source`` is the node before interpolation."""
+    the key it was interpolated from. Left to the target: parameters without a default, or
+    defaulting to None or a string; values the annotation admits (``progress_bar: bool | str``);
+    null and Hydra's ``???``. ``source`` is the node before interpolation."""
     if isinstance(node, list):
         for i, value in enumerate(node):
             check_value_types(value, f"{key}[{i}]", source[i] if isinstance(source, list) and i < len(source) else None)
@@ -82,11 +96,14 @@ def check_value_types(node: Any, key: str, source: Any = None) -> None:
         src = source.get(name) if isinstance(source, dict) else None
         where = f"{key}.{name}"
         if isinstance(value, (dict, list)):
-            check_value_types(value, where, src)
+            found = _PLAIN_KEY.match(src) if isinstance(src, str) else None  # a subtree from elsewhere: its own keys
+            check_value_types(value, found.group(1) if found else where, None if found else src)
             continue
         param = params.get(name)
         default = None if param is None else param.default
-        if default is None or default is inspect.Parameter.empty:
+        if default is None or default is inspect.Parameter.empty or value is None or value == "???":
+            continue
+        if _admits(param.annotation, value):
             continue
         if isinstance(default, bool) and not isinstance(value, bool):
             raise ConfigError(f"{where}{_origin(src)}: true or false is required, got {value!r}")
@@ -119,7 +136,7 @@ def instantiate_typed(node: Any, key: str, source: Any = None) -> Any:
     return built
 
 
-_FULL_KEY = re.compile(r"^[a-z_]+(\.[A-Za-z_][\w\[\]]*)+: ")
+_FULL_KEY = re.compile(r"^[a-z_]+(\.[A-Za-z_][\w\[\]]*)+( \([^)]*\))?: ")
 """A message that starts with a dotted config key (``env.expert.budget: ...``)."""
 
 

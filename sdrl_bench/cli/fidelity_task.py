@@ -74,7 +74,8 @@ def build_cluster(cfg: DictConfig, given: list[str] | None = None) -> tuple[Clus
         job = build_fit_job(vcfg)
         variants.append(Variant(str(label), str(vcfg.surrogate.kind), job))
         cfgs.append(vcfg)
-    if f.get("study") is not None and (not isinstance(f.study, str) or not f.study.strip()):
+    if f.get("study") is not None and (isinstance(f.study, bool) or not isinstance(f.study, (str, int))
+                                       or not str(f.study).strip()):  # 2024 arrives as an int
         raise ConfigError(f"fidelity.study: a name is required (or null for fidelity-<env>), got {f.study!r}")
     ref = str(f.reference)
     reference = None if ref == "random" else instantiate_key(
@@ -110,7 +111,7 @@ def run_fidelity_task(cfg: DictConfig, parent: str | None, extra_tags: dict[str,
     job, axes, cfgs = build_cluster(cfg, given)
     job, checked, uri = prepare(cfg, job)  # checked: each variant's (library, data), built once
     spec = job.data_job.spec
-    study = cfg.fidelity.study or f"fidelity-{spec.name}"
+    study = str(cfg.fidelity.study) if cfg.fidelity.study is not None else f"fidelity-{spec.name}"
     tags = {"env": spec.name, "sdrl.study": study, "seed": job.seed, "collector": axes["collector"],
             "n_transitions": axes["n_transitions"], "data_noise": axes["data_noise"], "agent": job.agent.name,
             "reference": job.reference_name, **(extra_tags or {})}

@@ -128,9 +128,10 @@ def study_settings(cfg: DictConfig, choices: Mapping[str, str]) -> StudySettings
     study_seed, worker = int_key(cfg, "study.seed", minimum=0), int_key(cfg, "study.worker", minimum=0)
     heartbeat_interval = int_key(cfg, "study.heartbeat_interval", minimum=1)
     heartbeat_grace = int_key(cfg, "study.heartbeat_grace", minimum=1)
-    if heartbeat_grace < heartbeat_interval:  # every live trial would look stale between two beats
+    if heartbeat_grace < heartbeat_interval and not str(st.storage).startswith("journal:"):  # no heartbeats there
         raise ConfigError(f"study.heartbeat_grace: {heartbeat_grace} s is shorter than study.heartbeat_interval "
-                          f"({heartbeat_interval} s), so other workers would fail live trials as stale; set it >= the interval")
+                          f"({heartbeat_interval} s), so other workers would fail live trials as stale; set it to a few "
+                          "intervals (Optuna's default is twice the interval)")
     space = parse_space(OmegaConf.to_container(sc.space, resolve=True))
     kind = str(cfg.surrogate.get("kind", "sindy"))
     check_model_kind(space, kind)
@@ -224,7 +225,10 @@ def run_search(cfg: DictConfig, choices: Mapping[str, str] | None = None, quiet:
             print(f"[{settings.name} w{settings.worker}] trial {t.number}: {value} {t.params}", flush=True)
 
     result = run_study(settings, build, progress)
-    summary = summarize(result, build, final_score, cfg.study.export_dir)
+    def waiting() -> None:
+        print(f"[{settings.name} w{settings.worker}] waiting for another worker's summary of the study", flush=True)
+
+    summary = summarize(result, build, final_score, cfg.study.export_dir, None if quiet else waiting)
     if not quiet:
         _print_summary(summary, result, cfg.study.export_dir)
     return result, summary

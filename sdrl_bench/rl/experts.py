@@ -37,12 +37,13 @@ class ExpertPolicy:
     budget: int
     seed: int = 0
     cache_dir: str = "mlruns/experts"
-    progress_bar: bool = True
+    progress_bar: bool | str = True
+    """A progress bar while the expert trains; a string names it (``rl.agents.train``)."""
     _model: Any = field(default=None, init=False, repr=False)
 
     def __post_init__(self) -> None:
         if isinstance(self.budget, bool) or not isinstance(self.budget, int) or self.budget <= 0:
-            raise ConfigError(f"env.expert.budget: a positive integer is required, got {self.budget!r}")
+            raise ConfigError(f"env.expert.budget (collector.policy.budget): a positive integer is required, got {self.budget!r}")
 
     def validate(self, spec: EnvSpec) -> None:
         """Config-time check (no training): the expert's algorithm can act in the env, and its

@@ -587,3 +587,15 @@ class JaxPPO(CompiledAgent):
                               cfg.normalize_reward)
             agent.env = env
         return agent
+
+
+def __getattr__(name: str) -> Any:
+    """``JaxSAC`` under its older path, ``sdrl_bench.rl.jax_agent.JaxSAC``: ``agent=sac_jax``'s
+    ``_target_`` names it there, because a run's config keys (a sweep's resume, the real arm's
+    reuse) hash the resolved config, and stored runs and users' packs name that path. Imported on
+    first use: ``rl.jax_sac_agent`` imports this module."""
+    if name == "JaxSAC":
+        from sdrl_bench.rl.jax_sac_agent import JaxSAC  # noqa: PLC0415
+
+        return JaxSAC
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

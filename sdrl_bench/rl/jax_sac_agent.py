@@ -39,7 +39,7 @@ class JaxSAC(CompiledAgent):
     as SB3's does; not the replay buffer (SB3 keeps it apart, ``save_replay_buffer``, which this
     class does not have)."""
 
-    LABEL = "the compiled SAC (agent=sac_jax, sdrl_bench.rl.jax_sac_agent.JaxSAC)"
+    LABEL = "the compiled SAC (agent=sac_jax, sdrl_bench.rl.jax_agent.JaxSAC)"
     """What a missing extra's message names."""
 
     def __init__(self, policy: str = "MlpPolicy", env: Any = None, seed: int | None = None, verbose: int = 0,

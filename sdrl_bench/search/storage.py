@@ -81,7 +81,7 @@ def local_file(url: str) -> Path | None:
 
 
 @contextlib.contextmanager
-def summary_lock(url: str, study: str) -> Iterator[None]:
+def summary_lock(url: str, study: str, on_wait: Callable[[], None] | None = None) -> Iterator[None]:
     """Held while a worker summarizes study ``study`` (``search.summary.summarize``), so that the
     workers of one study that finish together summarize one after the other: the second reads
     the first's refit of the best trial and refits nothing, and they do not write the parent
@@ -89,12 +89,12 @@ def summary_lock(url: str, study: str) -> Iterator[None]:
     ``flock``), which covers workers on one host (Hydra's joblib and submitit_local launchers);
     a server storage has none, and workers on several hosts that finish in the same seconds may
     each refit the best trial (an extra refit run; the parent's params are safe either way,
-    ``tracking.Run.log_params``)."""
+    ``tracking.Run.log_params``). ``on_wait``: called once if another worker holds it."""
     path = local_file(url)
     if path is None:
         yield
         return
-    with tracking.store_lock(path.with_name(f"{path.name}.{study}.summary")):
+    with tracking.store_lock(path.with_name(f"{path.name}.{study}.summary"), on_wait):
         yield
 
 

@@ -7,13 +7,14 @@ leaves the final picture in the parent run (and in the study's ``sdrl.summary`` 
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 
 import optuna
 
@@ -83,17 +84,20 @@ def summarize(
     build_job: BuildJob,
     final_score: bool = True,
     export_dir: str | Path | None = None,
+    on_wait: Callable[[], None] | None = None,
 ) -> StudySummary:
     """Record the study's current state: best trial (refitted and scored on the fixed test set
     when ``final_score``), counts and fits, figures, and the best config (as ``sdrl-bench``
     overrides and an experiment pack, also written under ``export_dir/experiment/``). Workers of
-    one study on one host summarize one at a time (``storage.summary_lock``)."""
+    one study on one host summarize one at a time (``storage.summary_lock``; ``on_wait`` is called
+    once if this one waits for another's)."""
     try:
-        with summary_lock(result.storage, result.settings.name):
+        with summary_lock(result.storage, result.settings.name, on_wait):
             return _summarize(result, build_job, final_score, export_dir)
     except BaseException as exc:  # the parent shows it (a rerun summarizes again and finishes it)
         stopped = isinstance(exc, KeyboardInterrupt) or stop_signal_received()
-        tracking.end_run(result.tracking_uri, result.parent_run_id, "KILLED" if stopped else "FAILED")
+        with contextlib.suppress(Exception):  # a store that is down must not hide why the summary failed
+            tracking.end_run(result.tracking_uri, result.parent_run_id, "KILLED" if stopped else "FAILED")
         raise
 
 

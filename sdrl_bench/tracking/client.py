@@ -17,7 +17,7 @@ import subprocess
 import tempfile
 from pathlib import Path
 from typing import Any
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 
 from sdrl_bench import ConfigError, on_stop_signal, redact, stop_signal_received, stop_signals_held
 
@@ -168,13 +168,19 @@ class _StopsHeld:
 
 
 @contextlib.contextmanager
-def store_lock(db: Path) -> Iterator[None]:
-    """An exclusive lock across processes (``flock`` on ``<db>.lock`` beside the store)."""
+def store_lock(db: Path, on_wait: Callable[[], None] | None = None) -> Iterator[None]:
+    """An exclusive lock across processes (``flock`` on ``<db>.lock`` beside the store);
+    ``on_wait`` is called once when another process holds it, before waiting for it."""
     import fcntl
 
     db.parent.mkdir(parents=True, exist_ok=True)
     with open(db.with_name(db.name + ".lock"), "a+") as fh:
-        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(fh, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            if on_wait is not None:
+                on_wait()
+            fcntl.flock(fh, fcntl.LOCK_EX)
         try:
             yield
         finally:

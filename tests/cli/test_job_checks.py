@@ -62,8 +62,12 @@ QUICK = ("experiment=quick_mountain_car", "rl.arms=[surrogate]")
     (("env.poly_degree=-2",), "library (poly_trig): degree must be a nonnegative integer"),  # pysindy's, at fit time
     (("env=lunar_lander", "experiment=paper_lunar_lander", "env.spec.terrain=maybe"),
      "env.spec.terrain: true or false is required, got 'maybe'"),  # was terrain on
-    (("collector=expert", "env.expert.budget=lots"), "env.expert.budget: a positive integer is required, got 'lots'"),
-    (("collector=expert", "env.expert.budget=0"), "env.expert.budget: a positive integer is required, got 0"),
+    (("collector=expert", "collector.policy.progress_bar=expert_sac"), None),  # bool | str: a string names the bar
+    (("collector=expert", "env.expert.agent.algo.learning_rate=fast"),  # named where it was set, not under collector
+     "env.expert.agent.algo.learning_rate: a number is required, got 'fast'"),
+    (("optimizer.threshold=???",), "optimizer: Missing mandatory value: threshold"),  # OmegaConf's, not 'got ???'
+    (("collector=expert", "env.expert.budget=lots"), "env.expert.budget (collector.policy.budget): a positive integer is required, got 'lots'"),
+    (("collector=expert", "env.expert.budget=0"), "env.expert.budget (collector.policy.budget): a positive integer is required, got 0"),
 ])
 def test_a_bad_setting_is_one_line_naming_its_key(overrides, line):
     if line is None:  # a value SB3 trains with: accepted

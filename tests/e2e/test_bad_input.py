@@ -95,7 +95,7 @@ def test_a_compiled_agent_without_the_jax_extra_is_one_line(store, tmp_path):
                           f"tracking.uri={store}"], cwd=tmp_path, capture_output=True, text=True, timeout=300)
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [
-        "sdrl-bench: error: agent.algo: the compiled SAC (agent=sac_jax, sdrl_bench.rl.jax_sac_agent.JaxSAC) needs jax, "
+        "sdrl-bench: error: agent.algo: the compiled SAC (agent=sac_jax, sdrl_bench.rl.jax_agent.JaxSAC) needs jax, "
         "an optional extra: pip install 'sdrl-bench[jax]'"]
     assert no_running_runs(store) == 0
 

@@ -173,7 +173,8 @@ def test_a_heartbeat_grace_shorter_than_its_interval_is_refused():
     with pytest.raises(ConfigError) as err:
         study_settings(cfg, runtime_choices(cfg))
     assert str(err.value) == ("study.heartbeat_grace: 5 s is shorter than study.heartbeat_interval (10 s), so other "
-                              "workers would fail live trials as stale; set it >= the interval")
+                              "workers would fail live trials as stale; set it to a few intervals (Optuna's default is "
+                              "twice the interval)")
 
 
 def test_a_policy_objective_whose_agent_cannot_act_in_the_env_is_refused_before_any_data(tmp_path):

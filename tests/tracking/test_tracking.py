@@ -364,13 +364,17 @@ def test_processes_logging_the_same_params_to_one_run_at_once_all_succeed(store)
     ctx = mp.get_context("spawn")
     for attempt in range(2):
         run_id = tracking.create_parent_run(store, "params-race", f"race-{attempt}", {})
-        barrier, out = ctx.Barrier(4), ctx.Queue()
-        procs = [ctx.Process(target=_log_the_same_params, args=(store, run_id, barrier, out)) for _ in range(4)]
-        for p in procs:
-            p.start()
-        got = [out.get(timeout=120) for _ in procs]
-        for p in procs:
-            p.join(timeout=60)
+        barrier, out = ctx.Barrier(4, timeout=120), ctx.Queue()
+        procs = [ctx.Process(target=_log_the_same_params, args=(store, run_id, barrier, out), daemon=True) for _ in range(4)]
+        try:
+            for p in procs:
+                p.start()
+            got = [out.get(timeout=180) for _ in procs]
+        finally:
+            for p in procs:
+                p.join(timeout=30)
+                if p.is_alive():
+                    p.kill()
         assert got == ["ok"] * 4
         params = MlflowClient(store).get_run(run_id).data.params
         assert params == {f"p{i}": str(i) for i in range(40)}
