@@ -51,6 +51,8 @@ class AgentConfig:
             raise ConfigError(f"{key}.n_envs: a positive integer is required, got {self.n_envs!r}")
         if not isinstance(self.normalize_reward, bool):
             raise ConfigError(f"{key}.normalize_reward: true or false, got {self.normalize_reward!r}")
+        if self.action_space not in ("continuous", "discrete", "any"):  # anything else was "any"
+            raise ConfigError(f"{key}.action_space: continuous, discrete or any is required, got {self.action_space!r}")
         discrete = spec.n_discrete_actions > 0
         kind = "discrete" if discrete else "continuous (Box)"
         algo = getattr(self.algo, "func", None)

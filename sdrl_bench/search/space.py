@@ -120,7 +120,9 @@ def _parse_categorical(name: str, spec: Mapping, key: str) -> ParamSpec:
 
 
 def _parse_numeric(name: str, kind: str, spec: Mapping, key: str) -> ParamSpec:
-    low, high, log = spec.get("low"), spec.get("high"), bool(spec.get("log", False))
+    low, high, log = spec.get("low"), spec.get("high"), spec.get("log", False)
+    if not isinstance(log, bool):  # bool("maybe") was a log scale
+        raise ConfigError(f"search.space.{name}.log: true or false is required, got {log!r}")
     for bound, value in (("low", low), ("high", high)):
         if not _is_number(value) or not math.isfinite(float(value)):
             raise ConfigError(f"{key}.{bound}: a finite number is required, got {value!r}")

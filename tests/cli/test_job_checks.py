@@ -66,6 +66,7 @@ QUICK = ("experiment=quick_mountain_car", "rl.arms=[surrogate]")
     (("collector=expert", "env.expert.agent.algo.learning_rate=fast"),  # named where it was set, not under collector
      "env.expert.agent.algo.learning_rate: a number is required, got 'fast'"),
     (("optimizer.threshold=???",), "optimizer: Missing mandatory value: threshold"),  # OmegaConf's, not 'got ???'
+    (("agent.action_space=foo",), "agent.action_space: continuous, discrete or any is required, got 'foo'"),
     (("collector=expert", "env.expert.budget=lots"), "env.expert.budget (collector.policy.budget): a positive integer is required, got 'lots'"),
     (("collector=expert", "env.expert.budget=0"), "env.expert.budget (collector.policy.budget): a positive integer is required, got 0"),
 ])

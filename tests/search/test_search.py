@@ -66,6 +66,8 @@ def exact_law(equations: str) -> bool:
     ({"threshold": {"type": "float", "low": 0.1, "high": 0.01}}, r"search.space.threshold: low \(0.1\) must be below high \(0.01\)"),
     ({"poly_degree": {"type": "int", "low": 2, "high": 2}}, r"search.space.poly_degree: low \(2\) must be below high"),
     ({"alpha": {"type": "float", "low": 0.0, "high": 1.0, "log": True}}, r"search.space.alpha: a log scale needs positive bounds"),
+    ({"alpha": {"type": "float", "low": 0.1, "high": 1.0, "log": "maybe"}},
+     r"search.space.alpha.log: true or false is required, got 'maybe'"),  # was a log scale
     ({"gamma": {"type": "float", "low": 0.1, "high": 1.0}}, r"search.space.gamma: unknown parameter 'gamma'; known parameters: threshold"),
     ({"poly_degree": {"type": "int", "low": 1.5, "high": 3}}, r"search.space.poly_degree.low: an integer is required"),
     ({"library": {"type": "categorical", "choices": []}}, r"search.space.library.choices: .*non-empty"),
