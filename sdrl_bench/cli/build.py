@@ -60,7 +60,8 @@ def _origin(source: Any) -> str:
 
 def _admits(annotation: Any, value: Any) -> bool:
     """Whether a parameter's annotation (a string under ``from __future__ import annotations``)
-    names the value's type, ``Any`` or nothing at all: then the default's type does not bind."""
+    names the value's type or ``Any`` (``bool | str`` admits a string): then the default's type
+    does not bind. No annotation admits nothing: the default's type decides."""
     if annotation is inspect.Parameter.empty:
         return False
     text = annotation if isinstance(annotation, str) else getattr(annotation, "__name__", None) or str(annotation)
@@ -114,8 +115,9 @@ def check_value_types(node: Any, key: str, source: Any = None) -> None:
 def instantiate_typed(node: Any, key: str, source: Any = None) -> Any:
     """``instantiate_key`` with the values' types checked against the targets' defaults
     (``check_value_types``; ``source``: the node before interpolation, when ``node`` is a plain
-    container), after the target's own checks, whose messages are more precise. For the fit's parts (env spec, collector, library, optimizer, surrogate model); an
-    agent's settings have checks of their own, with their domains (``rl.agents``)."""
+    container), after the target's own checks, whose messages are more precise. For the fit's
+    parts (env spec, collector, library, optimizer, surrogate model); an agent's settings have
+    checks of their own, with their domains (``rl.agents``)."""
     try:
         if isinstance(node, DictConfig):
             resolved, source = OmegaConf.to_container(node, resolve=True), OmegaConf.to_container(node, resolve=False)
