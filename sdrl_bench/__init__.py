@@ -1,13 +1,24 @@
 """sdrl-bench: sparse-dynamics (SINDy) surrogate environments for reinforcement learning."""
 
 import contextlib
+import os
 from collections.abc import Iterator
+from pathlib import Path
 
 __version__ = "0.1.0"
 
 
 class ConfigError(ValueError):
     """Bad user input (a config key, a file): reported as one line, before expensive work."""
+
+
+def file_in_the_way(folder: "str | os.PathLike[str]") -> "Path | None":
+    """The file (not a folder) at ``folder`` or at its nearest existing ancestor, which would stop
+    ``mkdir(parents=True)`` there; None when that is a folder. Bad input is named by it."""
+    there = Path(folder)
+    while not there.exists() and there != there.parent:
+        there = there.parent
+    return None if there.is_dir() else there
 
 
 def redact(url: str) -> str:

@@ -19,7 +19,7 @@ from typing import Any
 import gymnasium as gym
 import numpy as np
 
-from sdrl_bench import ConfigError, seeds
+from sdrl_bench import ConfigError, file_in_the_way, seeds
 from sdrl_bench.envs.base import EnvSpec, Policy
 from sdrl_bench.rl.agents import AgentConfig, real_vec_env, train
 
@@ -49,11 +49,9 @@ class ExpertPolicy:
         """Config-time check (no training): the expert's algorithm can act in the env, and its
         cache folder can be one (a file there failed only after the expert's training)."""
         self.agent.check(spec, "env.expert.agent")
-        there = Path(self.cache_dir)
-        while not there.exists() and there != there.parent:
-            there = there.parent
-        if not there.is_dir():
-            raise ConfigError(f"collector.policy.cache_dir: {there} is a file, not a folder (the expert would be "
+        blocker = file_in_the_way(self.cache_dir)
+        if blocker is not None:
+            raise ConfigError(f"collector.policy.cache_dir: {blocker} is a file, not a folder (the expert would be "
                               f"cached in {self.path(spec)})")
 
     def path(self, spec: EnvSpec) -> Path:

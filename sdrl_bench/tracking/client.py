@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any
 from collections.abc import Callable, Iterator, Mapping
 
-from sdrl_bench import ConfigError, on_stop_signal, redact, stop_signal_received, stop_signals_held
+from sdrl_bench import ConfigError, file_in_the_way, on_stop_signal, redact, stop_signal_received, stop_signals_held
 
 DEFAULT_DB = Path("mlruns") / "mlflow.db"
 PARENT_TAG = "mlflow.parentRunId"
@@ -76,7 +76,7 @@ def check_writable(uri: str) -> None:
             raise PermissionError(f"{local} is read-only")
     except OSError as exc:
         reason = exc.strerror or str(exc)
-        blocker = next((p for p in (folder, *folder.parents) if p.exists() and not p.is_dir()), None)
+        blocker = file_in_the_way(folder)
         if blocker is not None:  # mkdir's "File exists" names no file
             reason = f"{blocker} is a file, not a folder"
         raise ConfigError(f"tracking.uri: cannot write the tracking store at {folder} ({reason})") from None
