@@ -19,6 +19,24 @@ import numpy as np
 
 from sdrl_bench.rl import jax_ppo
 
+OFF_CPU_PARITY = ("the compiled step's float64 equality with ModelEnv's is tested on the CPU only; on an H200 "
+                  "(jax 0.11.2) MountainCar's step was equal, cartpole's differed by up to 1.4e-5 and pendulum's and "
+                  "LunarLander's by 4.8e-7, and the NN surrogates' float32 layers by up to 1.2e-4 at JAX's default "
+                  "matmul precision (docs/compiled.md, 'On a GPU')")
+"""What was measured off the CPU (the tests marked ``jax``, run on an H200 on 2026-11-30), quoted by
+``backend_note`` where a run is about to train there."""
+
+
+def backend_note(backend: str) -> str | None:
+    """None where JAX's default backend is the CPU, where the compiled agents' step is tested;
+    else one line for the run's log: they train on ``backend``, what that changes, and how to stay
+    on the CPU. Hand-written: jax says where it runs, not what our tests covered."""
+    if backend == "cpu":
+        return None
+    return (f"JAX's default backend is {backend}: the compiled agents train there; {OFF_CPU_PARITY}. "
+            "JAX_PLATFORMS=cpu keeps them on the CPU")
+
+
 def use_compilation_cache(path: str | Path) -> None:
     """JAX's persistent compilation cache in ``path`` (config ``jax_cache_dir``), for every
     compiled program however short its compile: a program compiled before (the update of the same
@@ -219,6 +237,15 @@ def size_cpu_pool(threads: int, who: str = "sdrl_bench.rl.jax_compile") -> int |
     core gives. Only on Linux (``os.sched_setaffinity``); elsewhere, or once the backend exists
     (a sweep's later jobs), the pool stays as it is, with a warning if it differs."""
     jax, _, _ = jax_ppo._modules(who)
+    size = _size_pool(jax, threads)
+    note = backend_note(jax.default_backend())  # after the CPU pool: this starts every backend
+    if note:
+        warnings.warn(note, stacklevel=2)
+    return size
+
+
+def _size_pool(jax: Any, threads: int) -> int | None:
+    """``size_cpu_pool``'s work: the CPU backend created with ``threads`` pool threads."""
     have = cpu_pool_threads()
     if threads == 0 or have is None or not hasattr(os, "sched_setaffinity"):
         jax.devices("cpu")
@@ -226,7 +253,7 @@ def size_cpu_pool(threads: int, who: str = "sdrl_bench.rl.jax_compile") -> int |
     if have:  # the backend exists: its pool is fixed for the process's life
         if have != threads:
             warnings.warn(f"jax_threads={threads}: JAX's CPU backend already exists in this process with "
-                          f"{have} pool threads; they stay", stacklevel=2)
+                          f"{have} pool threads; they stay", stacklevel=3)
         return have
     full = os.sched_getaffinity(0)
     before = {int(t): os.sched_getaffinity(int(t)) for t in os.listdir("/proc/self/task")}

@@ -21,11 +21,11 @@ jnp = pytest.importorskip("jax.numpy")
 pytest.importorskip("optax")
 pytestmark = pytest.mark.jax
 
-from helpers import compose_cfg, held_sde_noise, run_cli, search  # noqa: E402
+from helpers import ROOT, compose_cfg, held_sde_noise, run_cli, search  # noqa: E402
 from sdrl_bench.cli.build import build_dyna_job, build_fit_job, instantiate_key  # noqa: E402
 from sdrl_bench.pipeline import fit_dynamics  # noqa: E402
 from sdrl_bench.rl.agents import RealEvalCallback, make_agent, real_vec_env, train  # noqa: E402
-from sdrl_bench.rl import jax_ppo  # noqa: E402
+from sdrl_bench.rl import jax_compile, jax_ppo  # noqa: E402
 from sdrl_bench.rl.jax_agent import JaxPPO  # noqa: E402
 from sdrl_bench.rl.transfer import surrogate_vec_env  # noqa: E402
 
@@ -427,3 +427,12 @@ def test_jax_threads_sizes_xlas_cpu_pool_without_pinning_a_thread(tmp_path):
     assert (before, got, after) == (0, 1, 1)  # no pool before the backend, one thread in it after
     assert aff == [True]  # every thread, the pool's too, may run on every CPU the process may
     assert x == 64.0 * 64 * 64
+    assert "default backend" not in res.stderr  # on the CPU, where the step is tested: no note
+
+
+def test_training_off_the_cpu_is_one_line_saying_what_was_measured_there():
+    assert jax_compile.backend_note("cpu") is None
+    note = jax_compile.backend_note("gpu")
+    assert "\n" not in note and note.startswith("JAX's default backend is gpu: the compiled agents train there")
+    assert "cartpole's differed by up to 1.4e-5" in note and note.endswith("JAX_PLATFORMS=cpu keeps them on the CPU")
+    assert "'On a GPU'" in note and "### On a GPU" in (ROOT / "docs" / "compiled.md").read_text()
