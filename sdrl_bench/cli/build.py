@@ -69,12 +69,19 @@ def _admits(annotation: Any, value: Any) -> bool:
     return bool(words & {"Any", type(value).__name__})
 
 
+def _numbers(seq: Any) -> bool:
+    """Whether ``seq`` is a non-empty tuple or list of numbers (bools are not)."""
+    return (isinstance(seq, (tuple, list)) and len(seq) > 0
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in seq))
+
+
 def check_value_types(node: Any, key: str, source: Any = None) -> None:
     """Each value under a ``_target_`` whose parameter defaults to a bool must be a bool, and one
     whose parameter defaults to a number must not be a string or a bool: the targets themselves
     read ``maybe`` as true (pysindy's ``normalize_columns``, an env spec's ``terrain``) or fail
-    deep inside with ``'<' not supported between 'str' and 'int'``. One line naming the key, and
-    the key it was interpolated from. Left to the target: parameters without a default, or
+    deep inside with ``'<' not supported between 'str' and 'int'``; a list where the parameter
+    defaults to a list of numbers must hold numbers (``TrigLibrary``'s frequencies). One line
+    naming the key, and the key it was interpolated from (a list: that key alone). Left to the target: parameters without a default, or
     defaulting to None or a string; values the annotation admits (``progress_bar: bool | str``);
     null and Hydra's ``???``. ``source`` is the node before interpolation."""
     if isinstance(node, list):
@@ -96,11 +103,14 @@ def check_value_types(node: Any, key: str, source: Any = None) -> None:
             continue
         src = source.get(name) if isinstance(source, dict) else None
         where = f"{key}.{name}"
+        param = params.get(name)
+        if isinstance(value, list) and param is not None and _numbers(param.default) and not _numbers(value):
+            found = _PLAIN_KEY.match(src) if isinstance(src, str) else None  # a list set elsewhere: that key
+            raise ConfigError(f"{found.group(1) if found else where}: a list of numbers is required, got {value!r}")
         if isinstance(value, (dict, list)):
             found = _PLAIN_KEY.match(src) if isinstance(src, str) else None  # a subtree from elsewhere: its own keys
             check_value_types(value, found.group(1) if found else where, None if found else src)
             continue
-        param = params.get(name)
         default = None if param is None else param.default
         if default is None or default is inspect.Parameter.empty or value is None or value == "???":
             continue
@@ -261,6 +271,8 @@ def build_fit_job(cfg: DictConfig) -> FitJob:
     opt_cfg = OmegaConf.to_container(cfg.optimizer, resolve=True)
     opt_cfg.pop("name", None)
     _check_finite(opt_cfg, "optimizer")
+    if "n_models" in opt_cfg:  # pysindy 2.1's EnsembleOptimizer refuses 0 naming n_candidates_to_drop
+        int_key(cfg, "optimizer.n_models", minimum=1)
     optimizer = instantiate_typed(opt_cfg, "optimizer", source=cfg.optimizer)
     model_factory = instantiate_typed(cfg.surrogate.model, "surrogate.model")
     return FitJob(

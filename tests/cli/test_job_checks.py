@@ -69,6 +69,10 @@ QUICK = ("experiment=quick_mountain_car", "rl.arms=[surrogate]")
     (("agent.action_space=foo",), "agent.action_space: continuous, discrete or any is required, got 'foo'"),
     (("collector=expert", "env.expert.budget=lots"), "env.expert.budget (collector.policy.budget): a positive integer is required, got 'lots'"),
     (("collector=expert", "env.expert.budget=0"), "env.expert.budget (collector.policy.budget): a positive integer is required, got 0"),
+    (("env.trig_frequencies=[fast]",), "env.trig_frequencies: a list of numbers is required, got ['fast']"),  # was library.parts[1]
+    (("library.parts.1.library.frequencies=[1,true]",),  # float(True) was a frequency of 1
+     "library.parts[1].library.frequencies: a list of numbers is required, got [1, True]"),
+    (("optimizer=ensemble", "optimizer.n_models=0"), "optimizer.n_models must be >= 1, got 0"),  # pysindy: n_candidates_to_drop
 ])
 def test_a_bad_setting_is_one_line_naming_its_key(overrides, line):
     if line is None:  # a value SB3 trains with: accepted
