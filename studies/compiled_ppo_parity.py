@@ -27,9 +27,9 @@ machine beside another job): SB3 median 230.7, IQM 226.4, lowest 47.9; compiled 
 compiled: 65.8 and 74.2 in seeds 10 and 13), and no difference between the two shows.
 MountainCar (seeds 0-31, 20 episodes): at 98,304 steps SB3 median 78.9 (IQM 76.5), compiled 65.9
 (IQM 43.8), p = 0.09; at 131,072 steps 90.7 (90.4) against 89.9 (85.1), p = 0.34; at 163,840 steps
-91.6 against 91.5, p = 0.54; over seeds 0-127 on a 16-core Xeon (``--jobs 15``, 117 s per budget), at
-98,304 steps 78.9 (IQM 65.2) against 82.1 (64.6), p = 0.85, and at 131,072 steps 90.5 (89.6)
-against 90.7 (90.0), p = 0.28 (docs/compiled.md). SAC (``--env mountain_car_sac --steps 20000 --seeds
+91.6 against 91.5, p = 0.54; over seeds 0-127 on a 16-core Xeon (``--jobs 15``), at 98,304 steps
+78.9 (IQM 65.2) against 82.1 (64.6), p = 0.85, the IQM difference -0.7 [-20.2, 18.5], and at
+131,072 steps 90.5 (89.6) against 90.7 (90.0), p = 0.28, 0.4 [-4.1, 6.0] (docs/compiled.md). SAC (``--env mountain_car_sac --steps 20000 --seeds
 0-15 --jobs 2``, about 34 min): SB3 median 93.4, IQM 93.6, lowest 91.7; compiled median 93.7, IQM
 93.6, lowest 88.0; p = 0.78.
 """
@@ -174,6 +174,22 @@ def main() -> None:
     for name, v in out.items():
         print(f"{name}: median {np.median(v):.1f}, IQM {stats.trim_mean(v, 0.25):.1f}, min {min(v):.1f}")
     print(f"Mann-Whitney U: p = {stats.mannwhitneyu(*out.values()).pvalue:.2f}")
+    (sb3, a), (comp, b) = out.items()
+    if len(seeds) > 1:
+        print(f"IQM difference, {comp} - {sb3}: {iqm_gap(a, b):.1f}, 95% CI {iqm_gap_ci(a, b)}")
+
+
+def iqm_gap(a, b, axis: int = -1):
+    """IQM(b) - IQM(a) (the interquartile mean: ``scipy.stats.trim_mean`` at 25%)."""
+    return stats.trim_mean(b, 0.25, axis=axis) - stats.trim_mean(a, 0.25, axis=axis)
+
+
+def iqm_gap_ci(a: list[float], b: list[float]) -> str:
+    """The 95% percentile-bootstrap interval of ``iqm_gap`` (``scipy.stats.bootstrap``: the arms
+    resampled independently, 10,000 resamples, seeded), as ``[lo, hi]``; the arms' values in seed order."""
+    ci = stats.bootstrap((np.asarray(a), np.asarray(b)), iqm_gap, n_resamples=10_000, method="percentile",
+                         rng=np.random.default_rng(0)).confidence_interval
+    return f"[{ci.low:.1f}, {ci.high:.1f}]"
 
 
 if __name__ == "__main__":

@@ -43,7 +43,7 @@ def test_a_rerun_adopts_the_stored_seeds_and_trains_the_rest(tmp_path):
     assert "seed 2 (trained)" in again.stdout and "seed 0 (trained)" not in again.stdout
     stored = {rec["seed"]: rec["returns"] for rec in lines}
     assert f"seed 0: SB3 sac {stored[0]['SB3 sac']:.1f}, sac_jax {stored[0]['sac_jax']:.1f}" in again.stdout
-    assert "Mann-Whitney U: p =" in again.stdout
+    assert "Mann-Whitney U: p =" in again.stdout and "IQM difference, sac_jax - SB3 sac: " in again.stdout
     key = {"env": "mountain_car_sac", "steps": 64, "episodes": 1}
     assert sorted(load_script("studies/compiled_ppo_parity.py").stored(tmp_path / "parity.jsonl", key)) == [0, 1, 2]
 
@@ -72,3 +72,13 @@ def test_a_line_after_a_cut_line_is_its_own(tmp_path):
     mod.append(path, {**key, "seed": 1, "returns": {"a": 2.0}, "host": "h"})
     assert mod.stored(path, key) == {0: {"a": 1.0}, 1: {"a": 2.0}}
     assert len(path.read_text().splitlines()) == 3 and path.read_text().endswith("\n")
+
+
+def test_the_iqm_difference_and_its_bootstrap_interval():
+    mod = load_script("studies/compiled_ppo_parity.py")
+    assert mod.iqm_gap([0.0] * 4, [1.0] * 4) == 1.0 and mod.iqm_gap_ci([0.0] * 4, [1.0] * 4) == "[1.0, 1.0]"
+    a, b = [-100.0, 10.0, 20.0, 30.0, 40.0, 50.0, 60.0, 900.0], [15.0, 25.0, 35.0, 45.0]
+    assert mod.iqm_gap(a, b) == 30.0 - 35.0  # the tails trimmed: IQM(a) of 20..50, IQM(b) of 25, 35
+    lo, hi = (float(x) for x in mod.iqm_gap_ci(a, b).strip("[]").split(", "))
+    assert lo < -5.0 < hi  # around the estimate
+    assert mod.iqm_gap_ci(a, b) == mod.iqm_gap_ci(a, b)  # seeded: the same interval each time

@@ -69,10 +69,11 @@ def _admits(annotation: Any, value: Any) -> bool:
     return bool(words & {"Any", type(value).__name__})
 
 
-def _numbers(seq: Any) -> bool:
-    """Whether ``seq`` is a non-empty tuple or list of numbers (bools are not)."""
+def _numbers(seq: Any, nulls: bool = False) -> bool:
+    """Whether ``seq`` is a non-empty tuple or list of numbers (bools are not); with ``nulls``,
+    None entries too (a spec's bounds read null as unbounded)."""
     return (isinstance(seq, (tuple, list)) and len(seq) > 0
-            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in seq))
+            and all((isinstance(v, (int, float)) and not isinstance(v, bool)) or (nulls and v is None) for v in seq))
 
 
 def check_value_types(node: Any, key: str, source: Any = None) -> None:
@@ -80,10 +81,11 @@ def check_value_types(node: Any, key: str, source: Any = None) -> None:
     whose parameter defaults to a number must not be a string or a bool: the targets themselves
     read ``maybe`` as true (pysindy's ``normalize_columns``, an env spec's ``terrain``) or fail
     deep inside with ``'<' not supported between 'str' and 'int'``; a list where the parameter
-    defaults to a list of numbers must hold numbers (``TrigLibrary``'s frequencies). One line
-    naming the key, and the key it was interpolated from (a list: that key alone). Left to the target: parameters without a default, or
-    defaulting to None or a string; values the annotation admits (``progress_bar: bool | str``);
-    null and Hydra's ``???``. ``source`` is the node before interpolation."""
+    defaults to a list of numbers must hold numbers or nulls (``TrigLibrary``'s frequencies, a
+    spec's bounds). One line naming the key, and the key it was interpolated from (a list: that
+    key alone). Left to the target: parameters without a default, or defaulting to None or a
+    string; values the annotation admits (``progress_bar: bool | str``); null and Hydra's
+    ``???``. ``source`` is the node before interpolation."""
     if isinstance(node, list):
         for i, value in enumerate(node):
             check_value_types(value, f"{key}[{i}]", source[i] if isinstance(source, list) and i < len(source) else None)
@@ -104,7 +106,7 @@ def check_value_types(node: Any, key: str, source: Any = None) -> None:
         src = source.get(name) if isinstance(source, dict) else None
         where = f"{key}.{name}"
         param = params.get(name)
-        if isinstance(value, list) and param is not None and _numbers(param.default) and not _numbers(value):
+        if isinstance(value, list) and param is not None and _numbers(param.default) and not _numbers(value, nulls=True):
             found = _PLAIN_KEY.match(src) if isinstance(src, str) else None  # a list set elsewhere: that key
             raise ConfigError(f"{found.group(1) if found else where}: a list of numbers is required, got {value!r}")
         if isinstance(value, (dict, list)):

@@ -20,9 +20,9 @@ import numpy as np
 from sdrl_bench.rl import jax_ppo
 
 OFF_CPU_PARITY = ("the compiled step's float64 equality with ModelEnv's is tested on the CPU only; on an H200 "
-                  "(jax 0.11.2) MountainCar's step was equal, cartpole's differed by up to 1.4e-5 and pendulum's and "
-                  "LunarLander's by 4.8e-7, and the NN surrogates' float32 layers by up to 1.2e-4 at JAX's default "
-                  "matmul precision (docs/compiled.md, 'On a GPU')")
+                  "(jax 0.11.2) the jitted step departed from the eager one by up to 1.4e-5 in cartpole's states and "
+                  "4.9e-5 in LunarLander's rewards (MountainCar's within 1e-12), and the NN surrogates' float32 "
+                  "layers by up to 1.2e-4 at JAX's default matmul precision (docs/compiled.md, 'On a GPU')")
 """What was measured off the CPU (the tests marked ``jax``, run on an H200 on 2026-11-30), quoted by
 ``backend_note`` where a run is about to train there."""
 
@@ -238,7 +238,7 @@ def size_cpu_pool(threads: int, who: str = "sdrl_bench.rl.jax_compile") -> int |
     (a sweep's later jobs), the pool stays as it is, with a warning if it differs."""
     jax, _, _ = jax_ppo._modules(who)
     size = _size_pool(jax, threads)
-    note = backend_note(jax.default_backend())  # after the CPU pool: this starts every backend
+    note = backend_note(jax.default_backend())  # the backends exist: jax.devices('cpu') made them all
     if note:
         warnings.warn(note, stacklevel=2)
     return size

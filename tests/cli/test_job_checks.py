@@ -73,6 +73,7 @@ QUICK = ("experiment=quick_mountain_car", "rl.arms=[surrogate]")
     (("library.parts.1.library.frequencies=[1,true]",),  # float(True) was a frequency of 1
      "library.parts[1].library.frequencies: a list of numbers is required, got [1, True]"),
     (("optimizer=ensemble", "optimizer.n_models=0"), "optimizer.n_models must be >= 1, got 0"),  # pysindy: n_candidates_to_drop
+    (("+env.spec.state_low=[-1.2,null]",), None),  # a null bound is unbounded: a list of numbers may hold it
 ])
 def test_a_bad_setting_is_one_line_naming_its_key(overrides, line):
     if line is None:  # a value SB3 trains with: accepted
