@@ -93,6 +93,9 @@ def _one_line(exc: BaseException, overrides: Sequence[str], compose) -> str:
         if group == "experiment" and searched.is_file():  # a search's best config, its folder not on the search path
             hint = f"; a search wrote {searched}: add 'hydra.searchpath=[file://{SEARCH_EXPORTS}]'"
         return f"{group}={option}: no such option of '{group}' (options: {', '.join(options)}){hint}"
+    cause = exc.__cause__
+    if type(cause).__name__ == "ValidationError" and getattr(cause, "full_key", None):  # OmegaConf refused the value
+        return f"{cause.full_key}: {str(getattr(cause, 'msg', cause)).splitlines()[0]}"  # (Hydra's line names no reason)
     unknown = re.search(r"full_key: (\S+)", text) or re.match(r"Could not override '([^']+)'", first)
     if unknown:
         key = unknown.group(1)

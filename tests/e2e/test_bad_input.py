@@ -71,6 +71,9 @@ def test_unknown_keys_options_and_bad_overrides_are_one_line(new_store, tmp_path
     (["seed=0,1", "hydra.launcher.n_jobs=0"],  # joblib's traceback after the parent run, before
      "hydra.launcher.n_jobs: a whole number of parallel jobs other than 0 is required (1, 2, ...; -1 for every core), "
      "got 0"),
+    (["seed=0,1", "hydra.launcher.n_jobs=abc"],  # was Hydra's "Error merging override ...", no reason given
+     "hydra.launcher.n_jobs: Value 'abc' of type 'str' could not be converted to Integer"),
+    (["seed=0,1", "hydra.job.chdir=maybe"], "hydra.job.chdir: Value 'maybe' is not a valid bool (type str)"),
 ])
 def test_a_sweeps_bad_job_is_one_line_before_the_sweep_starts(new_store, tmp_path, args, line):
     """``-m``: each job's own check (``cli.build.check_job``) runs in the driver first, so a bad
