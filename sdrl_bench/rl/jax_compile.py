@@ -20,9 +20,9 @@ import numpy as np
 from sdrl_bench.rl import jax_ppo
 
 OFF_CPU_PARITY = ("the compiled step's float64 equality with ModelEnv's is tested on the CPU only; on an H200 "
-                  "(jax 0.11.2) the jitted step departed from the eager one by up to 1.4e-5 in cartpole's states and "
-                  "4.9e-5 in LunarLander's rewards (MountainCar's within 1e-12), and the NN surrogates' float32 "
-                  "layers by up to 1.2e-4 at JAX's default matmul precision (docs/compiled.md, 'On a GPU')")
+                  "(jax 0.11.2) the jitted step departed from the eager one by up to 1.4e-5 in states and 4.9e-5 in "
+                  "rewards (of 5 built-in envs compared, 1 stayed within 1e-12), and the NN surrogates' float32 layers by up to "
+                  "1.2e-4 at JAX's default matmul precision (docs/compiled.md, 'On a GPU')")
 """What was measured off the CPU (the tests marked ``jax``, run on an H200 on 2026-11-30), quoted by
 ``backend_note`` where a run is about to train there."""
 
