@@ -19,10 +19,11 @@ import numpy as np
 
 from sdrl_bench.rl import jax_ppo
 
-OFF_CPU_PARITY = ("the compiled step's float64 equality with ModelEnv's is tested on the CPU only; on an H200 "
-                  "(jax 0.11.2) the jitted step departed from the eager one by up to 1.4e-5 in states and 4.9e-5 in "
-                  "rewards (of 5 built-in envs compared, 1 stayed within 1e-12), and the NN surrogates' float32 layers by up to "
-                  "1.2e-4 at JAX's default matmul precision (docs/compiled.md, 'On a GPU')")
+OFF_CPU_PARITY = ("the compiled step's float64 equality with ModelEnv's is tested on the CPU only; on an "
+                  "H200 (jax 0.11.2) the jitted step departed from the eager one by up to 1.4e-5 in states and "
+                  "4.9e-5 in rewards (of 5 built-in envs compared, 1 stayed within 1e-12), and the NN "
+                  "surrogates' float32 layers by up to 1.2e-4 at JAX's default matmul precision "
+                  "(docs/compiled.md, 'On a GPU')")
 """What was measured off the CPU (the tests marked ``jax``, run on an H200 on 2026-11-30), quoted by
 ``backend_note`` where a run is about to train there."""
 
@@ -235,7 +236,8 @@ def size_cpu_pool(threads: int, who: str = "sdrl_bench.rl.jax_compile") -> int |
     rollout and update, took 53-56 ms with XLA's two threads and 41-43 ms with one. The programs'
     products and fusions are small; handing them between two threads costs more than the second
     core gives. Only on Linux (``os.sched_setaffinity``); elsewhere, or once the backend exists
-    (a sweep's later jobs), the pool stays as it is, with a warning if it differs."""
+    (a sweep's later jobs), the pool stays as it is, with a warning if it differs. Where JAX's
+    default backend is not the CPU (a GPU build of jax), a warning says so (``backend_note``)."""
     jax, _, _ = jax_ppo._modules(who)
     size = _size_pool(jax, threads)
     note = backend_note(jax.default_backend())  # the backends exist: jax.devices('cpu') made them all
