@@ -286,6 +286,23 @@ def _check_stores(uris, storages=()) -> None:
         tracking.check_store(url, key="study.storage", kind="optuna")
 
 
+def unread_primary(argv: Sequence[str], config_name: str) -> str | None:
+    """A line for a ``--config-dir`` that holds a file named as the package's primary config
+    (``config.yaml``) while ``--config-name`` is not given: Hydra reads the package's, which comes
+    first on its search path, and the user's file is silently passed over. None otherwise."""
+    from hydra._internal.utils import get_args_parser
+
+    try:
+        args, _ = get_args_parser().parse_known_args(list(argv))
+    except SystemExit:
+        return None
+    shadowed = Path(args.config_dir) / f"{config_name}.yaml" if args.config_dir and not args.config_name else None
+    if shadowed is None or not shadowed.is_file():
+        return None
+    return (f"--config-dir: {shadowed} is not read (the package's {config_name}.yaml comes first); to use it, "
+            f"rename it and pass --config-name <its name>, its defaults list starting with '{config_name}'")
+
+
 def run_checked(app, config_name: str, prog: str, check_job: Callable | str | None = None) -> None:
     """An entry point: the command line checked first (``check_command_line``: one line on
     stderr and exit 2 for a bad override, key, group option, YAML file or damaged store, and for
@@ -295,6 +312,9 @@ def run_checked(app, config_name: str, prog: str, check_job: Callable | str | No
     import sys
 
     try:
+        unread = unread_primary(sys.argv[1:], config_name)
+        if unread:
+            print(f"{prog}: warning: {unread}", file=sys.stderr)
         check_command_line(sys.argv[1:], config_name, check_job)
     except ConfigError as exc:
         print(f"{prog}: error: {exc}", file=sys.stderr)

@@ -311,3 +311,22 @@ def test_a_swingup_fit_prints_no_warning_or_import_notes(store, tmp_path):
     assert "warn" not in res.stderr.lower(), res.stderr[-2000:]
     assert "absl" not in res.stderr + res.stdout and "OpenGL" not in res.stderr + res.stdout
     assert "x' = x +0.00" in res.stdout
+
+
+def test_a_config_yaml_in_the_config_dir_that_hydra_passes_over_is_warned_of(tmp_path):
+    """Hydra reads the package's config.yaml before one in ``--config-dir`` (the user's is silently
+    unused); the run says so, and under another name with ``--config-name`` it is read."""
+    conf = tmp_path / "conf"
+    conf.mkdir()
+    text = "defaults:\n  - config\n  - _self_\nn_transitions: 33\n"
+    (conf / "config.yaml").write_text(text)
+    (conf / "mine.yaml").write_text(text)
+    shadowed = run_cli("--config-dir", str(conf), "--cfg", "job", cwd=tmp_path)
+    assert shadowed.returncode == 0, shadowed.stderr[-2000:]
+    assert shadowed.stderr.strip().splitlines()[0] == (
+        f"sdrl-bench: warning: --config-dir: {conf / 'config.yaml'} is not read (the package's config.yaml comes "
+        "first); to use it, rename it and pass --config-name <its name>, its defaults list starting with 'config'")
+    assert "\nn_transitions: ${env.n_transitions}\n" in shadowed.stdout  # the package's, not 33
+    named = run_cli("--config-dir", str(conf), "--config-name", "mine", "--cfg", "job", cwd=tmp_path)
+    assert named.returncode == 0 and "warning" not in named.stderr, named.stderr[-2000:]
+    assert "\nn_transitions: 33\n" in named.stdout
