@@ -12,12 +12,19 @@ class ConfigError(ValueError):
     """Bad user input (a config key, a file): reported as one line, before expensive work."""
 
 
-def file_in_the_way(folder: "str | os.PathLike[str]") -> "Path | None":
-    """The file (not a folder) at ``folder`` or at its nearest existing ancestor, which would stop
-    ``mkdir(parents=True)`` there; None when that is a folder. Bad input is named by it."""
+def nearest_existing(folder: "str | os.PathLike[str]") -> Path:
+    """``folder`` if it exists, else its nearest existing ancestor (where ``mkdir(parents=True)``
+    would start)."""
     there = Path(folder)
     while not there.exists() and there != there.parent:
         there = there.parent
+    return there
+
+
+def file_in_the_way(folder: "str | os.PathLike[str]") -> "Path | None":
+    """The file (not a folder) at ``folder`` or at its nearest existing ancestor, which would stop
+    ``mkdir(parents=True)`` there; None when that is a folder. Bad input is named by it."""
+    there = nearest_existing(folder)
     return None if there.is_dir() else there
 
 

@@ -29,8 +29,8 @@ MountainCar (seeds 0-31, 20 episodes): at 98,304 steps SB3 median 78.9 (IQM 76.5
 (IQM 43.8), p = 0.09; at 131,072 steps 90.7 (90.4) against 89.9 (85.1), p = 0.34; at 163,840 steps
 91.6 against 91.5, p = 0.54; over seeds 0-127 on a 16-core Xeon (``--jobs 15``), at 98,304 steps
 78.9 (IQM 65.2) against 82.1 (64.6), p = 0.85, the IQM difference -0.7 [-20.2, 18.5], and at
-131,072 steps 90.5 (89.6) against 90.7 (90.0), p = 0.28, 0.4 [-4.1, 6.0] (docs/compiled.md). SAC (``--env mountain_car_sac --steps 20000 --seeds
-0-15 --jobs 2``, about 34 min): SB3 median 93.4, IQM 93.6, lowest 91.7; compiled median 93.7, IQM
+131,072 steps 90.5 (89.6) against 90.7 (90.0), p = 0.28, 0.4 [-4.1, 6.0] (docs/compiled.md).
+SAC (``--env mountain_car_sac --steps 20000 --seeds 0-15 --jobs 2``, about 34 min): SB3 median 93.4, IQM 93.6, lowest 91.7; compiled median 93.7, IQM
 93.6, lowest 88.0; p = 0.78.
 """
 

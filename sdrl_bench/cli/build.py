@@ -106,11 +106,10 @@ def check_value_types(node: Any, key: str, source: Any = None) -> None:
         src = source.get(name) if isinstance(source, dict) else None
         where = f"{key}.{name}"
         param = params.get(name)
+        found = _PLAIN_KEY.match(src) if isinstance(src, str) else None  # set elsewhere: named by that key
         if isinstance(value, list) and param is not None and _numbers(param.default) and not _numbers(value, nulls=True):
-            found = _PLAIN_KEY.match(src) if isinstance(src, str) else None  # a list set elsewhere: that key
             raise ConfigError(f"{found.group(1) if found else where}: a list of numbers is required, got {value!r}")
-        if isinstance(value, (dict, list)):
-            found = _PLAIN_KEY.match(src) if isinstance(src, str) else None  # a subtree from elsewhere: its own keys
+        if isinstance(value, (dict, list)):  # a subtree from elsewhere: its own keys
             check_value_types(value, found.group(1) if found else where, None if found else src)
             continue
         default = None if param is None else param.default

@@ -18,7 +18,7 @@ from collections.abc import Callable, Mapping
 
 import optuna
 
-from sdrl_bench import ConfigError, file_in_the_way, redact, stop_signal_received, tracking
+from sdrl_bench import ConfigError, nearest_existing, redact, stop_signal_received, tracking
 from sdrl_bench.pipeline import fit_dynamics
 from sdrl_bench.search.study import BuildJob, WorkerResult, counted, fit_params
 from sdrl_bench.search.plots import history_figure, importance_figure, pareto_figure
@@ -118,10 +118,9 @@ def check_export(export_dir: str | Path | None, study: str) -> None:
     if export_dir is None:
         return
     path = export_path(export_dir, study)
-    blocker = file_in_the_way(path.parent)
-    if blocker is not None:
-        raise ConfigError(f"study.export_dir: {blocker} is a file, not a folder (the best config goes to {path})")
-    there = next(p for p in (path.parent, *path.parent.parents) if p.exists())
+    there = nearest_existing(path.parent)
+    if not there.is_dir():
+        raise ConfigError(f"study.export_dir: {there} is a file, not a folder (the best config goes to {path})")
     if not os.access(there, os.W_OK):
         raise ConfigError(f"study.export_dir: {there} is not writable (the best config goes to {path})")
     if path.exists():
