@@ -460,8 +460,7 @@ class EnvSpec:
 
     def round_obs(self, values: np.ndarray) -> np.ndarray:
         """Round to the real env's observation dtype (as float64 values)."""
-        xp = functional.array_namespace(values)
-        return xp.asarray(values).astype(self.obs_dtype).astype(xp.float64)
+        return functional.round_through(values, self.obs_dtype)
 
     def divergence_limit(self) -> np.ndarray:
         """Per regressed variable: a magnitude beyond which a predicted state counts as diverged."""

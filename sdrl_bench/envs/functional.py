@@ -93,6 +93,27 @@ def array_namespace(*arrays: Any) -> Any:
     return np
 
 
+def round_through(values: Any, dtype: Any) -> Any:
+    """``values`` rounded to ``dtype`` (a float type) and back to float64, in their own array module.
+
+    On numpy: ``astype(dtype).astype(float64)``. On jax arrays and tracers:
+    ``jax.lax.reduce_precision`` to ``dtype``'s exponent and mantissa bits, the same bits as that
+    pair of conversions on the CPU (float32's subnormals flushed to zero by both), but an op that
+    XLA keeps: inside ``jit`` its GPU compiler removes a float64 -> float32 -> float64 pair of
+    conversions (excess precision, allowed by default), and the compiled step then skipped the
+    real env's float32 observation (docs/compiled.md, On a GPU). float64 is returned as it is."""
+    xp = array_namespace(values)
+    values = xp.asarray(values, dtype=xp.float64)
+    if np.dtype(dtype) == np.float64:
+        return values
+    if xp is np:
+        return values.astype(dtype).astype(np.float64)
+    import jax  # noqa: PLC0415  (already imported: the values are jax's)
+
+    info = np.finfo(dtype)
+    return jax.lax.reduce_precision(values, exponent_bits=info.nexp, mantissa_bits=info.nmant)
+
+
 def wrap_angle(values: Any) -> Any:
     """Angles wrapped to [-pi, pi) in their own array module (``envs.base.wrap_angle``, for numpy
     and jax arrays: the same operations, so numpy gives the same bits)."""

@@ -20,7 +20,10 @@ same affine maps per member, the same activation (torch's exact GELU, ELU with a
 soft bounds on a Gaussian head's log-variance, in the network's dtype, the normalisation and the
 members' mean in float64 as ``MLPDynamics.predict`` computes them. XLA sums each product in
 another order than torch's kernels: results agree to the network dtype's rounding (tested on
-10,000 inputs per model kind; float64 networks to 1e-12).
+10,000 inputs per model kind; float64 networks to 1e-12). The products are asked for at
+``Precision.HIGHEST``: on a GPU, JAX's default multiplies float32 layers in TF32 (10-bit
+mantissas), which left the states 1e-5 to 1e-4 off ModelEnv's (docs/compiled.md, On a GPU); on the
+CPU it changes nothing.
 """
 
 from __future__ import annotations
@@ -52,6 +55,7 @@ def network_model(model: Any, members: bool = False) -> JaxModel:
     gaussian = hasattr(net, "body")  # models.pe.GaussianEnsembleMLP: (mean, log-variance) heads
     body = net.body if gaussian else net
     dtype = jnp.float32 if model.dtype == "float32" else jnp.float64
+    HIGHEST = jax.lax.Precision.HIGHEST  # noqa: N806  (a GPU's default multiplies float32 in TF32)
     act = _activation(jax, jnp, model.activation)
     n_s, n_out = len(model.state_names_), len(np.atleast_1d(model.output_mean_))
     if n_s != n_out:
@@ -73,7 +77,8 @@ def network_model(model: Any, members: bool = False) -> JaxModel:
         h = zn
         for i, (w, b) in enumerate(zip(p["w"], p["b"], strict=True)):
             w, b = jnp.asarray(w, dtype), jnp.asarray(b, dtype)
-            h = (jnp.einsum("ni,kio->kno", h, w) if h.ndim == 2 else jnp.matmul(h, w)) + b[:, None, :]
+            h = (jnp.einsum("ni,kio->kno", h, w, precision=HIGHEST) if h.ndim == 2
+                 else jnp.matmul(h, w, precision=HIGHEST)) + b[:, None, :]
             if i < last:
                 h = act(h)
         if gaussian:

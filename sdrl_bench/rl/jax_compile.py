@@ -20,9 +20,8 @@ import numpy as np
 from sdrl_bench.rl import jax_ppo
 
 OFF_CPU_PARITY = ("the compiled step's float64 equality with ModelEnv's is tested on the CPU only; on an "
-                  "H200 (jax 0.11.2) the jitted step departed from the eager one by up to 1.4e-5 in states and "
-                  "4.9e-5 in rewards (of 5 built-in envs compared, 1 stayed within 1e-12), and the NN "
-                  "surrogates' float32 layers by up to 1.2e-4 at JAX's default matmul precision "
+                  "H200 (jax 0.11.2) the jitted SINDy steps of 5 built-in envs matched it (at most 1.5e-12) and "
+                  "the NN steps to their CPU tolerances (the swing-up not run there); no agent was trained there "
                   "(docs/compiled.md, 'On a GPU')")
 """What was measured off the CPU (the tests marked ``jax``, run on an H200 on 2026-11-30), quoted by
 ``backend_note`` where a run is about to train there."""

@@ -198,6 +198,17 @@ def test_with_terrain_and_the_slope_rule_the_jax_stepper_is_the_model_envs_step(
           f"{int(slope.sum())} ended by the slope rule")
 
 
+def test_the_float32_observation_is_one_reduce_precision_op(fit):
+    """The array rules round the prediction to the float32 observation with one op XLA keeps
+    (``functional.round_through``; a pair of conversions is dropped by its GPU compiler inside
+    jit): the compiled step has no float32 value in it."""
+    res, em = fit
+    stepper = jax_stepper(ModelEnv(res.model, res.job.spec, noise=False, events={"touchdown": em}, seed=0))
+    s, a, counts = lander_states(res.data.states)
+    program = jax.jit(stepper.step).lower(s, a, counts).as_text()
+    assert program.count("reduce_precision") == 1 and "f32" not in program
+
+
 def test_the_pessimism_penalty_and_limit(fit):
     """No free band (the default's 0.35 exceeds the disagreement of every flight row the step
     leaves alive here) and a finite ``uncertainty.limit`` (the median disagreement in flight): the

@@ -18,7 +18,7 @@ in the kernels' operations and order (``kernels.settle``, ``_legs``, ``_quiet``,
   (the kernel's ``ground`` memory), drawn for a fresh episode from a key (``init_aux(n, key,
   terrain=True)``), and the slope rule (``rules.slope_crash``) applies.
 
-Branches become ``where``; the float32 observation is ``astype(float32).astype(float64)``. The
+Branches become ``where``; the float32 observation is ``functional.round_through``'s. The
 constants are ``task.rules_vector``'s, indexed by the kernels' names. The tests check these against
 the kernels on random states (tests/surrogate/test_jax_step_lunar.py).
 """
@@ -30,7 +30,7 @@ from typing import Any
 
 import numpy as np
 
-from sdrl_bench.envs.functional import array_namespace
+from sdrl_bench.envs.functional import array_namespace, round_through
 from sdrl_bench.envs.lunar_lander import kernels as kn
 from sdrl_bench.envs.lunar_lander import task
 from sdrl_bench.envs.lunar_lander.task import LanderRules
@@ -152,7 +152,7 @@ def make_step(rules: LanderRules, discrete: bool, limit: Any, obs_low: Any, obs_
         pred = xp.asarray(pred, dtype=xp.float64)
         ok = xp.all(xp.abs(pred) <= limit, axis=1)  # False for NaN
         # placeholders for diverged rows (their state is kept): no overflow in the float32 cast
-        obs = xp.where(ok[:, None], pred, 0.0).astype(np.float32).astype(xp.float64)
+        obs = round_through(xp.where(ok[:, None], pred, 0.0), np.float32)
         x, y, vx, vy, an, w = (obs[:, j] for j in range(6))
         t = c["TILT"] * xp.sin(an)
         if terrain:
