@@ -95,11 +95,21 @@ machine, the fast MountainCar pack's compiled training, one core: 526,000 -> 589
 DEFAULT_XLA_FLAGS = {"xla_cpu_multi_thread_eigen": SINGLE_THREAD_MATMULS, "xla_cpu_prefer_vector_width": WIDE_VECTORS}
 
 
+MATMUL_PRECISION_VAR = "JAX_DEFAULT_MATMUL_PRECISION"
+"""Where unset, ``jax_modules`` sets JAX's default matmul precision to ``highest``: float32
+products in full precision, as SB3's torch computes them (its default on a GPU too: TF32 off for
+matmuls). JAX's own default multiplies float32 in TF32 on a GPU; on an H200 (2026-11-30) the
+compiled PPO's and SAC's updates and policies then left SB3's beyond the tests' tolerances (11 of
+the agents' tests failed there), and with ``highest`` they held. On the CPU it changes no program's
+code (the same compiled HLO, the precision annotated)."""
+
+
 def jax_modules(who: str = "sdrl_bench.models.jax_eval"):
     """jax and jax.numpy, with float64 on (imported on first use: jax is an optional extra);
     ``who`` names the caller in the install hint. Each of ``DEFAULT_XLA_FLAGS`` that
     ``XLA_FLAGS`` does not already set is added to it (XLA's CPU matmuls on one thread, wide
-    vectors); they take effect when no jax computation ran before in the process."""
+    vectors); they take effect when no jax computation ran before in the process. Products in
+    full precision unless ``$JAX_DEFAULT_MATMUL_PRECISION`` says otherwise (``MATMUL_PRECISION_VAR``)."""
     flags = os.environ.get("XLA_FLAGS", "")
     extra = [flag for name, flag in DEFAULT_XLA_FLAGS.items() if name not in flags]
     if extra:  # read when XLA's CPU client starts (first use), not at import
@@ -115,6 +125,8 @@ def jax_modules(who: str = "sdrl_bench.models.jax_eval"):
                       "numbers may differ by rounding from a run that starts jax through sdrl_bench). Set XLA_FLAGS "
                       "before the first jax computation, or import sdrl_bench's jax modules first", stacklevel=2)
     jax.config.update("jax_enable_x64", True)
+    if MATMUL_PRECISION_VAR not in os.environ:  # the user's choice, where made, stands
+        jax.config.update("jax_default_matmul_precision", "highest")
     # its backend probe logs a failed TPU/GPU lookup at INFO, which a Hydra run prints as noise
     logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
     return jax, jnp

@@ -224,6 +224,23 @@ def test_a_backend_started_before_the_harness_flags_is_warned_of():
     assert all(flag in through.stdout for flag in DEFAULT_XLA_FLAGS.values()), through.stdout
 
 
+def test_products_are_full_precision_unless_the_user_says_otherwise():
+    """``jax_modules`` sets JAX's default matmul precision to ``highest`` (SB3's torch computes
+    float32 products in full; JAX's default on a GPU is TF32), so the compiled programs' products
+    are annotated so; a ``$JAX_DEFAULT_MATMUL_PRECISION`` the user set stands."""
+    code = ("from sdrl_bench.models.jax_eval import jax_modules\n"
+            "jax, jnp = jax_modules('probe')\n"
+            "x = jnp.ones((4, 4), jnp.float32)\n"
+            "text = jax.jit(lambda a: a @ a).lower(x).as_text()\n"
+            "print(jax.config.jax_default_matmul_precision, 'precision = [HIGHEST, HIGHEST]' in text)\n")
+    for var, want in ((None, "highest True"), ("bfloat16", "bfloat16 False")):
+        env = {k: v for k, v in _env().items() if k != "JAX_DEFAULT_MATMUL_PRECISION"}
+        if var:
+            env["JAX_DEFAULT_MATMUL_PRECISION"] = var
+        res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+        assert res.returncode == 0 and res.stdout.split("\n")[-2] == want, (res.stdout, res.stderr[-2000:])
+
+
 def _env() -> dict:
     return {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
 

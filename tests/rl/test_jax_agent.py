@@ -436,5 +436,5 @@ def test_training_off_the_cpu_is_one_line_saying_what_was_measured_there():
     assert jax_compile.backend_note("cpu") is None
     note = jax_compile.backend_note("gpu")
     assert "\n" not in note and note.startswith("JAX's default backend is gpu: the compiled agents train there")
-    assert "matched it (at most 1.5e-12)" in note and note.endswith("JAX_PLATFORMS=cpu keeps them on the CPU")
+    assert "matched ModelEnv's (at most 1.5e-12)" in note and note.endswith("JAX_PLATFORMS=cpu keeps them on the CPU")
     assert "'On a GPU'" in note and "### On a GPU" in (ROOT / "docs" / "compiled.md").read_text()
