@@ -49,7 +49,7 @@ from stable_baselines3.common.callbacks import BaseCallback
 
 from sdrl_bench.cli.build import build_fit_job, compose, instantiate_key
 from sdrl_bench.pipeline import fit_dynamics
-from sdrl_bench.rl import jax_compile, jax_ppo
+from sdrl_bench.rl import jax_compile, jax_nets, jax_ppo
 from sdrl_bench.rl.agents import make_agent
 from sdrl_bench.rl.transfer import surrogate_vec_env
 from sdrl_bench.surrogate.model_env import ModelEnv
@@ -92,7 +92,7 @@ def update_flops(cfg: jax_ppo.PPOConfig, n_obs: int, n_act: int) -> float:
     (in x out) of the actor and critic costs 2 in out forward, 2 in out for its weights' gradient
     and 2 in out for its input's gradient (not for the first layer)."""
     per_sample = 0
-    for layers in jax_ppo.mlp_layers(n_obs, n_act).values():
+    for layers in jax_nets.mlp_layers(n_obs, n_act).values():
         for i, (n_in, n_out) in enumerate(layers):
             per_sample += 2 * n_in * n_out * (2 if i == 0 else 3)
     return float(per_sample) * cfg.rollout_size * cfg.n_epochs
@@ -175,7 +175,7 @@ def compiled_parts(menv: ModelEnv, cfg: jax_ppo.PPOConfig, repeats: int) -> tupl
     import jax
 
     sur = jax_ppo.surrogate(menv)
-    net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act, cfg, sur.discrete)
+    net = jax_nets.init_net(jax.random.key(0), sur.n_obs, sur.n_act, cfg, sur.discrete)
     env, obs = jax_ppo.init_env(sur, jax.random.key(1), cfg.n_envs, cfg)
     opts = jax_ppo.COMPILER_OPTIONS  # as (b) and the harness compile them
     rollout = jax.jit(jax_ppo.make_rollout(sur, cfg), compiler_options=opts)

@@ -63,16 +63,17 @@ def main() -> None:
     pin_cores(ap, args.cores)  # before jax starts its thread pool
 
     from sdrl_bench.cli.build import instantiate_key
+    from sdrl_bench.rl import jax_nets
     from sdrl_bench.rl import jax_ppo
     from sdrl_bench.surrogate.model_env import ModelEnv
 
     cfg, pool, fit = fit_pack(args.experiment, args.transitions)
-    jax, _, _ = jax_ppo._modules()
+    jax, _, _ = jax_nets.modules()
     from jax.experimental import serialize_executable
 
     pcfg = jax_ppo.PPOConfig.from_agent(instantiate_key(cfg.agent, "agent"))
     sur = jax_ppo.surrogate(ModelEnv(fit.model, fit.spec, seed=0))
-    net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act, pcfg, sur.discrete)
+    net = jax_nets.init_net(jax.random.key(0), sur.n_obs, sur.n_act, pcfg, sur.discrete)
     env, obs = jax_ppo.init_env(sur, jax.random.key(1), pcfg.n_envs, pcfg, sur.params)
     rollout = jax.jit(jax_ppo.make_rollout(sur, pcfg))
     roll_args = (net, env, obs, jax.random.key(2), sur.params)

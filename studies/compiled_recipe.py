@@ -106,7 +106,7 @@ class Bench:
     def __init__(self, experiment: str, episodes: int, confirm: int, cache_dir: str | None):
         from sdrl_bench.cli.build import build_fit_job, compose
         from sdrl_bench.pipeline import fit_dynamics
-        from sdrl_bench.rl import jax_compile, jax_ppo
+        from sdrl_bench.rl import jax_compile, jax_nets, jax_ppo
         from sdrl_bench.surrogate.model_env import ModelEnv
 
         self.base = [f"experiment={experiment}", "agent=ppo_jax", "collector=heuristic"]
@@ -116,7 +116,7 @@ class Bench:
         jax_compile.size_cpu_pool(int(cfg.jax_threads))
         if cache_dir:
             jax_compile.use_compilation_cache(cache_dir)
-        self.jax, _, _ = jax_ppo._modules()
+        self.jax, _, _ = jax_nets.modules()
         self.fit = fit_dynamics(build_fit_job(cfg))
         self.spec, self.threshold = self.fit.spec, self.fit.spec.solved_threshold
         if self.threshold is None:

@@ -64,6 +64,7 @@ from typing import Any
 import numpy as np
 
 from sdrl_bench import ConfigError
+from sdrl_bench.rl import jax_nets
 from sdrl_bench.rl import jax_ppo
 from sdrl_bench.rl.jax_compile import cache_hits, compile_program, cpu_pool_threads
 from sdrl_bench.rl.jax_ppo import PPOConfig
@@ -297,7 +298,7 @@ class JaxPPO(CompiledAgent):
         """Surrogate episodes ended by the model's divergence guard in compiled rollouts."""
         self.rollout_backend: str | None = None
         """"compiled" or "python": where the last ``learn`` stepped."""
-        self._jax, self._jnp, _ = jax_ppo._modules()
+        self._jax, self._jnp, _ = jax_nets.modules()
         self._key = self._jax.random.key(self.seed)
         self._host_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 31]))
         """The compiled loop's draws made on the host (``_host_key``, ``_host_perms``): its own stream, from the seed."""
@@ -308,7 +309,7 @@ class JaxPPO(CompiledAgent):
         self._cenv = self._cobs = None  # the compiled loop's env state and observations
         self._last_obs = None  # the Python loop's
         self._act = self._value = None
-        self._host: tuple | None = None  # (the net it was made of, jax_ppo.HostPolicy): predict's deterministic action
+        self._host: tuple | None = None  # (the net it was made of, jax_nets.HostPolicy): predict's deterministic action
         self._bounds: tuple[np.ndarray, np.ndarray] | None = None
         if env is not None:
             self._setup(env)
@@ -320,7 +321,7 @@ class JaxPPO(CompiledAgent):
         optional extra is installed and the recipe's keyword arguments are ones this PPO has,
         each failure one line naming the key. Reward scaling it has (``normalize_reward``)."""
         try:
-            jax_ppo._modules(JaxPPO.LABEL)
+            jax_nets.modules(JaxPPO.LABEL)
         except ImportError as exc:
             raise ConfigError(f"agent.algo: {exc}") from None
         _compiled_rollout(kwargs)
@@ -332,7 +333,7 @@ class JaxPPO(CompiledAgent):
         return k
 
     def _exploration(self, rng: np.random.Generator, n: int) -> np.ndarray | None:
-        """As ``jax_ppo.exploration_matrices``, drawn by numpy (``CompiledAgent.reset_noise``)."""
+        """As ``jax_nets.exploration_matrices``, drawn by numpy (``CompiledAgent.reset_noise``)."""
         log_std = None if self.net is None else self.net.get("log_std")
         if log_std is None or log_std.ndim == 1:
             return None
@@ -374,7 +375,7 @@ class JaxPPO(CompiledAgent):
         jax = self._jax
         self.cfg, self._bounds, self._n_obs, self._n_act = cfg, (low, high), n_obs, n_act
         self.discrete = low is None
-        self.net = jax_ppo.init_net(self._split(), n_obs, n_act, cfg, self.discrete)
+        self.net = jax_nets.init_net(self._split(), n_obs, n_act, cfg, self.discrete)
         self.pool_threads = cpu_pool_threads()
         self._opt = jax_ppo.optimizer(cfg).init(self.net)
         update = jax_ppo.make_update(cfg, shuffled_outside=True)  # the epochs' permutations: _host_perms
@@ -386,12 +387,12 @@ class JaxPPO(CompiledAgent):
         self._updates: dict[str, Any] = {}
 
         def act(net, obs, key, explore):
-            action, logp, _ = jax_ppo.sample_action(net, obs, key, explore)
-            return action, logp, jax_ppo.value(net, obs)
+            action, logp, _ = jax_nets.sample_action(net, obs, key, explore)
+            return action, logp, jax_nets.value(net, obs)
 
         self._act = jax.jit(act)
-        self._value = jax.jit(jax_ppo.value)
-        self._explore = jax.jit(lambda net, key: jax_ppo.exploration_matrices(net, key, cfg.n_envs))
+        self._value = jax.jit(jax_nets.value)
+        self._explore = jax.jit(lambda net, key: jax_nets.exploration_matrices(net, key, cfg.n_envs))
 
     # ------------------------------------------------------------------ SB3's interface
     def learn(self, total_timesteps: int, callback: Any = None, log_interval: int = 1, tb_log_name: str = "JaxPPO",
@@ -546,9 +547,9 @@ class JaxPPO(CompiledAgent):
         obs = np.asarray(observation, np.float32)
         single = obs.ndim == 1
         batch = obs.reshape(1 if single else obs.shape[0], -1)
-        if deterministic:  # on the host: an evaluation asks once per real step (jax_ppo.HostPolicy)
+        if deterministic:  # on the host: an evaluation asks once per real step (jax_nets.HostPolicy)
             if self._host is None or self._host[0] is not self.net:
-                self._host = (self.net, jax_ppo.HostPolicy(self.net, *self._bounds))
+                self._host = (self.net, jax_nets.HostPolicy(self.net, *self._bounds))
             out = self._host[1](batch)
         else:  # from the predict stream, never the training's (CompiledAgent.reset_noise)
             explore = self._sde_matrices(len(batch))
@@ -556,7 +557,7 @@ class JaxPPO(CompiledAgent):
             if explore is None:
                 draw = self._predict_rng.gumbel if self.discrete else self._predict_rng.standard_normal
                 noise = draw(size=(len(batch), self._n_act)).astype(np.float32)
-            action, _, _ = jax_ppo.sample_action(self.net, batch, None, explore, noise)
+            action, _, _ = jax_nets.sample_action(self.net, batch, None, explore, noise)
             out = np.asarray(action) if self.discrete else np.clip(np.asarray(action), *self._bounds)
         return (out[0] if single else out), None
 

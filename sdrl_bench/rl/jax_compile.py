@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from sdrl_bench.rl import jax_ppo
+from sdrl_bench.rl import jax_nets
 
 OFF_CPU_PARITY = ("CI tests the compiled step and agents on the CPU only; on an H200 (jax 0.11.2) the jitted "
                   "SINDy steps of 5 built-in envs matched ModelEnv's (at most 1.5e-12), the NN steps to their CPU "
@@ -50,7 +50,7 @@ def use_compilation_cache(path: str | Path) -> None:
     Measured: LunarLander's terrain programs loaded from the same folder in 0.82 s, and compiled
     cold (7.0 s) from a copy of it elsewhere. These programs run on the CPU, where those caches
     do nothing. The lowering cache (``compile_program``) lives in its ``lowered`` folder."""
-    jax, _, _ = jax_ppo._modules()
+    jax, _, _ = jax_nets.modules()
     Path(path).mkdir(parents=True, exist_ok=True)
     jax.config.update("jax_compilation_cache_dir", str(Path(path).resolve()))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
@@ -237,7 +237,7 @@ def size_cpu_pool(threads: int, who: str = "sdrl_bench.rl.jax_compile") -> int |
     core gives. Only on Linux (``os.sched_setaffinity``); elsewhere, or once the backend exists
     (a sweep's later jobs), the pool stays as it is, with a warning if it differs. Where JAX's
     default backend is not the CPU (a GPU build of jax), a warning says so (``backend_note``)."""
-    jax, _, _ = jax_ppo._modules(who)
+    jax, _, _ = jax_nets.modules(who)
     size = _size_pool(jax, threads)
     note = backend_note(jax.default_backend())  # the backends exist: jax.devices('cpu') made them all
     if note:

@@ -39,11 +39,10 @@ Not done here: observation normalisation (the package never uses it); learning-r
 jax's, so a run is not the SB3 run with the same seed. ``rl.jax_agent.JaxPPO`` puts this PPO
 behind SB3's interface (``agent=ppo_jax``), in the surrogate and, as the control, in real envs.
 
-Hand-written, and why: the two MLPs are a few lines of jax.numpy over a plain pytree of
-(weight, bias) pairs, not flax modules; flax would add a dependency for two tanh matmul chains
-and a second parameter format beside SB3's. optax provides the optimiser (Adam, gradient-norm
-clipping); the PPO loop itself is what no installed library offers over the harness's surrogate
-step (rejax and PureJaxRL expect their own env API).
+Hand-written, and why: the networks and the policy's distributions (``rl.jax_nets``) are a few
+lines of jax.numpy over a plain pytree of (weight, bias) pairs (why not flax: there). optax
+provides the optimiser (Adam, gradient-norm clipping); the PPO loop itself is what no installed
+library offers over the harness's surrogate step (rejax and PureJaxRL expect their own env API).
 
 Covered: the surrogates ``jax_step.jax_stepper`` covers (Pendulum, MountainCar, CartPole, the
 swing-up, LunarLander on flat ground or terrain), with their step noise, pessimism, learned events and per-row
@@ -56,7 +55,6 @@ loop, ``rollout_draws``). Box actions get the Gaussian above; discrete actions a
 
 from __future__ import annotations
 
-import functools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, fields
@@ -65,13 +63,12 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from sdrl_bench import ConfigError
+from sdrl_bench.rl.jax_nets import (HostPolicy, action_noise, deterministic_action, exploration_matrices,
+                                     init_net, log_prob_entropy, modules, sample_action, value)
 from sdrl_bench.surrogate.jax_step import jax_observe, jax_reset, jax_stepper, noise_of, reset_aux
 
-HIDDEN = (64, 64)
-"""SB3's default ``net_arch`` for PPO's MlpPolicy: separate actor and critic MLPs."""
 ADAM_EPS = 1e-5
 """SB3's ``ActorCriticPolicy`` sets Adam's eps to 1e-5."""
-INSTALL_HINT = "pip install 'sdrl-bench[jax]' (jax, optax)"
 COMPILER_OPTIONS = {"xla_backend_optimization_level": 2}
 """XLA options for the programs this module's training compiles (``make_train``, and
 ``rl.jax_agent.JaxPPO``'s init, rollout and update): LLVM at O2 instead of XLA's default O3. A
@@ -83,19 +80,6 @@ both updates unchanged (O3 / O2: 1.67 / 1.66, 10.69 / 10.65, 22.22 / 22.31 ms). 
 times, O0 ran four times slower. Fast-math stays off, but LLVM may fuse a multiply and an add differently at
 another level: those four programs' outputs were the same bit for bit, and a Pendulum rollout
 of 8 rows differed in the last bit of some float32 values (tested to rounding)."""
-
-
-def _modules(who: str = "sdrl_bench.rl.jax_ppo") -> tuple[Any, Any, Any]:
-    """jax (float64 on), jax.numpy and optax, imported on first use (an optional extra);
-    ``who`` names what needs them in the install hint."""
-    from sdrl_bench.models.jax_eval import jax_modules  # noqa: PLC0415
-
-    jax, jnp = jax_modules(who)
-    try:
-        import optax  # noqa: PLC0415
-    except ImportError as exc:
-        raise ImportError(f"{who} needs optax, an optional extra: {INSTALL_HINT}") from exc
-    return jax, jnp, optax
 
 
 MAX_ROLLOUT = 2**24
@@ -177,241 +161,6 @@ class PPOConfig:
                 raise ConfigError(f"PPOConfig: {who}: {k} must be a constant (no schedules), got {kw[k]!r}")
         extra = {"log_std_init": float(policy_kwargs["log_std_init"])} if "log_std_init" in policy_kwargs else {}
         return cls(n_envs=int(n_envs), normalize_reward=normalize_reward, **extra, **{k: kw[k] for k in names if k in kw})
-
-
-# ---------------------------------------------------------------------- the networks
-def mlp_layers(n_obs: int, n_act: int) -> dict[str, list[tuple[int, int]]]:
-    """(inputs, outputs) of each linear layer of the actor and the critic."""
-    sizes = (n_obs, *HIDDEN)
-    hidden = list(zip(sizes[:-1], sizes[1:], strict=True))
-    return {"actor": [*hidden, (HIDDEN[-1], n_act)], "critic": [*hidden, (HIDDEN[-1], 1)]}
-
-
-def init_net(key: Any, n_obs: int, n_act: int, cfg: PPOConfig | None = None, discrete: bool = False) -> dict[str, Any]:
-    """The actor, critic and log-std, initialised as SB3's MlpPolicy (``ortho_init``): orthogonal
-    weights with gain sqrt(2) in hidden layers, 0.01 for the action mean (or the logits), 1 for
-    the value; zero biases; log-std ``cfg.log_std_init`` (one per action, or with gSDE one per
-    (latent feature, action), SB3's ``full_std``). float32. ``discrete``: a categorical policy
-    over ``n_act`` actions (the actor's outputs are its logits; no log-std)."""
-    jax, jnp, _ = _modules()
-    cfg = cfg or PPOConfig()
-    net: dict[str, Any] = {}
-    layers = mlp_layers(n_obs, n_act)
-    keys = iter(jax.random.split(key, sum(len(v) for v in layers.values())))
-    for name, last_gain in (("actor", 0.01), ("critic", 1.0)):
-        out = []
-        for i, (n_in, n_out) in enumerate(layers[name]):
-            gain = last_gain if i == len(layers[name]) - 1 else math.sqrt(2.0)
-            w = jax.nn.initializers.orthogonal(scale=gain)(next(keys), (n_in, n_out), jnp.float32)
-            out.append((w, jnp.zeros(n_out, jnp.float32)))
-        net[name] = out
-    if discrete:
-        if cfg.use_sde:
-            raise ConfigError("PPOConfig.use_sde: gSDE needs continuous (Box) actions")
-        return net
-    shape = (HIDDEN[-1], n_act) if cfg.use_sde else (n_act,)
-    net["log_std"] = jnp.full(shape, cfg.log_std_init, jnp.float32)
-    return net
-
-
-def is_discrete(net: dict) -> bool:
-    """Whether ``net`` is a categorical policy (``init_net(discrete=True)``: no log-std)."""
-    return "log_std" not in net
-
-
-@functools.cache
-def _dense() -> Callable:
-    """``dense(x_t, w, b) -> w.T @ x_t + b``: one linear layer on features-major activations
-    (``x_t``: (n_in, N), out (n_out, N); ``w`` (n_in, n_out) as SB3 stores it), with its gradient
-    written by hand. Why: in the usual samples-major form the weights' gradient x.T @ dy
-    contracts the samples' axis of both operands, a product XLA's CPU backend leaves to its slow
-    generic dot (about 80 us per 1024 x 64 layer, measured) while its fast library kernels take
-    the other two. Features-major, the three products are w.T @ x_t (w.T copied: 64 x 64), w @ dy_t
-    and x_t @ dy_t.T, all of the shapes the fast kernels take; the fast MountainCar pack's update went
-    from 8.0 to 6.4-7.0 ms (one update timed alone, this 2-core machine). The same sums, in another order: results
-    move by rounding."""
-    jax, jnp, _ = _modules()
-
-    def forward(x_t, w, b):
-        return jax.lax.optimization_barrier(w.T) @ x_t + b[:, None]  # the barrier keeps w.T a copy
-
-    @jax.custom_vjp
-    def dense(x_t, w, b):
-        return forward(x_t, w, b)
-
-    def fwd(x_t, w, b):
-        return forward(x_t, w, b), (x_t, w)
-
-    def bwd(res, dy_t):
-        x_t, w = res
-        return w @ dy_t, x_t @ dy_t.T, jnp.sum(dy_t, axis=1)
-
-    dense.defvjp(fwd, bwd)
-    return dense
-
-
-def _hidden(layers: list, x: Any) -> Any:
-    """The last hidden layer's features, features-major (64, N), for samples-major inputs (N, n_obs)."""
-    import jax  # noqa: PLC0415  (imported by _modules before any call)
-    import jax.numpy as jnp  # noqa: PLC0415
-
-    dense, h = _dense(), jax.lax.optimization_barrier(x.T)  # a copy: the first weights' gradient a fast product too
-    for w, b in layers[:-1]:
-        h = jnp.tanh(dense(h, w, b))
-    return h
-
-
-def _mlp(layers: list, x: Any) -> Any:
-    """The network's outputs, samples-major (N, n_out)."""
-    w, b = layers[-1]
-    return _dense()(_hidden(layers, x), w, b).T
-
-
-def action_mean(net: dict, obs: Any) -> Any:
-    """The policy's mean action (N, n_act) for float32 observations (N, n_obs)."""
-    return _mlp(net["actor"], obs)
-
-
-def value(net: dict, obs: Any) -> Any:
-    """The critic's value (N,)."""
-    return _mlp(net["critic"], obs)[:, 0]
-
-
-SDE_EPS = 1e-6
-"""SB3's ``StateDependentNoiseDistribution`` epsilon, added to the variance."""
-
-
-def policy(net: dict, obs: Any) -> tuple[Any, Any, Any]:
-    """(mean (N, n_act), std (N, n_act), latent features, features-major (64, N)) of the policy's
-    Gaussian. Plain: std = exp(log_std) for every state. gSDE (a 2-D log-std): the std of mean +
-    latent @ E with E ~ N(0, exp(log_std)^2) elementwise, i.e. sqrt(latent^2 @ exp(log_std)^2 +
-    1e-6), the latent features taken without gradient (SB3's ``learn_features=False``)."""
-    import jax  # noqa: PLC0415
-    import jax.numpy as jnp  # noqa: PLC0415
-
-    latent_t = _hidden(net["actor"], obs)
-    w, b = net["actor"][-1]
-    mean = _dense()(latent_t, w, b).T
-    log_std = net["log_std"]
-    if log_std.ndim == 1:
-        std = jnp.broadcast_to(jnp.exp(log_std), mean.shape)
-    else:
-        std = jnp.sqrt((jnp.exp(log_std) ** 2).T @ jax.lax.stop_gradient(latent_t) ** 2 + SDE_EPS).T
-    return mean, std, latent_t
-
-
-def exploration_matrices(net: dict, key: Any, n: int) -> Any:
-    """gSDE: one exploration matrix per env copy (n, 64, n_act), each entry N(0, exp(log_std)^2)
-    (SB3's ``reset_noise``); None without gSDE."""
-    import jax  # noqa: PLC0415
-    import jax.numpy as jnp  # noqa: PLC0415
-
-    log_std = net.get("log_std")
-    if log_std is None or log_std.ndim == 1:
-        return None
-    return jnp.exp(log_std) * jax.random.normal(key, (n, *log_std.shape), jnp.float32)
-
-
-def action_noise(net: dict, key: Any, n: int) -> Any:
-    """The random part of ``sample_action`` without gSDE, for ``n`` observations, drawn from
-    ``key``: Gumbel noise (n, n_actions) for a categorical policy (``jax.random.categorical``'s
-    own draw), standard normals (n, n_act) for a Gaussian. Apart so that a rollout draws all its
-    steps' noise in one batched call (``make_rollout``)."""
-    import jax  # noqa: PLC0415
-    import jax.numpy as jnp  # noqa: PLC0415
-
-    draw = jax.random.gumbel if is_discrete(net) else jax.random.normal
-    return draw(key, (n, net["actor"][-1][0].shape[-1]), jnp.float32)
-
-
-def sample_action(net: dict, obs: Any, key: Any, explore: Any = None, noise: Any = None) -> tuple[Any, Any, Any]:
-    """(action, its log-probability (N,), the deterministic action): plain Gaussian, mean + std x
-    N(0, 1); gSDE (``explore``: ``exploration_matrices``), mean + latent @ E_i for copy i, as SB3
-    samples (actions (N, n_act) float32); categorical, an index (N,) int32 drawn from the logits
-    (the argmax of logits + Gumbel noise, as ``jax.random.categorical`` draws). ``noise``:
-    ``action_noise(net, key, N)`` drawn already (then ``key`` is not read); the same draws, so
-    the same actions."""
-    import jax  # noqa: PLC0415
-    import jax.numpy as jnp  # noqa: PLC0415
-
-    if noise is None and explore is None:
-        noise = action_noise(net, key, obs.shape[0])
-    if is_discrete(net):
-        logits = action_mean(net, obs)
-        action = jnp.argmax(noise + logits, axis=-1).astype(jnp.int32)
-        logp = jnp.take_along_axis(jax.nn.log_softmax(logits), action[:, None], axis=1)[:, 0]
-        return action, logp, jnp.argmax(logits, axis=-1).astype(jnp.int32)
-    mean, std, latent_t = policy(net, obs)
-    if explore is None:
-        action = mean + std * noise
-    else:
-        action = mean + jnp.einsum("in,nij->nj", latent_t, explore)
-    return action, log_prob(action, mean, std), mean
-
-
-def log_prob_entropy(net: dict, obs: Any, actions: Any) -> tuple[Any, Any]:
-    """(log-probability (N,), entropy (N,)) of stored ``actions`` under the current policy."""
-    import jax  # noqa: PLC0415
-    import jax.numpy as jnp  # noqa: PLC0415
-
-    if is_discrete(net):
-        logp_all = jax.nn.log_softmax(action_mean(net, obs))
-        logp = jnp.take_along_axis(logp_all, actions.astype(jnp.int32)[:, None], axis=1)[:, 0]
-        return logp, -jnp.sum(jnp.exp(logp_all) * logp_all, axis=-1)
-    mean, std, _ = policy(net, obs)
-    return log_prob(actions, mean, std), entropy(std)
-
-
-def deterministic_action(net: dict, obs: Any, low: Any = None, high: Any = None) -> Any:
-    """The policy's deterministic action: the most probable index (categorical; (N,) int32) or
-    the Gaussian's mean clipped to [low, high] (N, n_act)."""
-    import jax.numpy as jnp  # noqa: PLC0415
-
-    out = action_mean(net, obs)
-    if is_discrete(net):
-        return jnp.argmax(out, axis=-1).astype(jnp.int32)
-    return jnp.clip(out, low, high)
-
-
-class HostPolicy:
-    """``net``'s deterministic action, as ``deterministic_action`` computes it, by numpy on the host:
-    ``HostPolicy(net, low, high)(obs)`` for float32 observations (N, n_obs). Why not the jitted
-    ``deterministic_action``: a call of a compiled program costs XLA's CPU runtime 50-90 us however
-    small the program (a [64, 64] MLP on 1 to 10 observations, against 8 us for a program of one
-    add), and numpy computes these layers in 8-10 us; a real-env evaluation calls it once per
-    lockstep step (``rl.agents.evaluate_real``). Ten MountainCar episodes of 999 steps, a curve
-    point of the fast pack: 4.3-5.1 s of evaluation per run with the jitted action, 1.3-1.6 s with
-    this one, the curve's means the same (measured on this 2-core machine). The same layers, ops and
-    dtype (float32); numpy's products may sum in another order, so actions can differ by rounding
-    (tested against the jitted action and SB3's policy)."""
-
-    def __init__(self, net: dict, low: Any = None, high: Any = None):
-        self.layers = [(np.asarray(w), np.asarray(b)) for w, b in net["actor"]]
-        self.discrete = is_discrete(net)
-        self.low, self.high = low, high
-
-    def __call__(self, obs: np.ndarray) -> np.ndarray:
-        h = np.asarray(obs, np.float32)
-        for w, b in self.layers[:-1]:
-            h = np.tanh(h @ w + b)
-        w, b = self.layers[-1]
-        out = h @ w + b
-        return np.argmax(out, axis=-1).astype(np.int32) if self.discrete else np.clip(out, self.low, self.high)
-
-
-def log_prob(actions: Any, mean: Any, std: Any) -> Any:
-    """log N(actions; mean, std^2), summed over action dimensions (``std`` broadcasts)."""
-    import jax.numpy as jnp  # noqa: PLC0415
-
-    z = (actions - mean) / std
-    return jnp.sum(-0.5 * z**2 - jnp.log(std) - 0.5 * math.log(2 * math.pi), axis=-1)
-
-
-def entropy(std: Any) -> Any:
-    """The Gaussian's entropy per state (..., summed over action dimensions)."""
-    import jax.numpy as jnp  # noqa: PLC0415
-
-    return jnp.sum(jnp.log(std) + 0.5 + 0.5 * math.log(2 * math.pi), axis=-1)
 
 
 class RewardNorm(NamedTuple):
@@ -529,7 +278,7 @@ def surrogate(model_env: Any) -> Surrogate:
     distribution as ModelEnv's, not its draws), one uniform per row and learned event, and a
     probabilistic ensemble's own draws (its elite and its Gaussian's normals) drawn from the
     step's key; refuses (in one line) what ``jax_stepper`` does not cover."""
-    jax, jnp, _ = _modules()
+    jax, jnp, _ = modules()
     spec = model_env.spec
     stepper = jax_stepper(model_env)
     noisy = stepper.params["chol"] is not None
@@ -581,7 +330,7 @@ def aux_key(key: Any) -> Any:
     states are drawn from. Folded in rather than split off, so that the states' keys, and every
     run of a task whose memory is not drawn, stay what they were (and the unused fold compiles
     away)."""
-    jax, _, _ = _modules()
+    jax, _, _ = modules()
     return jax.random.fold_in(key, 1)
 
 
@@ -591,7 +340,7 @@ def init_env(sur: Surrogate, key: Any, n_envs: int, cfg: PPOConfig | None = None
     model's numbers (``sur.params``), whose reset pool it draws from (None: the surrogate's own).
     Called eagerly it runs op by op, each op a program of its own (LunarLander's terrain: about
     0.2 s of lowering and cache reads in a fresh process, measured); ``rl.jax_agent`` jits it."""
-    _, jnp, _ = _modules()
+    _, jnp, _ = modules()
     states = sur.reset(key, n_envs, params)
     norm = RewardNorm.init(n_envs) if cfg is not None and cfg.normalize_reward else None
     env = EnvState(states, jnp.zeros(n_envs, jnp.int32), jnp.zeros(n_envs, jnp.float64), norm,
@@ -613,7 +362,7 @@ def rollout_draws(sur: Surrogate, cfg: PPOConfig, net: dict, explore: Any, param
     n_envs, ...), where a step drew and dropped its own; and the program lowers more slowly
     (LunarLander's terrain rollout 0.13 -> 0.17 s, every compile, cached or not), which a short
     run's fewer rollouts do not win back (docs/compiled.md)."""
-    jax, jnp, _ = _modules()
+    jax, jnp, _ = modules()
     n = cfg.n_envs
     keys = jax.vmap(lambda k: jax.random.split(k, 3))(jax.random.split(key, cfg.n_steps))
     k_act, k_reset, k_step = keys[:, 0], keys[:, 1], keys[:, 2]
@@ -629,7 +378,7 @@ def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
     ``cfg.n_steps`` steps of the ``cfg.n_envs`` copies (pure; jit it, or call it inside a compiled
     loop). ``params``: the surrogate model's numbers (default ``sur.params``); compiled with them
     as an argument, the rollout steps any surrogate of the same ``key`` without compiling again."""
-    jax, jnp, _ = _modules()
+    jax, jnp, _ = modules()
     low, high = (None, None) if sur.discrete else (jnp.asarray(sur.action_low), jnp.asarray(sur.action_high))
     n, gamma = cfg.n_envs, cfg.gamma
 
@@ -674,7 +423,7 @@ def make_rollout(sur: Surrogate, cfg: PPOConfig) -> Callable:
 def gae(cfg: PPOConfig, values: Any, rewards: Any, dones: Any, last_value: Any) -> tuple[Any, Any]:
     """(advantages, returns), (n_steps, n_envs): GAE(lambda) as SB3's rollout buffer computes it
     (a step's successor counts unless the step ended its episode)."""
-    jax, jnp, _ = _modules()
+    jax, jnp, _ = modules()
 
     def back(carry, x):
         adv, next_value = carry
@@ -692,7 +441,7 @@ def optimizer(cfg: PPOConfig) -> Any:
     """The gradient's global norm clipped, then Adam (eps 1e-5), as SB3's PPO steps; on the
     parameters flattened into one vector (``optax.flatten``: the same elementwise Adam in a few
     large ops instead of a few per array; measured 12.5 -> 11.6 ms per fast-pack update)."""
-    _, _, optax = _modules()
+    _, _, optax = modules()
     return optax.flatten(optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
                                      optax.adam(cfg.learning_rate, eps=ADAM_EPS)))
 
@@ -706,7 +455,7 @@ def shuffles(key: Any, n_epochs: int, n: int) -> Any:
     plain integer sort (0.53 ms for four). The order is that of the random high bits (64 - b of
     them, b = the bits of n - 1): a uniform permutation unless two draws share all of them
     (chance under n^2 / 2^(65 - b), 1.6e-8 at n = 8,192), where the lower index goes first."""
-    jax, jnp, _ = _modules()
+    jax, jnp, _ = modules()
     if not 1 <= n <= MAX_ROLLOUT:
         raise ValueError(f"shuffles: n must be in [1, {MAX_ROLLOUT:,}], got {n:,}")
     b = max(1, (n - 1).bit_length())
@@ -722,7 +471,7 @@ def make_update(cfg: PPOConfig, shuffled_outside: bool = False) -> Callable:
     the epochs' permutations as an input instead, (n_epochs, n) int32, one permutation of range(n)
     a row (``rl.jax_agent`` draws them on the host, where numpy shuffles 4 x 4,096 indices in
     0.15 ms against the 0.53 ms of ``shuffles``' sort; measured on this 2-core machine)."""
-    jax, jnp, optax = _modules()
+    jax, jnp, optax = modules()
     tx = optimizer(cfg)
     c = cfg.clip_range
 
@@ -781,7 +530,7 @@ def make_train(model_env: Any, cfg: PPOConfig, total_steps: int) -> Callable:
     (what ``benchmarks/compiled_ppo.py`` times as the second call). ``stats``: per iteration,
     the rollout's episodes ended, their summed return, diverged steps, mean task reward, and the
     update's mean losses, entropy, approximate KL and clip fraction."""
-    jax, jnp, _ = _modules()
+    jax, jnp, _ = modules()
     sur = surrogate(model_env)
     rollout, update, tx = make_rollout(sur, cfg), make_update(cfg), optimizer(cfg)
     iters = n_iterations(cfg, total_steps)
@@ -819,7 +568,7 @@ def train(model_env: Any, cfg: PPOConfig, total_steps: int, seed: int = 0) -> tu
     ``cfg.rollout_size``). Returns (params, stats): params for ``policy_fn`` /
     ``evaluate_surrogate``; stats as numpy arrays per iteration (``make_train``), plus ``steps``
     (env steps after each iteration) and ``episode_return_mean`` (NaN where no episode ended)."""
-    jax, _, _ = _modules()
+    jax, _, _ = modules()
     net, stats = make_train(model_env, cfg, total_steps)(jax.random.key(int(seed)))
     out = {k: np.asarray(v) for k, v in stats.items()}
     out["steps"] = cfg.rollout_size * np.arange(1, len(out["episodes"]) + 1)
@@ -862,7 +611,7 @@ def surrogate_evaluator(model_env: Any, n_episodes: int, low: Any = None, high: 
     side, each from a reset drawn with ``key``, up to ``spec.max_episode_steps`` steps or its end
     (termination, divergence). Built once and called with each new ``net``, it compiles once (a
     study that evaluates after every rollout)."""
-    jax, jnp, _ = _modules()
+    jax, jnp, _ = modules()
     sur = surrogate(model_env)
 
     def run(net, key):
@@ -885,6 +634,6 @@ def surrogate_evaluator(model_env: Any, n_episodes: int, low: Any = None, high: 
 def evaluate_surrogate(model_env: Any, params: dict[str, Any], n_episodes: int, seed: int = 0) -> np.ndarray:
     """Returns of ``n_episodes`` deterministic episodes (the mean action, clipped) in the surrogate,
     side by side, compiled: each from a reset drawn with jax key ``seed`` (``surrogate_evaluator``)."""
-    jax, _, _ = _modules()
+    jax, _, _ = modules()
     run = surrogate_evaluator(model_env, n_episodes, params["action_low"], params["action_high"])
     return np.asarray(run(params["net"], jax.random.key(int(seed))))

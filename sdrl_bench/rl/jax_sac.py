@@ -43,7 +43,7 @@ Hand-written, and why: sbx (SB3's jax port) has a SAC, but its gSDE is a held no
 Gaussian noise for every state until the next reset), not state-dependent; it ignores
 ``log_std_init`` and ``clip_mean``, so the package's MountainCar recipe (gSDE at log-std -3.67)
 would not be the recipe; and it needs ``tfp-nightly``. The networks are plain (weight, bias)
-pytrees run features-major with ``jax_ppo._dense`` (the product shapes XLA's fast CPU kernels
+pytrees run features-major with ``jax_nets.dense_layer`` (the product shapes XLA's fast CPU kernels
 take); optax provides Adam.
 """
 
@@ -57,7 +57,7 @@ from typing import Any, NamedTuple
 import numpy as np
 
 from sdrl_bench import ConfigError
-from sdrl_bench.rl import jax_ppo
+from sdrl_bench.rl import jax_nets
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 """SB3's clip of the actor's log-std head (no gSDE)."""
@@ -224,9 +224,9 @@ def init_nets(seed: int, cfg: SACConfig, n_obs: int, n_act: int) -> Nets:
 
 def _features(layers: list, x: Any) -> Any:
     """The last hidden layer's ReLU features, features-major (H, N), for samples-major ``x``."""
-    import jax  # noqa: PLC0415  (imported by jax_ppo._modules before any call)
+    import jax  # noqa: PLC0415  (imported by jax_nets.modules before any call)
 
-    dense, h = jax_ppo._dense(), jax.lax.optimization_barrier(x.T)
+    dense, h = jax_nets.dense_layer(), jax.lax.optimization_barrier(x.T)
     for w, b in layers:
         h = jax.nn.relu(dense(h, w, b))
     return h
@@ -237,7 +237,7 @@ def q_values(critics: list, obs: Any, actions: Any) -> Any:
     import jax.numpy as jnp  # noqa: PLC0415
 
     x = jnp.concatenate([obs, actions], axis=1)
-    return jnp.stack([jax_ppo._dense()(_features(c[:-1], x), *c[-1])[0] for c in critics])
+    return jnp.stack([jax_nets.dense_layer()(_features(c[:-1], x), *c[-1])[0] for c in critics])
 
 
 def distribution(cfg: SACConfig, actor: dict, obs: Any) -> tuple[Any, Any, Any]:
@@ -245,13 +245,13 @@ def distribution(cfg: SACConfig, actor: dict, obs: Any) -> tuple[Any, Any, Any]:
     import jax.numpy as jnp  # noqa: PLC0415
 
     h = _features(actor["hidden"], obs)
-    mean = jax_ppo._dense()(h, *actor["mu"]).T
+    mean = jax_nets.dense_layer()(h, *actor["mu"]).T
     if cfg.use_sde:
         if cfg.clip_mean > 0:
             mean = jnp.clip(mean, -cfg.clip_mean, cfg.clip_mean)
         variance = (h.T**2) @ (jnp.exp(actor["log_std"]) ** 2)
         return mean, jnp.sqrt(variance + SQUASH_EPS), h
-    log_std = jnp.clip(jax_ppo._dense()(h, *actor["log_std"]).T, LOG_STD_MIN, LOG_STD_MAX)
+    log_std = jnp.clip(jax_nets.dense_layer()(h, *actor["log_std"]).T, LOG_STD_MIN, LOG_STD_MAX)
     return mean, jnp.exp(log_std), h
 
 
@@ -301,13 +301,13 @@ class State(NamedTuple):
 
 
 def optimizer(cfg: SACConfig) -> Any:
-    _, _, optax = jax_ppo._modules()
+    _, _, optax = jax_nets.modules()
     return optax.adam(cfg.learning_rate, eps=ADAM_EPS)
 
 
 def init_state(cfg: SACConfig, nets: Nets) -> State:
     """The networks as jax float32 arrays with fresh Adam states."""
-    jax, jnp, _ = jax_ppo._modules()
+    jax, jnp, _ = jax_nets.modules()
     nets = jax.tree_util.tree_map(lambda x: jnp.asarray(x, jnp.float32), nets)
     tx = optimizer(cfg)
     return State(nets, tx.init(nets.actor), tx.init(nets.critics), tx.init(nets.log_alpha))
@@ -319,7 +319,7 @@ def gradient_step(cfg: SACConfig, n_act: int, state: State, batch: Batch, noise:
     observations, for its next observations), ``sample``'s noise; with gSDE both are the step's
     one matrix. ``update_target``: whether this step Polyak-averages the targets (a bool array).
     Returns the new state and the step's losses and entropy coefficient."""
-    jax, jnp, optax = jax_ppo._modules()
+    jax, jnp, optax = jax_nets.modules()
     tx = optimizer(cfg)
     nets = state.nets
     sg = jax.lax.stop_gradient
@@ -382,7 +382,7 @@ def make_train(cfg: SACConfig, n_act: int) -> Callable:
     steps in one ``lax.scan``, on ``batches`` (a ``Batch`` of (gradient_steps, batch_size, ...)
     arrays sampled on the host), with noise from the key ``key_data`` (uint32 (2,)). Step i
     updates the targets when i % target_update_interval == 0 (SB3 counts within a train call)."""
-    jax, jnp, _ = jax_ppo._modules()
+    jax, jnp, _ = jax_nets.modules()
     steps = int(cfg.gradient_steps)
 
     def train(state, batches, key_data):
@@ -402,7 +402,7 @@ def make_train(cfg: SACConfig, n_act: int) -> Callable:
 # ---------------------------------------------------------------------- the host's side
 class HostActor:
     """The actor's actions by numpy on the host, for collection and evaluation (one call per env
-    step, where a compiled program's call would cost 50-90 us: ``jax_ppo.HostPolicy``). Actions
+    step, where a compiled program's call would cost 50-90 us: ``jax_nets.HostPolicy``). Actions
     are scaled to [-1, 1] (the replay buffer's); ``unscale`` maps them to the env's bounds."""
 
     def __init__(self, cfg: SACConfig, actor: dict, low: np.ndarray, high: np.ndarray):

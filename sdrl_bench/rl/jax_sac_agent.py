@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from sdrl_bench import ConfigError
-from sdrl_bench.rl import jax_ppo
+from sdrl_bench.rl import jax_nets
 from sdrl_bench.rl.jax_agent import CompiledAgent, check_loaded_env, read_agent, restore_leaves, write_agent
 from sdrl_bench.rl.jax_compile import cpu_pool_threads
 
@@ -57,7 +57,7 @@ class JaxSAC(CompiledAgent):
         self.gradient_steps_done = 0
         """Gradient steps taken over this agent's life (SB3's ``_n_updates``)."""
         self.rollout_backend = "python"
-        self._jax, self._jnp, _ = jax_ppo._modules()
+        self._jax, self._jnp, _ = jax_nets.modules()
         self._host_rng = np.random.default_rng(np.random.SeedSequence([self.seed, 53]))
         """Collection's draws (gSDE matrices, Gaussian noise, warm-up actions), replay samples and
         the update's keys: one stream, from the seed."""
@@ -81,7 +81,7 @@ class JaxSAC(CompiledAgent):
         if normalize_reward:
             raise ConfigError(NO_REWARD_SCALING)
         try:
-            jax_ppo._modules(JaxSAC.LABEL)
+            jax_nets.modules(JaxSAC.LABEL)
         except ImportError as exc:
             raise ConfigError(f"agent.algo: {exc}") from None
         from sdrl_bench.rl.jax_sac import SACConfig  # noqa: PLC0415

@@ -26,7 +26,7 @@ from helpers import ROOT, compose_cfg, held_sde_noise, run_cli, search  # noqa: 
 from sdrl_bench.cli.build import build_dyna_job, build_fit_job, instantiate_key  # noqa: E402
 from sdrl_bench.pipeline import fit_dynamics  # noqa: E402
 from sdrl_bench.rl.agents import RealEvalCallback, make_agent, real_vec_env, train  # noqa: E402
-from sdrl_bench.rl import jax_compile, jax_ppo  # noqa: E402
+from sdrl_bench.rl import jax_compile, jax_nets  # noqa: E402
 from sdrl_bench.rl.jax_agent import JaxPPO  # noqa: E402
 from sdrl_bench.rl.transfer import surrogate_vec_env  # noqa: E402
 
@@ -78,7 +78,7 @@ def test_in_the_surrogate_it_trains_compiled_and_the_callback_sees_whole_rollout
     assert ppo.num_timesteps == 2560 and ppo.rollout_compiles == 1 and not np.array_equal(before, ppo.net["actor"][0][0])
     # the deterministic action (on the host) is the trained net's: the jitted action's, not the one before
     now, _ = ppo.predict(obs, deterministic=True)
-    jitted = np.asarray(jax_ppo.deterministic_action(ppo.net, obs, *ppo._bounds))
+    jitted = np.asarray(jax_nets.deterministic_action(ppo.net, obs, *ppo._bounds))
     assert np.allclose(now, jitted, rtol=0, atol=1e-6) and not np.allclose(now, acted, rtol=0, atol=1e-6)
     ppo.learn(512)  # SB3's default: the count starts again, from fresh episodes, with the same program
     assert ppo.num_timesteps == 512 and ppo.rollout_compiles == 1
@@ -178,7 +178,7 @@ def test_a_bare_compiled_iteration_trains_what_a_learn_iteration_trains(fitted):
 def test_the_lowering_key_changes_with_the_program_its_constants_shapes_and_options():
     from sdrl_bench.rl.jax_compile import lowering_key
 
-    jax_ppo._modules()  # the harness's XLA flags, should this be the process's first jax computation
+    jax_nets.modules()  # the harness's XLA flags, should this be the process's first jax computation
 
     def scaled(c, shift=1.0):
         c = jnp.asarray(c)

@@ -22,6 +22,7 @@ from helpers import compose_cfg  # noqa: E402
 from sdrl_bench import ConfigError  # noqa: E402
 from sdrl_bench.cli.build import build_fit_job, instantiate_key  # noqa: E402
 from sdrl_bench.pipeline import fit_dynamics  # noqa: E402
+from sdrl_bench.rl import jax_nets  # noqa: E402
 from sdrl_bench.rl import jax_ppo  # noqa: E402
 from sdrl_bench.rl.agents import evaluate_real  # noqa: E402
 from sdrl_bench.surrogate.events import fit_event_model  # noqa: E402
@@ -52,7 +53,7 @@ def test_the_compiled_rollout_is_the_jax_step_step_by_step(pendulum):
     spec, n, steps = menv.spec, 8, 250
     cfg = jax_ppo.PPOConfig(n_envs=n, n_steps=steps, batch_size=n * steps // 2, gamma=0.9)
     sur = jax_ppo.surrogate(menv)
-    net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act)
+    net = jax_nets.init_net(jax.random.key(0), sur.n_obs, sur.n_act)
     net["log_std"] = jnp.full(sur.n_act, 0.7, jnp.float32)  # wide: actions beyond the bounds get clipped
     states = sur.reset(jax.random.key(1), n).at[0, 0].set(5e3)  # copy 0 diverges at once
     t0 = np.array([0, 50, 100, 150, 199, 0, 10, 190], dtype=np.int32)  # episodes end at different steps
@@ -84,7 +85,7 @@ def test_the_compiled_rollout_is_the_jax_step_step_by_step(pendulum):
         ret += r
         assert np.allclose(tr.episode_return[k], np.where(done, ret, 0.0), rtol=1e-12, atol=1e-9)
         timeout = done & ~term
-        boot = np.asarray(jax_ppo.value(net, np.asarray(observe(nxt)).astype(np.float32)))
+        boot = np.asarray(jax_nets.value(net, np.asarray(observe(nxt)).astype(np.float32)))
         want = r.astype(np.float32) + np.float32(cfg.gamma) * np.where(timeout, boot, 0.0)
         assert np.allclose(tr.reward[k], want, rtol=1e-6, atol=1e-5)
         after = np.asarray(env_end.states) if k == steps - 1 else tr.state[k + 1]
@@ -123,7 +124,7 @@ def keyed_rollout(sur, cfg, net, env, obs, key):
     def one(carry, k):
         env, obs = carry
         k_act, k_reset, k_step = jax.random.split(k, 3)
-        action = jax.random.categorical(k_act, jax_ppo.action_mean(net, obs)).astype(jnp.int32)
+        action = jax.random.categorical(k_act, jax_nets.action_mean(net, obs)).astype(jnp.int32)
         nxt, reward, term, div, aux = sur.step(env.states, action[:, None], env.aux, k_step, sur.params)
         t = env.t + 1
         done = term | div | (t >= sur.max_steps)
@@ -153,7 +154,7 @@ def test_the_rollout_draws_what_each_step_would_draw_from_its_key(env_name, pend
         menv, n = ModelEnv(res.model, dataclasses.replace(res.job.spec, terrain=True), events=events, seed=0), 16
     cfg = jax_ppo.PPOConfig(n_envs=n, n_steps=300, batch_size=n * 150, gamma=0.9)
     sur = jax_ppo.surrogate(menv)
-    net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act, discrete=sur.discrete)
+    net = jax_nets.init_net(jax.random.key(0), sur.n_obs, sur.n_act, discrete=sur.discrete)
     key = jax.random.key(2)
     got = jax.jit(lambda k: jax_ppo.rollout_draws(sur, cfg, net, None, sur.params, k))(key)
     want = keyed_draws(sur, n, key, cfg.n_steps)
@@ -184,7 +185,7 @@ def test_the_harness_compiler_options_change_a_rollout_and_an_update_by_rounding
     menv = ModelEnv(*pendulum, seed=0)
     cfg = jax_ppo.PPOConfig(n_envs=8, n_steps=256, batch_size=512, n_epochs=2, gamma=0.9)
     sur = jax_ppo.surrogate(menv)
-    net = jax_ppo.init_net(jax.random.key(0), sur.n_obs, sur.n_act)
+    net = jax_nets.init_net(jax.random.key(0), sur.n_obs, sur.n_act)
     env, obs = jax_ppo.init_env(sur, jax.random.key(1), cfg.n_envs, cfg)
     rollout, update = jax_ppo.make_rollout(sur, cfg), jax_ppo.make_update(cfg)
     opt = jax_ppo.optimizer(cfg).init(net)
@@ -214,7 +215,7 @@ def test_the_harness_compiler_options_change_a_rollout_and_an_update_by_rounding
 
 def test_a_short_training_run_improves_the_surrogate_return(trained):
     menv, params, stats = trained
-    before = jax_ppo.evaluate_surrogate(menv, jax_ppo.as_params(jax_ppo.init_net(jax.random.key(0), 3, 1), menv), 20, 7)
+    before = jax_ppo.evaluate_surrogate(menv, jax_ppo.as_params(jax_nets.init_net(jax.random.key(0), 3, 1), menv), 20, 7)
     after = jax_ppo.evaluate_surrogate(menv, params, 20, 7)
     print(f"surrogate return, 20 episodes: initial policy {before.mean():.0f}, after {TRAIN_STEPS:,} steps {after.mean():.0f}")
     assert after.mean() > before.mean() + 300
@@ -228,7 +229,7 @@ def test_one_surrogate_evaluator_scores_each_net_without_compiling_again(trained
     """``surrogate_evaluator`` compiles once; each net it is called with gets the returns that
     ``evaluate_surrogate`` gives it (same episodes, same key)."""
     menv, params, _ = trained
-    first = jax_ppo.as_params(jax_ppo.init_net(jax.random.key(0), 3, 1), menv)
+    first = jax_ppo.as_params(jax_nets.init_net(jax.random.key(0), 3, 1), menv)
     run = jax_ppo.surrogate_evaluator(menv, 20, params["action_low"], params["action_high"])
     for p in (first, params):
         got = np.asarray(run(p["net"], jax.random.key(7)))
@@ -248,7 +249,7 @@ def test_the_policy_acts_in_the_real_env(trained):
     env.close()
     batch = policy(np.stack([obs, obs, -obs]))
     assert batch.shape == (3, 1) and np.all(np.abs(batch) <= menv.action_space.high)
-    mean = np.asarray(jax_ppo.action_mean(params["net"], jnp.asarray(obs[None], jnp.float32)))[0]
+    mean = np.asarray(jax_nets.action_mean(params["net"], jnp.asarray(obs[None], jnp.float32)))[0]
     assert np.allclose(action, np.clip(mean, menv.action_space.low, menv.action_space.high), rtol=0, atol=1e-6)
     res = evaluate_real(policy, menv.spec, 2, seed=0)
     assert res.lengths.tolist() == [200, 200] and np.all(np.isfinite(res.returns))
@@ -298,8 +299,8 @@ def test_the_policy_is_sb3s_policy_given_its_weights(pendulum, kind):
     pol = sb3.policy
     n_obs, n_act = (4, 2) if discrete else (3, 1)
     cfg = jax_ppo.PPOConfig(use_sde=use_sde, log_std_init=-0.5)
-    net = jax_ppo.init_net(jax.random.key(0), n_obs, n_act, cfg, discrete)
-    assert jax_ppo.is_discrete(net) == discrete
+    net = jax_nets.init_net(jax.random.key(0), n_obs, n_act, cfg, discrete)
+    assert jax_nets.is_discrete(net) == discrete
     rng = np.random.default_rng(0)
     if not discrete:
         assert net["log_std"].shape == tuple(pol.log_std.shape) and np.all(np.asarray(net["log_std"]) == np.float32(-0.5))
@@ -317,37 +318,37 @@ def test_the_policy_is_sb3s_policy_given_its_weights(pendulum, kind):
         actions = rng.normal(0, 1.5, size=(64, 1)).astype(np.float32)
     with th.no_grad():
         v_sb3, logp_sb3, ent_sb3 = (x.numpy() for x in pol.evaluate_actions(th.as_tensor(obs), th.as_tensor(actions)))
-    logp, ent = jax_ppo.log_prob_entropy(net, jnp.asarray(obs), jnp.asarray(actions))
-    assert np.allclose(np.asarray(jax_ppo.value(net, jnp.asarray(obs))), v_sb3[:, 0], rtol=1e-5, atol=1e-5)
+    logp, ent = jax_nets.log_prob_entropy(net, jnp.asarray(obs), jnp.asarray(actions))
+    assert np.allclose(np.asarray(jax_nets.value(net, jnp.asarray(obs))), v_sb3[:, 0], rtol=1e-5, atol=1e-5)
     assert np.allclose(np.asarray(logp), logp_sb3, rtol=1e-5, atol=1e-5)
     assert np.allclose(np.asarray(ent), ent_sb3, rtol=1e-5, atol=1e-5)
     with th.no_grad():
         best = pol.predict(obs, deterministic=True)[0]
     if discrete:
-        assert np.array_equal(np.asarray(jax_ppo.deterministic_action(net, jnp.asarray(obs))), best)
-        assert np.array_equal(jax_ppo.HostPolicy(net)(obs), best) and len(set(best.tolist())) == 2
+        assert np.array_equal(np.asarray(jax_nets.deterministic_action(net, jnp.asarray(obs))), best)
+        assert np.array_equal(jax_nets.HostPolicy(net)(obs), best) and len(set(best.tolist())) == 2
         return
     # the deterministic action on the host (numpy) is the jitted one's and SB3's, clipped where they clip it
     low, high = env.action_space.low, env.action_space.high
-    host = jax_ppo.HostPolicy(net, low, high)(obs)
+    host = jax_nets.HostPolicy(net, low, high)(obs)
     assert host.dtype == np.float32 and host.shape == (64, 1) and np.ptp(host) > 1e-3, np.ptp(host)
-    assert np.allclose(host, np.asarray(jax_ppo.deterministic_action(net, jnp.asarray(obs), low, high)), rtol=0, atol=1e-5)
+    assert np.allclose(host, np.asarray(jax_nets.deterministic_action(net, jnp.asarray(obs), low, high)), rtol=0, atol=1e-5)
     assert np.allclose(host, best, rtol=0, atol=1e-5)
     w, b = net["actor"][-1]
     wide = {**net, "actor": [*net["actor"][:-1], (w * 1000.0, b)]}  # means across the bounds: some clipped, some not
-    host = jax_ppo.HostPolicy(wide, low, high)(obs)
+    host = jax_nets.HostPolicy(wide, low, high)(obs)
     assert 0 < np.sum(np.abs(host) == high[0]) < 60
-    assert np.allclose(host, np.asarray(jax_ppo.deterministic_action(wide, jnp.asarray(obs), low, high)), rtol=1e-6, atol=1e-5)
-    mean, std, _ = jax_ppo.policy(net, jnp.asarray(obs))
+    assert np.allclose(host, np.asarray(jax_nets.deterministic_action(wide, jnp.asarray(obs), low, high)), rtol=1e-6, atol=1e-5)
+    mean, std, _ = jax_nets.policy(net, jnp.asarray(obs))
     if use_sde:
         assert np.ptp(np.asarray(std)) > 0.1  # state-dependent
-        explore = jax_ppo.exploration_matrices(net, jax.random.key(3), 64)
+        explore = jax_nets.exploration_matrices(net, jax.random.key(3), 64)
         pol.action_dist.exploration_matrices = th.as_tensor(np.array(explore))
         with th.no_grad():
             a_sb3, _, _ = pol(th.as_tensor(obs))
-        a, logp, _ = jax_ppo.sample_action(net, jnp.asarray(obs), jax.random.key(4), explore)
+        a, logp, _ = jax_nets.sample_action(net, jnp.asarray(obs), jax.random.key(4), explore)
         assert np.allclose(np.asarray(a), a_sb3.numpy(), rtol=1e-5, atol=1e-5)
-        assert np.allclose(np.asarray(logp), np.asarray(jax_ppo.log_prob(a, mean, std)))
+        assert np.allclose(np.asarray(logp), np.asarray(jax_nets.log_prob(a, mean, std)))
 
 
 def test_reward_scaling_is_vecnormalizes():
@@ -444,7 +445,7 @@ def test_a_compiled_rollout_steps_another_model_of_the_same_structure_given_its_
     assert not np.array_equal(sur_a.params["coef"], sur_b.params["coef"])
     assert not np.array_equal(sur_a.params["pool"], sur_b.params["pool"])  # each seed's real first observations
     cfg = jax_ppo.PPOConfig(n_envs=4, n_steps=150, batch_size=100)
-    net = jax_ppo.init_net(jax.random.key(0), sur_a.n_obs, sur_a.n_act, cfg, discrete=True)
+    net = jax_nets.init_net(jax.random.key(0), sur_a.n_obs, sur_a.n_act, cfg, discrete=True)
     env, obs = jax_ppo.init_env(sur_a, jax.random.key(1), cfg.n_envs, cfg)
     run_a = jax.jit(jax_ppo.make_rollout(sur_a, cfg)).lower(net, env, obs, jax.random.key(2), sur_a.params).compile()
     run_b = jax.jit(jax_ppo.make_rollout(sur_b, cfg))
@@ -485,9 +486,9 @@ def test_each_epochs_shuffle_is_a_uniform_permutation():
 
 
 def test_the_hand_written_layer_gradient_is_autodiffs():
-    """The features-major layers (``_dense``, its gradient written by hand) give the samples-major
+    """The features-major layers (``jax_nets.dense_layer``, its gradient written by hand) give the samples-major
     network's outputs and gradients: the same sums in another order, to float32 rounding."""
-    net = jax_ppo.init_net(jax.random.key(0), 5, 3)
+    net = jax_nets.init_net(jax.random.key(0), 5, 3)
     net["log_std"] = jnp.full((64, 3), -0.5, jnp.float32)  # gSDE: the latent features' path too
     obs = jax.random.normal(jax.random.key(1), (257, 5), jnp.float32)
 
@@ -502,16 +503,16 @@ def test_the_hand_written_layer_gradient_is_autodiffs():
 
     def plain_std(net):  # gSDE's std, samples-major, as SB3 computes it
         latent = jax.lax.stop_gradient(hidden(net["actor"], obs))
-        return jnp.sqrt(latent**2 @ jnp.exp(net["log_std"]) ** 2 + jax_ppo.SDE_EPS)
+        return jnp.sqrt(latent**2 @ jnp.exp(net["log_std"]) ** 2 + jax_nets.SDE_EPS)
 
     def loss(mlp, std, net):
         return (jnp.sum(jnp.sin(mlp(net["actor"], obs))) + jnp.sum(mlp(net["critic"], obs) ** 2)
                 + jnp.sum(jnp.log(std(net))))
 
-    np.testing.assert_allclose(jax_ppo.action_mean(net, obs), plain(net["actor"], obs), rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(jax_ppo.value(net, obs), plain(net["critic"], obs)[:, 0], rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(jax_ppo.policy(net, obs)[1], plain_std(net), rtol=1e-5, atol=1e-6)
-    got = jax.grad(lambda n: loss(jax_ppo._mlp, lambda m: jax_ppo.policy(m, obs)[1], n))(net)
+    np.testing.assert_allclose(jax_nets.action_mean(net, obs), plain(net["actor"], obs), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(jax_nets.value(net, obs), plain(net["critic"], obs)[:, 0], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(jax_nets.policy(net, obs)[1], plain_std(net), rtol=1e-5, atol=1e-6)
+    got = jax.grad(lambda n: loss(jax_nets._mlp, lambda m: jax_nets.policy(m, obs)[1], n))(net)
     want = jax.grad(lambda n: loss(plain, plain_std, n))(net)
     assert float(jnp.abs(want["log_std"]).max()) > 1.0  # the std's path carries a gradient
     for g, w in zip(jax.tree_util.tree_leaves(got), jax.tree_util.tree_leaves(want), strict=True):
