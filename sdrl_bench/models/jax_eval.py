@@ -92,7 +92,15 @@ older CPUs' clock; LLVM uses no wider than the CPU's ISA). Measured on this 2-co
 machine, the fast MountainCar pack's compiled training, one core: 526,000 -> 589,000 steps/s
 (``benchmarks/compiled_ppo.py``, median of 7, two rounds alternated)."""
 
-DEFAULT_XLA_FLAGS = {"xla_cpu_multi_thread_eigen": SINGLE_THREAD_MATMULS, "xla_cpu_prefer_vector_width": WIDE_VECTORS}
+DETERMINISTIC_GPU = "--xla_gpu_deterministic_ops=true"
+"""XLA's GPU kernels chosen and run deterministically (no autotuned choice that can change from one
+process to the next, no reductions by atomics). Without it, on an H200 (jax 0.11.2, 2026-11-30), a
+fresh process trained the compiled PPO to other bits than the test's own process
+(``test_through_the_lowering_cache_training_is_what_it_is_compiled_directly``); with it, every
+process of that test trained the same bits. Its cost there was not measured. The CPU ignores it."""
+
+DEFAULT_XLA_FLAGS = {"xla_cpu_multi_thread_eigen": SINGLE_THREAD_MATMULS, "xla_cpu_prefer_vector_width": WIDE_VECTORS,
+                     "xla_gpu_deterministic_ops": DETERMINISTIC_GPU}
 
 
 MATMUL_PRECISION_VAR = "JAX_DEFAULT_MATMUL_PRECISION"
@@ -108,7 +116,7 @@ def jax_modules(who: str = "sdrl_bench.models.jax_eval"):
     """jax and jax.numpy, with float64 on (imported on first use: jax is an optional extra);
     ``who`` names the caller in the install hint. Each of ``DEFAULT_XLA_FLAGS`` that
     ``XLA_FLAGS`` does not already set is added to it (XLA's CPU matmuls on one thread, wide
-    vectors); they take effect when no jax computation ran before in the process. Products in
+    vectors; deterministic GPU kernels); they take effect when no jax computation ran before in the process. Products in
     full precision unless ``$JAX_DEFAULT_MATMUL_PRECISION`` says otherwise (``MATMUL_PRECISION_VAR``)."""
     flags = os.environ.get("XLA_FLAGS", "")
     extra = [flag for name, flag in DEFAULT_XLA_FLAGS.items() if name not in flags]

@@ -21,8 +21,8 @@ from sdrl_bench.rl import jax_nets
 
 OFF_CPU_PARITY = ("CI tests the compiled step and agents on the CPU only; on an H200 (jax 0.11.2) the jitted "
                   "SINDy steps of 5 built-in envs matched ModelEnv's (at most 1.5e-12), the NN steps to their CPU "
-                  "tolerances, and the agents' updates SB3's (the swing-up not run there), but training was not "
-                  "bit-reproducible from one process to the next (docs/compiled.md, 'On a GPU')")
+                  "tolerances, and the agents' updates SB3's (the swing-up not run there); no agent was trained "
+                  "there beyond the tests' budgets (docs/compiled.md, 'On a GPU')")
 """What was measured off the CPU (the tests marked ``jax``, run on an H200 on 2026-11-30), quoted by
 ``backend_note`` where a run is about to train there."""
 

@@ -215,7 +215,7 @@ def test_a_backend_started_before_the_harness_flags_is_warned_of():
     early = run("import jax; jax.numpy.ones(2).block_until_ready()")
     assert early.returncode == 0, early.stderr[-2000:]
     said = [line for line in early.stderr.splitlines() if "started before sdrl_bench set XLA_FLAGS" in line]
-    assert len(said) == 1 and said[0].count("--xla_cpu") == len(DEFAULT_XLA_FLAGS), early.stderr[-2000:]
+    assert len(said) == 1 and all(flag in said[0] for flag in DEFAULT_XLA_FLAGS.values()), early.stderr[-2000:]
     assert "probe: JAX's backend" in said[0]
 
     through = run("import jax")  # imported, not started
