@@ -176,6 +176,12 @@ class EnvSpec:
         self._check_actions()
         if self.max_episode_steps <= 0:
             raise ConfigError("env.spec.max_episode_steps must be positive")
+        try:
+            float_obs = np.issubdtype(np.dtype(self.obs_dtype), np.floating)
+        except TypeError:
+            float_obs = False
+        if not float_obs:
+            raise ConfigError(f"env.spec.obs_dtype: a float type (float32, float64) is required, got {self.obs_dtype!r}")
         if isinstance(self.reset_seed_bits, bool) or not isinstance(self.reset_seed_bits, int) \
                 or not 16 <= self.reset_seed_bits <= 64:
             raise ConfigError(f"env.spec.reset_seed_bits: an integer in [16, 64] is required, got {self.reset_seed_bits!r}")

@@ -97,15 +97,18 @@ def round_through(values: Any, dtype: Any) -> Any:
     """``values`` rounded to ``dtype`` (a float type) and back to float64, in their own array module.
 
     On numpy: ``astype(dtype).astype(float64)``. On jax arrays and tracers:
-    ``jax.lax.reduce_precision`` to ``dtype``'s exponent and mantissa bits, the same bits as that
-    pair of conversions on the CPU (float32's subnormals flushed to zero by both), but an op that
-    XLA keeps: inside ``jit`` its GPU compiler removes a float64 -> float32 -> float64 pair of
-    conversions (excess precision, allowed by default), and the compiled step then skipped the
-    real env's float32 observation (docs/compiled.md, On a GPU). float64 is returned as it is."""
+    ``jax.lax.reduce_precision`` to ``dtype``'s exponent and mantissa bits: the same bits as jax's
+    own pair of conversions on the CPU, and as numpy's but for float32's subnormals (below 1.2e-38),
+    which XLA's CPU flushes to zero either way; but an op that XLA keeps: inside ``jit`` its GPU
+    compiler removes a float64 -> float32 -> float64 pair of conversions (excess precision, allowed
+    by default), and the compiled step then skipped the real env's float32 observation
+    (docs/compiled.md, On a GPU). To float64: a float64 copy."""
+    if not np.issubdtype(np.dtype(dtype), np.floating):
+        raise TypeError(f"round_through: {dtype!r} is not a float type")
     xp = array_namespace(values)
     values = xp.asarray(values, dtype=xp.float64)
     if np.dtype(dtype) == np.float64:
-        return values
+        return values.copy() if xp is np else values
     if xp is np:
         return values.astype(dtype).astype(np.float64)
     import jax  # noqa: PLC0415  (already imported: the values are jax's)

@@ -97,7 +97,8 @@ DETERMINISTIC_GPU = "--xla_gpu_deterministic_ops=true"
 process to the next, no reductions by atomics). Without it, on an H200 (jax 0.11.2, 2026-11-30), a
 fresh process trained the compiled PPO to other bits than the test's own process
 (``test_through_the_lowering_cache_training_is_what_it_is_compiled_directly``); with it, every
-process of that test trained the same bits. Its cost there was not measured. The CPU ignores it."""
+process of that test trained the same bits (one run). Its cost there was not measured. The CPU
+ignores it."""
 
 DEFAULT_XLA_FLAGS = {"xla_cpu_multi_thread_eigen": SINGLE_THREAD_MATMULS, "xla_cpu_prefer_vector_width": WIDE_VECTORS,
                      "xla_gpu_deterministic_ops": DETERMINISTIC_GPU}
@@ -107,8 +108,8 @@ MATMUL_PRECISION_VAR = "JAX_DEFAULT_MATMUL_PRECISION"
 """Where unset, ``jax_modules`` sets JAX's default matmul precision to ``highest``: float32
 products in full precision, as SB3's torch computes them (its default on a GPU too: TF32 off for
 matmuls). JAX's own default multiplies float32 in TF32 on a GPU; on an H200 (2026-11-30) the
-compiled PPO's and SAC's updates and policies then left SB3's beyond the tests' tolerances (11 of
-the agents' tests failed there), and with ``highest`` they held. On the CPU it changes no program's
+compiled PPO's and SAC's updates and policies then left SB3's beyond the tests' tolerances (12 of
+the agents' tests failed there; with ``highest``, 1: bits across processes, ``DETERMINISTIC_GPU``). On the CPU it changes no program's
 code (the same compiled HLO, the precision annotated)."""
 
 

@@ -56,8 +56,11 @@ def init_net(key: Any, n_obs: int, n_act: int, cfg: PPOConfig | None = None, dis
     the value; zero biases; log-std ``cfg.log_std_init`` (one per action, or with gSDE one per
     (latent feature, action), SB3's ``full_std``). float32. ``discrete``: a categorical policy
     over ``n_act`` actions (the actor's outputs are its logits; no log-std)."""
+    from sdrl_bench.rl.jax_ppo import PPOConfig  # noqa: PLC0415  (jax_ppo imports this module)
+
     jax, jnp, _ = modules()
-    use_sde, log_std_init = bool(getattr(cfg, "use_sde", False)), float(getattr(cfg, "log_std_init", 0.0))
+    cfg = cfg or PPOConfig()
+    use_sde, log_std_init = cfg.use_sde, cfg.log_std_init
     net: dict[str, Any] = {}
     layers = mlp_layers(n_obs, n_act)
     keys = iter(jax.random.split(key, sum(len(v) for v in layers.values())))

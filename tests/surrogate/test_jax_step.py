@@ -182,7 +182,8 @@ def test_the_float32_observation_is_one_op_xla_keeps_with_numpys_values():
     float32 -> float64 pair of conversions, which XLA's GPU compiler drops inside jit (an H200,
     2026-11-30: the pair 4.8e-7 off numpy's, and the jitted steps 1.3e-7 to 1.4e-5 off ModelEnv's;
     with this op, 0: docs/compiled.md). Its values are numpy's pair's, eager and jitted, overflow
-    and non-finite values included; float64 passes as it is."""
+    and non-finite values included (float32's subnormals aside, which XLA's CPU flushes to zero,
+    as its own pair did: none drawn here); float64 passes as it is; an integer type is refused."""
     from sdrl_bench.envs.functional import round_through  # noqa: PLC0415
 
     model, spec, data = fitted("mountain_car")
@@ -196,6 +197,10 @@ def test_the_float32_observation_is_one_op_xla_keeps_with_numpys_values():
     for got in (round_through(jnp.asarray(x), np.float32), jax.jit(lambda v: round_through(v, np.float32))(x)):
         assert got.dtype == jnp.float64 and np.array_equal(np.asarray(got), ref, equal_nan=True)
     assert np.array_equal(np.asarray(round_through(jnp.asarray(x), np.float64)), x, equal_nan=True)
+    kept = round_through(x, np.float64)
+    assert kept is not x and np.array_equal(kept, x, equal_nan=True)
+    with pytest.raises(TypeError, match="round_through: .* is not a float type"):
+        round_through(x, np.int64)
     program = jax.jit(step).lower(*draw(spec, data)).as_text()
     assert program.count("reduce_precision") == 1 and "f32" not in program
 
@@ -280,6 +285,9 @@ def test_a_reward_written_for_numpy_alone_is_one_line_naming_its_key():
 
 def test_the_task_functions_draw_resets_from_a_jax_key():
     """The reset distributions from a jax PRNG key (jit-able), distributed as the numpy draws."""
+    from sdrl_bench.models.jax_eval import jax_modules  # noqa: PLC0415
+
+    jax_modules()  # float64 on, as every compiled program of the harness starts jax (whatever ran before here)
     for env in PLAIN:
         spec = fitted(env)[1]
         fn = resolve(spec.initial_state_fn, "env.spec.initial_state_fn")

@@ -78,9 +78,11 @@ def test_the_jax_step_of_an_nn_surrogate_is_the_model_envs_step(env, kind):
             assert dx <= 2.5e-7 and dr <= 1e-4, (dx, dr)
     if env == "lunar_lander":  # landers that crash or leave, and landers that fly on
         assert ref[2].any() and not ref[2].all()
-    # every product at full precision (a GPU's default multiplies float32 in TF32: 1e-5 to 1e-4
-    # off ModelEnv's on an H200, 2026-11-30)
-    products = [line for line in jax.jit(stepper.step).lower(s, a, aux).as_text().splitlines() if "dot_general" in line]
+    # every product at full precision, asked for by the step itself whatever the process's default
+    # (a GPU's default multiplies float32 in TF32: 1e-5 to 1e-4 off ModelEnv's on an H200, 2026-11-30)
+    with jax.default_matmul_precision("default"):
+        program = jax.jit(lambda s_, a_, x_: stepper.step(s_, a_, x_)).lower(s, a, aux).as_text()
+    products = [line for line in program.splitlines() if "dot_general" in line]
     assert products and all("precision = [HIGHEST, HIGHEST]" in line for line in products), products
 
 

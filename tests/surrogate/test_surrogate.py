@@ -413,6 +413,10 @@ def test_bad_models_and_specs_fail_at_construction_naming_the_culprit(mc_model, 
         SurrogateEnv(tmp_path / "broken.json", "mountain_car")
     with pytest.raises(ConfigError, match="state_low must be below"):
         MountainCarSpec(state_low=(0.6, -0.07), state_high=(-1.2, 0.07))
+    for bad in ("int32", "floot32"):  # the observation's dtype: a float type, else one line naming the key
+        with pytest.raises(ConfigError, match=rf"^env.spec.obs_dtype: a float type \(float32, float64\) is required, got '{bad}'$"):
+            MountainCarSpec(obs_dtype=bad)
+    assert MountainCarSpec(obs_dtype="float64").round_obs(np.array([0.1]))[0] == 0.1
     with pytest.raises(ConfigError, match=r"env.spec.state_low\[0\] = -5.0 \(x\) lies outside"):
         SurrogateEnv(mc_model, MountainCarSpec(state_low=(-5.0, -0.07)))
     with pytest.raises(ConfigError, match="defines no reward"):
