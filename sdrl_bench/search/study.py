@@ -363,7 +363,7 @@ def run_study(
         uri, settings.experiment, settings.name, redact(storage_url),
         {"env": sd.spec.name, "sampler": settings.sampler, "objectives": ",".join(settings.objectives),
          "search.objective": settings.objective,
-         "git_commit": tracking.git_commit()},
+         **tracking.standard_tags("sdrl-bench-search")},  # git_commit as every run's (the checkout's from elsewhere)
     )
     result = WorkerResult(study, settings, sd, parent, uri, storage_url)
     remaining = settings.n_trials - n_counted(study)

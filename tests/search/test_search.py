@@ -268,6 +268,23 @@ def test_journal_storage_resumes_too(tmp_path, uri):
 
 
 
+def test_a_study_run_from_outside_the_checkout_names_the_harness_commit(tmp_path, uri, monkeypatch):
+    """A study's parent run carries the standard tags every other run has: its git_commit is the
+    working directory's repository's, else the sdrl_bench checkout's (it read "unknown" when the
+    search ran from a folder that is no repository, as scripts/reproduce.py's stages do)."""
+    from sdrl_bench.tracking import meta
+
+    outside = tmp_path / "elsewhere"
+    outside.mkdir()
+    monkeypatch.chdir(outside)
+    result, _ = run_search(search_cfg(tmp_path, uri, "study.name=commit", "search.n_trials=2",
+                                      "study.final_score=false"), quiet=True)
+    tags = MlflowClient(uri).get_run(result.parent_run_id).data.tags
+    assert meta.git_commit(outside) == "unknown" and meta.package_commit() != "unknown"
+    assert tags["git_commit"] == tags["mlflow.source.git.commit"] == meta.package_commit()
+    assert tags["mlflow.source.name"] == "sdrl-bench-search" and tags["sdrl.kind"] == "study"
+
+
 def test_a_resumed_study_draws_new_points_not_its_first_ones_again(tmp_path, uri):
     """TPE's first trials are random draws from the sampler's seed; a rerun seeded as at the
     start drew them again (trial 3 ran trial 0's parameters). A resumed study's sampler has a
