@@ -11,7 +11,10 @@ which this study's runs do not add: they measure, they are not a variant to repo
 2026-11-25 on this machine (``--seeds 1,2,8,9 --stick 0.07``; the own-data runs of the reference
 report beside): seed 1 solved at 18,467 real steps (own data: not solved, 51,269), seed 2 at
 45,547 (own data: 53,452, past the budget), seed 9 at 33,739 with audit 242.8 (own data: a lucky
-confirmation, audit 197.4), seed 8 not solved in either (audit 176.9 / 182.1).
+confirmation, audit 197.4), seed 8 not solved in either (audit 176.9 / 182.1). Rerun 2026-11-30
+at d35d35f on that build's own-data failures (``--seeds 2,8,9``): all three solved and confirmed
+by the audit, at 21,749 / 31,933 / 19,246 real steps (audits 235.6 / 201.0 / 203.3; own data:
+49,907 a lucky confirmation, 58,033 past the budget, 11,550 a lucky confirmation).
 """
 
 from __future__ import annotations
