@@ -191,3 +191,25 @@ def test_the_selection_table_gives_each_picks_agents_an_iqm_and_ci():
     rows = {r[1].text: r for r in blocks[-1].rows}
     assert rows["one_step"][3].text.startswith("IQM 45.0 [") and rows["onpolicy_one_step"][3].text.startswith("IQM -504.5 [")
     assert fs.points(runs).empty  # the selection's clusters stay out of the correlation population
+
+
+def test_the_agent_ceiling_is_a_guide_that_a_perfect_metric_passes():
+    """One agent's return against the other agents' mean: 1 when the surrogate alone decides the
+    return, lower as the agents' own luck grows; an error that is the surrogate's quality itself
+    passes it, since a metric is set against all the agents' mean (the report says "a guide")."""
+    rng = np.random.default_rng(3)
+    quality = rng.normal(size=60)
+
+    def frame(luck):
+        returns = [list(q + luck * rng.normal(size=3)) for q in quality]
+        return pd.DataFrame({"env": "a", "cluster": np.arange(60) // 2, "family": "sindy", "model": "m",
+                             "agent_returns": returns, "real_return": [float(np.mean(r)) for r in returns],
+                             "one_step": np.exp(-quality)})
+
+    agree, _, _, n = fs.agent_ceiling(frame(0.0), n_boot=200)
+    assert n == 60 and agree == pytest.approx(1.0)
+    noisy = frame(1.0)
+    ceiling, lo, hi, _ = fs.agent_ceiling(noisy, n_boot=200)
+    metric = fs.cluster_bootstrap(noisy, "one_step", n_boot=200)[0]
+    assert 0.2 < ceiling < 0.8 and lo < ceiling < hi
+    assert metric > ceiling + 0.1
