@@ -14,7 +14,9 @@ report beside): seed 1 solved at 18,467 real steps (own data: not solved, 51,269
 confirmation, audit 197.4), seed 8 not solved in either (audit 176.9 / 182.1). Rerun 2026-11-30
 at d35d35f on that build's own-data failures (``--seeds 2,8,9``): all three solved and confirmed
 by the audit, at 21,749 / 31,933 / 19,246 real steps (audits 235.6 / 201.0 / 203.3; own data:
-49,907 a lucky confirmation, 58,033 past the budget, 11,550 a lucky confirmation).
+49,907 a lucky confirmation, 58,033 past the budget, 11,550 a lucky confirmation); on the other
+seven (``--seeds 0,1,3,4,5,6,7``) six solved and confirmed (24,967 / 35,191 / 19,542 / 37,419 /
+16,206 / 23,977 for seeds 0, 1, 3-6), seed 7 past the budget (55,723, audit 245.5; own data 38,950).
 """
 
 from __future__ import annotations
