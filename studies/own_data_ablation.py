@@ -28,13 +28,17 @@ RUNNER = """
 import sys
 from dataclasses import replace
 import sdrl_bench.envs.lunar_lander.own_data as od
-learn, stick = od.learn_rules, float(sys.argv[1])
-def fixed(rules, data, discrete=True):
-    rules, learned = learn(rules, data, discrete)
-    return replace(rules, stick=stick), {**learned, "rules.stick": stick}
-od.learn_rules = fixed
+what, value = sys.argv[1], float(sys.argv[2])
+if what == "band":
+    od.STICK_BAND = int(value)
+else:
+    learn = od.learn_rules
+    def fixed(rules, data, discrete=True):
+        rules, learned = learn(rules, data, discrete)
+        return replace(rules, stick=value), {**learned, "rules.stick": value}
+    od.learn_rules = fixed
 from sdrl_bench.cli.main import main
-sys.argv = ["sdrl-bench", *sys.argv[2:]]
+sys.argv = ["sdrl-bench", *sys.argv[3:]]
 main()
 """
 
@@ -42,7 +46,10 @@ main()
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", default="1,2,8,9")
-    ap.add_argument("--stick", type=float, default=0.07, help="rules.stick in every refit (default: the calibrated prior)")
+    how = ap.add_mutually_exclusive_group()
+    how.add_argument("--stick", type=float, default=0.07, help="rules.stick in every refit (default: the calibrated prior)")
+    how.add_argument("--band", type=int, default=None,
+                     help="instead, learn rules.stick with this band of own_data.choose_stick (STICK_BAND)")
     ap.add_argument("--uri", default="sqlite:///runs/own_ablation/mlflow.db")
     args = ap.parse_args()
     from sdrl_bench.cli.args import run_child, seed_list, store
@@ -50,7 +57,8 @@ def main() -> None:
     seeds = seed_list(ap, args.seeds)
     store(ap, args.uri)
     for seed in seeds:
-        cmd = [sys.executable, "-c", RUNNER, str(args.stick), "experiment=dyna_lunar_lander_own", f"seed={seed}",
+        what = ["stick", str(args.stick)] if args.band is None else ["band", str(args.band)]
+        cmd = [sys.executable, "-c", RUNNER, *what, "experiment=dyna_lunar_lander_own", f"seed={seed}",
                f"tracking.uri={args.uri}", "tracking.experiment=own-data-ablation", "progress_bar=false"]
         run_child(cmd)  # stopped with this script
 

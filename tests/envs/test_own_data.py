@@ -14,7 +14,7 @@ from helpers import compose_cfg, search
 from sdrl_bench.cli.build import build_dyna_job, build_fit_job
 from sdrl_bench.data import collect, heuristic_policy, held_out_test_set
 from sdrl_bench.envs.lunar_lander import LunarLanderSpec, task
-from sdrl_bench.envs.lunar_lander.own_data import learn_rules
+from sdrl_bench.envs.lunar_lander.own_data import STICK_GRID, choose_stick, learn_rules
 from sdrl_bench.envs.lunar_lander.spec import FLIGHT_NOISE_FLOOR
 from sdrl_bench.envs.lunar_lander.task import LanderRules
 from sdrl_bench.pipeline import fit_dynamics
@@ -56,6 +56,18 @@ def test_contact_rules_from_1000_heuristic_transitions_predict_held_out_contact(
     assert np.all(own[2:4] < still[2:4])  # vx, vy (angvel on the legs: neither model beats the copy)
     velocities = [2, 3, 5]  # vx, vy, angvel
     assert np.all(own[velocities] < calibrated[velocities])  # than the prior fitted on 102,914 other real steps
+
+
+def test_the_stiction_is_chosen_off_the_edge_where_replayed_landings_stop_resting():
+    """Two landings that rest only from grid rows 3 and 4 on, each timed worse as the stiction
+    grows (the surrogate rests them early): the least mean error is on the edge (row 4), a band
+    of two rows moves the choice two rows up, and a run whose landings no candidate rests keeps 0."""
+    never = 301.0
+    rows = np.arange(len(STICK_GRID))
+    errors = np.stack([np.where(rows >= 3, rows - 3.0, never), np.where(rows >= 4, 2.0 * (rows - 4), never)], axis=1)
+    assert choose_stick(errors) == 4
+    assert choose_stick(errors, band=2) == 6 and STICK_GRID[6] == pytest.approx(0.06)
+    assert choose_stick(np.full((len(STICK_GRID), 3), never)) == 0
 
 
 def test_own_data_fit_learns_the_scale_drops_the_fitted_priors_and_counts_none():

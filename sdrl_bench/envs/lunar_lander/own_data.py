@@ -14,8 +14,8 @@ data cannot identify keeps its prior value (that prior's real steps then still c
   needs ``MIN_SETTLE_ROWS``;
 * ``stick``: the stiction that best times the real rests (+100) of the run's landings, each
   rolled on the legs from its first both-legs state with the real actions (the surrogate's
-  settle step and sleep counter); needs one real rest (when no candidate times any, 0: no
-  stiction);
+  settle step and sleep counter; ``choose_stick``); needs one real rest (when no candidate
+  times any, 0: no stiction);
 * ``touchdown_speed``: none (infinite): the touchdown event's outcome model, learned from the
   run's own touchdowns by the generic event code, decides crash or survive.
 
@@ -42,6 +42,10 @@ LEG_GRID = ((0.0, 0.05, 0.1, 0.15, 0.2, 0.3), np.round(np.arange(-0.03, 0.0301, 
             np.round(np.arange(0.0, 0.101, 0.025), 4))
 """(tilt, touch height, release height) candidates of the leg rule (the calibration study's grid)."""
 STICK_GRID = tuple(np.round(np.arange(0.0, 0.1501, 0.01), 3))
+STICK_BAND = 0
+"""Grid steps below a stiction candidate whose rest timings count too, each landing scoring the
+worst of the band's (``choose_stick``); 0: the least mean error. A band of 2 was measured and not
+kept (docs/dyna.md, "What they fail to identify"; ``studies/own_data_ablation.py --band 2``)."""
 MAX_ROLL = 300
 
 
@@ -99,10 +103,10 @@ def _landings(data: Any) -> list[tuple[np.ndarray, int]]:
     return out
 
 
-def rest_timing(rules: LanderRules, data: Any, landings: list, discrete: bool = True) -> float:
-    """Mean |predicted - real| rest step over ``landings``, each rolled on the legs from its first
-    both-legs state with its real actions (a flight step, after a lift-off, takes the real next
-    state); a landing the rollout never rests counts its length."""
+def rest_errors(rules: LanderRules, data: Any, landings: list, discrete: bool = True) -> np.ndarray:
+    """|predicted - real| rest step of each of ``landings``, each rolled on the legs from its
+    first both-legs state with its real actions (a flight step, after a lift-off, takes the real
+    next state); a landing the rollout never rests counts its length."""
     errs = []
     for rows, real in landings:
         step = task.make_step_batch(rules, discrete, [1e9] * 6, [-np.inf] * 8, [np.inf] * 8)
@@ -117,7 +121,21 @@ def rest_timing(rules: LanderRules, data: Any, landings: list, discrete: bool = 
                 got = t if reward[0] == 100.0 else len(rows) + MAX_ROLL
                 break
         errs.append(abs(got - real))
-    return float(np.mean(errs))
+    return np.asarray(errs, float)
+
+
+def choose_stick(errors: np.ndarray, band: int = 0) -> int:
+    """The row of ``errors`` (stiction grid x landings, ``rest_errors``) whose mean over the
+    landings of the worst error over itself and the ``band`` rows below is least (ties: the
+    smaller stiction); ``band=0`` is the least mean error.
+
+    Why a band: every stiction that rests a replayed landing rests it early, so the mean error
+    alone is least at an edge, the smallest stiction that still rests the run's landings, where
+    landings in states the replays did not visit may not rest. A band asks a candidate to time
+    its landings with the values below it too, which moves the choice off that edge."""
+    e = np.asarray(errors, float)
+    worst = np.stack([e[max(0, g - band):g + 1].max(axis=0) for g in range(len(e))])
+    return int(np.argmin(worst.mean(axis=1)))
 
 
 def learn_rules(rules: LanderRules, data: Any, discrete: bool = True) -> tuple[LanderRules, dict[str, float]]:
@@ -140,8 +158,9 @@ def learn_rules(rules: LanderRules, data: Any, discrete: bool = True) -> tuple[L
         learned["rules.settle"] = float(len(settle))
     landings = _landings(data)
     if landings:
-        scores = [(rest_timing(replace(rules, stick=float(v)), data, landings, discrete), float(v)) for v in STICK_GRID]
-        err, stick = min(scores)  # no candidate rests any landing: stick 0 (no stiction), timing unknown
+        errors = np.stack([rest_errors(replace(rules, stick=float(v)), data, landings, discrete) for v in STICK_GRID])
+        g = choose_stick(errors, STICK_BAND)  # none rests any landing: stick 0 (no stiction), timing unknown
+        stick, err = float(STICK_GRID[g]), float(errors[g].mean())
         rules = replace(rules, stick=stick)
         learned.update({"rules.stick": stick, "rules.rest_timing_error": err if err < MAX_ROLL else math.nan,
                         "rules.rests": float(len(landings))})
