@@ -17,6 +17,10 @@ by the audit, at 21,749 / 31,933 / 19,246 real steps (audits 235.6 / 201.0 / 203
 49,907 a lucky confirmation, 58,033 past the budget, 11,550 a lucky confirmation); on the other
 seven (``--seeds 0,1,3,4,5,6,7``) six solved and confirmed (24,967 / 35,191 / 19,542 / 37,419 /
 16,206 / 23,977 for seeds 0, 1, 3-6), seed 7 past the budget (55,723, audit 245.5; own data 38,950).
+On fresh seeds (``--seeds 10-19`` in two halves, 2026-12-01) 9 of 10 judged solved in the budget,
+against 5 for own data alone; ``--band 2`` (stiction learned off the rest timing's edge) 7 of 10.
+Over seeds 0-19 the prior's value uses fewer real steps than own data alone on 16 of 20 (Wilcoxon
+p = 0.007), the band on 11 (p = 0.45): docs/dyna.md, "What they fail to identify".
 """
 
 from __future__ import annotations
