@@ -59,6 +59,8 @@ def main() -> None:
     from sdrl_bench.cli.args import run_child, seed_list, store
 
     seeds = seed_list(ap, args.seeds)
+    if args.band is not None and args.band < 0:
+        ap.error(f"--band: grid steps, 0 or more, are required, got {args.band}")
     store(ap, args.uri)
     for seed in seeds:
         what = ["stick", str(args.stick)] if args.band is None else ["band", str(args.band)]
